@@ -1,0 +1,294 @@
+"""The 14-parameter sensor model of thesis section 2.3.2 (eqs. 2-1..2-6, 2-21, 2-22).
+
+A sensor is a camera or a projector. Its parameters, in this order, are
+
+    x0, y0, z0          pinhole in world coordinates (mm)
+    omega, phi, kappa   Euler angles of eq. 2-6 (rad), x' = R (x - x0)
+    xi_H, eta_H         principal point on the image plane (mm)
+    c                   principal distance (mm)
+    k1, k2, k3          radial distortion (mm^-2, mm^-4, mm^-6)
+    p1, p2              tangential distortion (mm^-1)
+
+Projection (world -> image plane, mm)::
+
+    x' = R (X - X0)
+    x = -c x'/z',  y = -c y'/z'                  ideal, relative to (xi_H, eta_H)
+    r^2 = x^2 + y^2,  q = k1 r^2 + k2 r^4 + k3 r^6
+    dx = x q + p1 (r^2 + 2 x^2) + 2 p2 x y       (Brown-Conrady)
+    dy = y q + p2 (r^2 + 2 y^2) + 2 p1 x y
+    xi = xi_H + x + dx,  eta = eta_H + y + dy    eq. 2-4
+
+Decision (the thesis leaves it open: eq. 2-2 evaluates the distortion at the measured
+coordinate, which then appears on both sides of eq. 2-4): distortion is a function of
+the *ideal* coordinates, as in Brown's model and OpenCV, so projecting a world point
+is closed-form and back-projecting an image point (a pixel or a projector phase pair)
+solves ``u + d(u) = m`` by Newton's method. Points in front of a sensor have z' > 0
+(the thesis rig has omega ~ -pi, so its sensors look along world -z).
+
+Image-plane coordinates: camera pixels by eq. 2-21 with 0-based column ``u`` and row
+``v`` (``xi = (u/(M-1) - 1/2) N_x``, ``eta = (v/(N-1) - 1/2) N_y``); projector phases
+by eq. 2-22 (``xi = tau_x N_x / 2 pi``, ``eta = tau_y N_y / 2 pi``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+
+from .frames import Frame
+from .rotation import rotation_matrix
+
+__all__ = [
+    "PARAM_NAMES",
+    "PARAM_COLUMNS",
+    "SensorFormat",
+    "Sensor",
+    "distort",
+    "undistort",
+    "UndistortError",
+]
+
+PARAM_NAMES = (
+    "x0", "y0", "z0", "omega", "phi", "kappa",
+    "xi_h", "eta_h", "c", "k1", "k2", "k3", "p1", "p2",
+)
+#: Table column for each parameter, with its unit (DESIGN.md: units in column names).
+PARAM_COLUMNS = (
+    "x0_mm", "y0_mm", "z0_mm", "omega_rad", "phi_rad", "kappa_rad",
+    "xi_h_mm", "eta_h_mm", "c_mm", "k1_per_mm2", "k2_per_mm4", "k3_per_mm6",
+    "p1_per_mm", "p2_per_mm",
+)
+
+Role = Literal["camera", "projector"]
+
+
+class UndistortError(ArithmeticError):
+    """Newton's method did not converge: the point lies where the model folds over."""
+
+
+@dataclass(frozen=True)
+class SensorFormat:
+    """Pixel count and physical size of the image plane (CCD or SLM).
+
+    >>> cam = SensorFormat(2048, 2048, 15.1, 15.1)
+    >>> cam.pixel_to_mm(np.array([[0.0, 0.0], [2047.0, 2047.0]]))
+    array([[-7.55, -7.55],
+           [ 7.55,  7.55]])
+    >>> prj = SensorFormat(1400, 1050, 19.0, 14.3)
+    >>> prj.phase_to_mm(np.array([np.pi, -np.pi / 2]))
+    array([ 9.5  , -3.575])
+    """
+
+    width_px: int
+    height_px: int
+    width_mm: float
+    height_mm: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, columns)."""
+        return (self.height_px, self.width_px)
+
+    @property
+    def size_mm(self) -> np.ndarray:
+        return np.array([self.width_mm, self.height_mm])
+
+    def pixel_to_mm(self, uv) -> np.ndarray:
+        """Eq. 2-21: 0-based (column u, row v), shape (..., 2) -> image plane mm."""
+        uv = np.asarray(uv, float)
+        n = np.array([self.width_px - 1, self.height_px - 1], float)
+        return (uv / n - 0.5) * self.size_mm
+
+    def mm_to_pixel(self, xy) -> np.ndarray:
+        """Inverse of :meth:`pixel_to_mm`."""
+        xy = np.asarray(xy, float)
+        n = np.array([self.width_px - 1, self.height_px - 1], float)
+        return (xy / self.size_mm + 0.5) * n
+
+    def phase_to_mm(self, tau) -> np.ndarray:
+        """Eq. 2-22: (tau_x, tau_y) in rad, shape (..., 2) -> image plane mm."""
+        return np.asarray(tau, float) / (2 * np.pi) * self.size_mm
+
+    def mm_to_phase(self, xy) -> np.ndarray:
+        """Inverse of :meth:`phase_to_mm`."""
+        return np.asarray(xy, float) / self.size_mm * (2 * np.pi)
+
+    def contains_mm(self, xy) -> np.ndarray:
+        """True where an image-plane point (..., 2) lies on the sensor."""
+        xy = np.asarray(xy, float)
+        half = self.size_mm / 2
+        return np.all(np.abs(xy) <= half, axis=-1)
+
+
+def _distortion_terms(x, y, k, p):
+    r2 = x * x + y * y
+    q = r2 * (k[0] + r2 * (k[1] + r2 * k[2]))
+    dx = x * q + p[0] * (r2 + 2 * x * x) + 2 * p[1] * x * y
+    dy = y * q + p[1] * (r2 + 2 * y * y) + 2 * p[0] * x * y
+    return r2, q, dx, dy
+
+
+def distort(xy, k, p) -> np.ndarray:
+    """Ideal -> distorted coordinates relative to the principal point, (..., 2) mm."""
+    xy = np.asarray(xy, float)
+    x, y = xy[..., 0], xy[..., 1]
+    _, _, dx, dy = _distortion_terms(x, y, k, p)
+    return np.stack([x + dx, y + dy], axis=-1)
+
+
+def undistort(xy, k, p, tol: float = 1e-13, max_iter: int = 30) -> np.ndarray:
+    """Distorted -> ideal coordinates relative to the principal point, by Newton.
+
+    Solves ``u + d(u) = m`` per point; converges quadratically (3-4 iterations for
+    the thesis lenses). Raises :class:`UndistortError` if any point fails to converge.
+
+    >>> k, p = (-2.74e-5, 1.11e-7, -1.04e-9), (-3.04e-5, 1.46e-5)
+    >>> u = np.array([[5.0, -6.0]])
+    >>> bool(np.allclose(undistort(distort(u, k, p), k, p), u, atol=1e-12))
+    True
+    """
+    m = np.asarray(xy, float)
+    if not any(k) and not any(p):
+        return m.copy()
+    mx, my = m[..., 0], m[..., 1]
+    x, y = mx.copy(), my.copy()
+    k1, k2, k3 = k
+    for _ in range(max_iter):
+        r2, q, dx, dy = _distortion_terms(x, y, k, p)
+        fx = x + dx - mx
+        fy = y + dy - my
+        g = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d q / d(r^2)
+        j11 = 1 + q + 2 * x * x * g + 6 * p[0] * x + 2 * p[1] * y
+        j22 = 1 + q + 2 * y * y * g + 6 * p[1] * y + 2 * p[0] * x
+        j12 = 2 * x * y * g + 2 * p[0] * y + 2 * p[1] * x
+        det = j11 * j22 - j12 * j12
+        sx = (j22 * fx - j12 * fy) / det
+        sy = (j11 * fy - j12 * fx) / det
+        x -= sx
+        y -= sy
+        if np.all(np.abs(sx) + np.abs(sy) <= tol * (1 + np.abs(x) + np.abs(y))):
+            break
+    # Not converged, or converged onto a branch beyond a fold of the model (the
+    # Jacobian of u -> u + d(u) no longer positive): both are points the lens model
+    # cannot invert, so refuse rather than return a wrong ray.
+    bad = ~(np.abs(sx) + np.abs(sy) <= 1e3 * tol * (1 + np.abs(x) + np.abs(y))) | ~((det > 0) & (j11 + j22 > 0))
+    if np.any(bad):
+        raise UndistortError(
+            f"undistortion did not converge for {int(np.sum(bad))} point(s), e.g. "
+            f"{m[bad][:1].tolist()} mm: the distortion model folds over there"
+        )
+    return np.stack([x, y], axis=-1)
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """A camera or projector: format plus the 14 parameters.
+
+    Examples
+    --------
+    >>> cam = Sensor("C1", "camera", SensorFormat(2048, 2048, 15.1, 15.1),
+    ...              [694.018, -211.648, 2585.78, -3.037, -0.264, 3.139,
+    ...               -0.060, 0.291, 52.701, -2.74e-5, 1.11e-7, -1.04e-9, -3.04e-5, 1.46e-5])
+    >>> X = np.array([[-300.0, 100.0, -200.0]])
+    >>> o, d = cam.rays(cam.project(X))
+    >>> float(np.linalg.norm(np.cross(X - o, d))) < 1e-9
+    True
+    """
+
+    name: str
+    role: Role
+    format: SensorFormat
+    params: np.ndarray = field(repr=False)
+
+    def __post_init__(self):
+        p = np.asarray(self.params, float).reshape(14)
+        p.setflags(write=False)
+        object.__setattr__(self, "params", p)
+        if self.role not in ("camera", "projector"):
+            raise ValueError(f"sensor {self.name!r}: role must be camera or projector, not {self.role!r}")
+
+    # -- parameter views -------------------------------------------------
+    @property
+    def pinhole(self) -> np.ndarray:
+        return self.params[0:3]
+
+    @property
+    def angles(self) -> np.ndarray:
+        return self.params[3:6]
+
+    @property
+    def principal_point(self) -> np.ndarray:
+        return self.params[6:8]
+
+    @property
+    def c(self) -> float:
+        return float(self.params[8])
+
+    @property
+    def k(self) -> np.ndarray:
+        return self.params[9:12]
+
+    @property
+    def p(self) -> np.ndarray:
+        return self.params[12:14]
+
+    @property
+    def R(self) -> np.ndarray:
+        """Rotation sensor <- world (eq. 2-5)."""
+        return rotation_matrix(*self.angles)
+
+    @property
+    def frame(self) -> Frame:
+        """T_world_sensor."""
+        return Frame(self.pinhole, self.angles)
+
+    def with_params(self, params) -> "Sensor":
+        return replace(self, params=np.asarray(params, float))
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(PARAM_NAMES, map(float, self.params)))
+
+    # -- geometry -----------------------------------------------------------
+    def to_sensor(self, points_world) -> np.ndarray:
+        """World points (..., 3) -> sensor frame x' (..., 3)."""
+        return (np.asarray(points_world, float) - self.pinhole) @ self.R.T
+
+    def project(self, points_world) -> np.ndarray:
+        """World points (..., 3) -> distorted image-plane coordinates (..., 2) in mm.
+
+        Points behind the sensor (z' <= 0) come out as NaN.
+        """
+        xs = self.to_sensor(points_world)
+        z = xs[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ideal = -self.c * xs[..., :2] / z[..., None]
+        ideal = np.where((z > 0)[..., None], ideal, np.nan)
+        return distort(ideal, self.k, self.p) + self.principal_point
+
+    def directions_local(self, image_mm) -> np.ndarray:
+        """Image-plane mm (..., 2) -> unnormalised ray directions (-x, -y, c) in the sensor frame."""
+        ideal = undistort(np.asarray(image_mm, float) - self.principal_point, self.k, self.p)
+        d = np.empty(ideal.shape[:-1] + (3,))
+        d[..., :2] = -ideal
+        d[..., 2] = self.c
+        return d
+
+    def rays(self, image_mm) -> tuple[np.ndarray, np.ndarray]:
+        """Image-plane mm (..., 2) -> (origin (3,), unit directions (..., 3)) in world."""
+        d = self.directions_local(image_mm) @ self.R  # R^T d for row vectors
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return self.pinhole.copy(), d
+
+    def image_mm(self, measured) -> np.ndarray:
+        """Camera pixels (u, v) or projector phases (tau_x, tau_y) -> image-plane mm."""
+        if self.role == "camera":
+            return self.format.pixel_to_mm(measured)
+        return self.format.phase_to_mm(measured)
+
+    def measured(self, image_mm) -> np.ndarray:
+        """Image-plane mm -> camera pixels or projector phases (inverse of :meth:`image_mm`)."""
+        if self.role == "camera":
+            return self.format.mm_to_pixel(image_mm)
+        return self.format.mm_to_phase(image_mm)
