@@ -1,0 +1,164 @@
+"""Scanners (one camera + one projector) and rigs of any number of scanners.
+
+A :class:`Rig` holds the sensors with their parameters and, per parameter, whether
+the bundle adjustment may change it (``free``, shape (n_sensors, 14)). It converts
+to and from the sensor-parameter table of DESIGN.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
+
+from .sensor import PARAM_COLUMNS, PARAM_NAMES, Sensor, SensorFormat
+
+__all__ = ["Scanner", "Rig", "load_rig"]
+
+
+@dataclass(frozen=True)
+class Scanner:
+    """A camera/projector pair."""
+
+    name: str
+    camera: Sensor
+    projector: Sensor
+
+    @property
+    def sensors(self) -> tuple[Sensor, Sensor]:
+        return (self.camera, self.projector)
+
+
+@dataclass(frozen=True)
+class Rig:
+    """Scanners, the reference scanner and per-parameter free flags.
+
+    ``free[i, j]`` says whether parameter ``PARAM_NAMES[j]`` of ``sensors[i]`` is
+    adjusted; sensors are ordered scanner by scanner, camera first.
+    """
+
+    scanners: tuple[Scanner, ...]
+    reference: str
+    free: np.ndarray = field(default=None, repr=False)
+    uncertainty: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        names = [s.name for s in self.scanners]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate scanner names {names}")
+        if self.reference not in names:
+            raise ValueError(f"reference scanner {self.reference!r} is not one of {names}")
+        sensor_names = [s.name for s in self.sensors]
+        if len(set(sensor_names)) != len(sensor_names):
+            raise ValueError(f"duplicate sensor names {sensor_names}")
+        free = self.free
+        if free is None:
+            free = self.default_free(self.scanners, self.reference)
+        free = np.asarray(free, bool).reshape(len(self.sensors), 14)
+        object.__setattr__(self, "free", free)
+
+    @staticmethod
+    def default_free(scanners, reference) -> np.ndarray:
+        """All free but the reference camera's six external parameters (as the thesis)."""
+        n = 2 * len(scanners)
+        free = np.ones((n, 14), bool)
+        for i, s in enumerate(scanners):
+            if s.name == reference:
+                free[2 * i, :6] = False
+        return free
+
+    @property
+    def sensors(self) -> tuple[Sensor, ...]:
+        return tuple(x for s in self.scanners for x in s.sensors)
+
+    def scanner(self, name: str) -> Scanner:
+        for s in self.scanners:
+            if s.name == name:
+                return s
+        raise KeyError(f"no scanner {name!r} in rig (have {[s.name for s in self.scanners]})")
+
+    @property
+    def params(self) -> np.ndarray:
+        """Parameters of every sensor, shape (n_sensors, 14)."""
+        return np.stack([s.params for s in self.sensors])
+
+    def with_params(self, params, uncertainty=None) -> "Rig":
+        params = np.asarray(params, float).reshape(len(self.sensors), 14)
+        scanners = tuple(
+            Scanner(s.name, s.camera.with_params(params[2 * i]), s.projector.with_params(params[2 * i + 1]))
+            for i, s in enumerate(self.scanners)
+        )
+        return replace(self, scanners=scanners, uncertainty=uncertainty)
+
+    # -- table conversion ------------------------------------------------
+    def to_frame(self) -> pd.DataFrame:
+        rows = []
+        for si, (scanner, sensor) in enumerate(
+            (sc, se) for sc in self.scanners for se in sc.sensors
+        ):
+            row = {"sensor": sensor.name, "scanner": scanner.name, "role": sensor.role}
+            row.update(dict(zip(PARAM_COLUMNS, map(float, sensor.params))))
+            row.update(dict(zip(FREE_COLUMNS, map(bool, self.free[si]))))
+            f = sensor.format
+            row.update(width_px=f.width_px, height_px=f.height_px, width_mm=f.width_mm, height_mm=f.height_mm)
+            if self.uncertainty is not None:
+                row.update({f"u_{c}": float(u) for c, u in zip(PARAM_COLUMNS, self.uncertainty[si])})
+            rows.append(row)
+        return pd.DataFrame(rows)
+
+    @classmethod
+    def from_frame(cls, df: pd.DataFrame, reference: str | None = None, source: str = "<sensors>",
+                   formats: dict[str, SensorFormat] | None = None) -> "Rig":
+        """Build a rig from a sensor-parameter table (validated).
+
+        Each scanner needs exactly one camera and one projector row. Sensor formats come
+        from the table's ``width_px, height_px, width_mm, height_mm`` columns or ``formats``.
+        ``reference`` defaults to the scanner whose camera has all six external
+        parameters fixed, else the first scanner.
+        """
+        df = validate_table(df, SensorParametersTable, source)
+        formats = formats or {}
+        problems = []
+        scanners = []
+        free_rows = []
+        unc_rows = []
+        has_u = all(f"u_{c}" in df.columns for c in PARAM_COLUMNS)
+        for name, g in df.groupby("scanner", sort=False):
+            roles = list(g["role"])
+            if sorted(roles) != ["camera", "projector"]:
+                lines = [int(i) + 2 for i in g.index]
+                problems.append((lines[0], "role", f"scanner {name!r} needs one camera and one projector, "
+                                                   f"found {roles} (lines {lines})"))
+                continue
+            pair = {}
+            for i, r in g.iterrows():
+                fmt = formats.get(r["sensor"])
+                if fmt is None:
+                    if not all(c in df.columns and not pd.isna(r[c]) for c in ("width_px", "height_px", "width_mm", "height_mm")):
+                        problems.append((int(i) + 2, "width_px", f"sensor {r['sensor']!r} has no format "
+                                                                "(width_px, height_px, width_mm, height_mm)"))
+                        continue
+                    fmt = SensorFormat(int(r["width_px"]), int(r["height_px"]), float(r["width_mm"]), float(r["height_mm"]))
+                pair[r["role"]] = (Sensor(r["sensor"], r["role"], fmt, r[list(PARAM_COLUMNS)].to_numpy(float)),
+                                   r[list(FREE_COLUMNS)].to_numpy(bool),
+                                   r[[f"u_{c}" for c in PARAM_COLUMNS]].to_numpy(float) if has_u else None)
+            if len(pair) == 2:
+                scanners.append(Scanner(str(name), pair["camera"][0], pair["projector"][0]))
+                free_rows += [pair["camera"][1], pair["projector"][1]]
+                unc_rows += [pair["camera"][2], pair["projector"][2]]
+        if problems:
+            raise TableError(source, problems)
+        if reference is None:
+            reference = next((s.name for s, f in zip(scanners, free_rows[::2]) if not f[:6].any()),
+                             scanners[0].name)
+        unc = np.stack(unc_rows) if has_u else None
+        return cls(tuple(scanners), reference, np.stack(free_rows), unc)
+
+
+def load_rig(path, reference: str | None = None) -> Rig:
+    """Read a sensor-parameter CSV into a :class:`Rig`."""
+    return Rig.from_frame(read_csv_text(path), reference=reference, source=str(Path(path)))

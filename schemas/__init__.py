@@ -1,0 +1,17 @@
+"""Table contracts (pandera) shared by fringecal, tasks and flows."""
+
+from .tables import (  # noqa: F401
+    FREE_COLUMNS,
+    ArtefactTable,
+    PosePlanTable,
+    PosesTable,
+    RodsTable,
+    SensorParametersTable,
+    SphereCentresTable,
+    TableError,
+    ThermalLogTable,
+    read_csv_text,
+    read_table,
+    validate_table,
+    write_table,
+)

@@ -1,0 +1,342 @@
+"""Pandera models for every table that crosses a boundary (DESIGN.md, table contracts).
+
+Extra columns are allowed; the listed ones are required. Identifiers (sphere,
+rod, measurement, scanner, sensor) are strings, so a ball-bar's ``A``/``B`` and the
+thesis's ``1``..``15`` live in the same column type.
+
+:func:`read_table` reads a CSV and validates it with lazy error collection; every
+problem is reported in one :class:`TableError` naming the file, the line (the header
+is line 1) and the column, and the rule that broke.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import pandas as pd
+import pandera.pandas as pa
+from pandera.typing import Series
+
+from fringecal.sensor import PARAM_NAMES, PARAM_COLUMNS
+
+__all__ = [
+    "TableError",
+    "ArtefactTable",
+    "RodsTable",
+    "SphereCentresTable",
+    "PosesTable",
+    "PosePlanTable",
+    "SensorParametersTable",
+    "ThermalLogTable",
+    "read_table",
+    "read_csv_text",
+    "validate_table",
+    "write_table",
+    "FREE_COLUMNS",
+]
+
+FREE_COLUMNS = tuple(f"free_{n}" for n in PARAM_NAMES)
+
+
+class TableError(ValueError):
+    """A table broke its contract. ``problems`` lists (line, column, message)."""
+
+    def __init__(self, source: str, problems: list[tuple[Optional[int], Optional[str], str]]):
+        self.source = source
+        self.problems = problems
+        lines = [f"{source}: {len(problems)} problem(s)"]
+        for line, column, message in problems[:50]:
+            where = []
+            if line is not None:
+                where.append(f"line {line}")
+            if column is not None:
+                where.append(f"column '{column}'")
+            lines.append(f"  {', '.join(where) or 'table'}: {message}")
+        if len(problems) > 50:
+            lines.append(f"  ... and {len(problems) - 50} more")
+        super().__init__("\n".join(lines))
+
+
+class _Base(pa.DataFrameModel):
+    class Config:
+        coerce = True
+        strict = False
+
+    #: columns holding identifiers, read as text
+    _id_columns = ()
+    #: column sets that must be unique together (beyond single-field uniqueness)
+    _unique_together = ()
+
+
+class ArtefactTable(_Base):
+    """Artefact definition: one row per sphere, centre in the CMM frame."""
+
+    sphere_id: Series[str] = pa.Field(unique=True, str_length={"min_value": 1})
+    x_mm: Series[float] = pa.Field()
+    y_mm: Series[float] = pa.Field()
+    z_mm: Series[float] = pa.Field()
+    diameter_mm: Series[float] = pa.Field(gt=0)
+    u_mm: Optional[Series[float]] = pa.Field(ge=0)
+
+    _id_columns = ("sphere_id",)
+
+
+class RodsTable(_Base):
+    """Rods joining spheres, with CMM-measured centre-to-centre lengths."""
+
+    rod_id: Series[str] = pa.Field(unique=True)
+    sphere_a: Series[str] = pa.Field()
+    sphere_b: Series[str] = pa.Field()
+    length_mm: Series[float] = pa.Field(gt=0)
+
+    _id_columns = ("rod_id", "sphere_a", "sphere_b")
+
+
+class SphereCentresTable(_Base):
+    """Measured sphere centres, one row per (measurement, scanner, sphere)."""
+
+    measurement: Series[str] = pa.Field()
+    scanner: Series[str] = pa.Field()
+    sphere_id: Series[str] = pa.Field()
+    x_mm: Series[float] = pa.Field()
+    y_mm: Series[float] = pa.Field()
+    z_mm: Series[float] = pa.Field()
+    radius_mm: Optional[Series[float]] = pa.Field(gt=0)
+    rms_mm: Optional[Series[float]] = pa.Field(ge=0)
+    n_points: Optional[Series[int]] = pa.Field(ge=0)
+
+    _id_columns = ("measurement", "scanner", "sphere_id")
+    _unique_together = (("measurement", "scanner", "sphere_id"),)
+
+
+class PosesTable(_Base):
+    """Artefact poses T_world_artefact per (measurement, scanner)."""
+
+    measurement: Series[str] = pa.Field()
+    scanner: Series[str] = pa.Field()
+    tx_mm: Series[float] = pa.Field()
+    ty_mm: Series[float] = pa.Field()
+    tz_mm: Series[float] = pa.Field()
+    omega_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    phi_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    kappa_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    rms_mm: Series[float] = pa.Field(ge=0)
+    n_spheres: Series[int] = pa.Field(ge=3)
+
+    _id_columns = ("measurement", "scanner")
+    _unique_together = (("measurement", "scanner"),)
+
+
+class SensorParametersTable(_Base):
+    """The 14 parameters of every sensor, with a fixed/free flag per parameter.
+
+    Free flags are columns ``free_<name>`` (``free_x0`` .. ``free_p2``), true when
+    the bundle adjustment may change the parameter. ``u_<column>`` columns, when
+    present, hold standard uncertainties.
+    """
+
+    sensor: Series[str] = pa.Field(unique=True)
+    scanner: Series[str] = pa.Field()
+    role: Series[str] = pa.Field(isin=["camera", "projector"])
+    x0_mm: Series[float] = pa.Field()
+    y0_mm: Series[float] = pa.Field()
+    z0_mm: Series[float] = pa.Field()
+    omega_rad: Series[float] = pa.Field()
+    phi_rad: Series[float] = pa.Field()
+    kappa_rad: Series[float] = pa.Field()
+    xi_h_mm: Series[float] = pa.Field()
+    eta_h_mm: Series[float] = pa.Field()
+    c_mm: Series[float] = pa.Field(gt=0)
+    k1_per_mm2: Series[float] = pa.Field()
+    k2_per_mm4: Series[float] = pa.Field()
+    k3_per_mm6: Series[float] = pa.Field()
+    p1_per_mm: Series[float] = pa.Field()
+    p2_per_mm: Series[float] = pa.Field()
+    free_x0: Series[bool] = pa.Field()
+    free_y0: Series[bool] = pa.Field()
+    free_z0: Series[bool] = pa.Field()
+    free_omega: Series[bool] = pa.Field()
+    free_phi: Series[bool] = pa.Field()
+    free_kappa: Series[bool] = pa.Field()
+    free_xi_h: Series[bool] = pa.Field()
+    free_eta_h: Series[bool] = pa.Field()
+    free_c: Series[bool] = pa.Field()
+    free_k1: Series[bool] = pa.Field()
+    free_k2: Series[bool] = pa.Field()
+    free_k3: Series[bool] = pa.Field()
+    free_p1: Series[bool] = pa.Field()
+    free_p2: Series[bool] = pa.Field()
+    width_px: Optional[Series[int]] = pa.Field(gt=1)
+    height_px: Optional[Series[int]] = pa.Field(gt=1)
+    width_mm: Optional[Series[float]] = pa.Field(gt=0)
+    height_mm: Optional[Series[float]] = pa.Field(gt=0)
+
+    _id_columns = ("sensor", "scanner", "role")
+
+
+class PosePlanTable(_Base):
+    """Artefact poses T_world_artefact per measurement, planned or true (no fit statistics)."""
+
+    measurement: Series[str] = pa.Field(unique=True)
+    tx_mm: Series[float] = pa.Field()
+    ty_mm: Series[float] = pa.Field()
+    tz_mm: Series[float] = pa.Field()
+    omega_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    phi_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    kappa_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+
+    _id_columns = ("measurement",)
+
+
+class ThermalLogTable(_Base):
+    """A cooling log: time, temperature and a measured length."""
+
+    time_s: Series[float] = pa.Field(ge=0)
+    temperature_c: Series[float] = pa.Field(ge=-50, le=150)
+    length_mm: Series[float] = pa.Field(gt=0)
+
+
+_BOOL_TEXT = {"true": True, "1": True, "yes": True, "free": True,
+              "false": False, "0": False, "no": False, "fixed": False}
+
+
+def _required_and_optional(model) -> tuple[list[str], list[str]]:
+    schema = model.to_schema()
+    req = [n for n, c in schema.columns.items() if c.required]
+    opt = [n for n, c in schema.columns.items() if not c.required]
+    return req, opt
+
+
+def _describe_check(check: str) -> str:
+    check = str(check)
+    if check.startswith("coerce_dtype") or check.startswith("dtype"):
+        kind = check.split("(")[-1].rstrip(")").strip("'")
+        return "is not " + ("a number" if "float" in kind else
+                            "an integer" if "int" in kind else
+                            "true/false" if "bool" in kind else f"of type {kind}")
+    if check == "field_uniqueness":
+        return "is a duplicate"
+    if check.startswith("greater_than_or_equal_to("):
+        return "must be >= " + check[len("greater_than_or_equal_to("):-1]
+    if check.startswith("greater_than("):
+        return "must be > " + check[len("greater_than("):-1]
+    if check.startswith("less_than_or_equal_to("):
+        return "must be <= " + check[len("less_than_or_equal_to("):-1]
+    if check.startswith("isin("):
+        return "must be one of " + check[len("isin("):-1]
+    if check.startswith("str_length"):
+        return "must not be empty"
+    if check == "not_nullable":
+        return "is missing"
+    return f"breaks rule {check}"
+
+
+def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataFrame:
+    """Validate a DataFrame against ``model``; return the coerced copy.
+
+    Row numbers in messages are CSV lines (header = line 1) assuming ``df`` has a
+    default RangeIndex in file order.
+    """
+    req, opt = _required_and_optional(model)
+    problems: list[tuple[Optional[int], Optional[str], str]] = []
+    missing = [c for c in req if c not in df.columns]
+    if missing:
+        raise TableError(source, [(None, None, f"missing required column(s) {missing}; "
+                                   f"found {list(map(str, df.columns))}")])
+    df = df.reset_index(drop=True).copy()
+    for col in list(req) + [c for c in opt if c in df.columns]:
+        s = df[col]
+        if s.dtype == object or pd.api.types.is_string_dtype(s):
+            text = s.astype(str).str.strip()
+            empty = s.isna() | text.eq("") | text.str.lower().isin(["nan", "none", "null", "na"])
+            if col.startswith("free_"):
+                low = text.str.lower()
+                bad = ~low.isin(list(_BOOL_TEXT)) & ~empty
+                for i in np.flatnonzero(bad.to_numpy()):
+                    problems.append((i + 2, col, f"value {s.iloc[i]!r} is not true/false"))
+                df[col] = low.map(_BOOL_TEXT)
+            elif col in model._id_columns:
+                df[col] = text
+        else:
+            empty = s.isna()
+        for i in np.flatnonzero(empty.to_numpy()):
+            problems.append((i + 2, col, "value is missing (empty or NaN)"))
+    for group in model._unique_together:
+        if all(c in df.columns for c in group):
+            dup = df.duplicated(list(group), keep=False)
+            first: dict[tuple, int] = {}
+            for i in np.flatnonzero(dup.to_numpy()):
+                key = tuple(df.loc[i, list(group)])
+                if key in first:
+                    problems.append((i + 2, ", ".join(group),
+                                     f"duplicate {dict(zip(group, key))} (first on line {first[key] + 2})"))
+                else:
+                    first[key] = i
+    try:
+        out = model.validate(df, lazy=True)
+    except pa.errors.SchemaErrors as err:
+        fc = err.failure_cases
+        seen = set()
+        for _, r in fc.iterrows():
+            idx = r.get("index")
+            line = int(idx) + 2 if idx is not None and not pd.isna(idx) else None
+            col = r.get("column")
+            col = None if col is None or pd.isna(col) else str(col)
+            check = str(r.get("check"))
+            value = r.get("failure_case")
+            if check in ("not_nullable",) or (line is not None and (line, col) in
+                                              {(p[0], p[1]) for p in problems}):
+                continue  # already reported as missing
+            if check.startswith("dtype") and (line, col) in seen:
+                continue
+            seen.add((line, col))
+            if check == "field_uniqueness" and line is not None:
+                firsts = df.index[df[col].astype(str) == str(value)]
+                first_line = int(firsts[0]) + 2
+                if first_line == line:
+                    continue
+                problems.append((line, col, f"value {value!r} is a duplicate (first on line {first_line})"))
+                continue
+            if check == "column_in_dataframe":
+                problems.append((None, str(value), "required column is missing"))
+                continue
+            problems.append((line, col, f"value {value!r} {_describe_check(check)}"))
+        if not problems:
+            problems.append((None, None, str(err)))
+    if problems:
+        problems.sort(key=lambda p: (p[0] or 0, p[1] or ""))
+        raise TableError(source, problems)
+    return out
+
+
+def read_csv_text(path) -> pd.DataFrame:
+    """Read a CSV with every cell as text (validation coerces types and names bad cells)."""
+    path = Path(path)
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True,
+                         comment=None)
+    except FileNotFoundError:
+        raise TableError(str(path), [(None, None, "file not found")]) from None
+    except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as err:
+        raise TableError(str(path), [(None, None, f"not a readable CSV table ({err})")]) from None
+    df.columns = [c.strip() for c in df.columns]
+    return df
+
+
+def read_table(path, model) -> pd.DataFrame:
+    """Read a CSV and validate it against ``model`` (one error naming every problem)."""
+    return validate_table(read_csv_text(path), model, str(path))
+
+
+def write_table(df: pd.DataFrame, path, model=None) -> Path:
+    """Validate (when ``model`` is given) and write atomically (temporary name, then rename)."""
+    path = Path(path)
+    if model is not None:
+        df = validate_table(df, model, str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    df.to_csv(tmp, index=False, float_format="%.10g")
+    tmp.replace(path)
+    return path
