@@ -1,0 +1,1 @@
+"""Prefect task adapters: load refs -> call fringecal -> write outputs -> return refs."""
