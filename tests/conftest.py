@@ -1,0 +1,55 @@
+"""Shared fixtures. Prefect state (database, results, cache keys) lives in a
+temporary folder for the whole session, never in the user's ~/.prefect."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+_PREFECT_TMP = Path(tempfile.mkdtemp(prefix="fringecal-prefect-"))
+os.environ["PREFECT_HOME"] = str(_PREFECT_TMP / "home")
+os.environ["PREFECT_LOCAL_STORAGE_PATH"] = str(_PREFECT_TMP / "storage")
+os.environ["PREFECT_RESULTS_LOCAL_STORAGE_PATH"] = str(_PREFECT_TMP / "storage")
+os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
+os.environ["PREFECT_LOGGING_LEVEL"] = "WARNING"
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+THESIS = ROOT / "configs" / "thesis"
+
+
+@pytest.fixture(scope="session")
+def thesis_dir() -> Path:
+    return THESIS
+
+
+@pytest.fixture(scope="session")
+def thesis_rig():
+    from fringecal.rig import load_rig
+
+    return load_rig(THESIS / "sensors_refined_table6-8.csv")
+
+
+@pytest.fixture(scope="session")
+def thesis_artefact():
+    from fringecal.artefact import load_artefact
+
+    return load_artefact(THESIS / "artefact_cmm2.csv")
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    """One temporary Prefect server for every flow test of the session."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=120):
+        yield
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)

@@ -1,0 +1,84 @@
+"""Calibration file (XML + JSON) and the legacy artefact definition: lossless round trips."""
+
+import numpy as np
+import pytest
+
+from fringecal.artefact import read_legacy_definition, write_legacy_definition
+from fringecal.calibration_file import (CalibrationFileError, read_calibration_json, read_calibration_xml,
+                                        write_calibration_json, write_calibration_xml)
+from fringecal.rig import Rig
+from schemas import TableError
+
+
+def perturbed_rig(rig: Rig, rng) -> Rig:
+    params = rig.params * (1 + rng.normal(size=rig.params.shape) * 1e-7)  # full-precision floats
+    unc = np.abs(rng.normal(size=rig.params.shape)) * 1e-3
+    return rig.with_params(params, uncertainty=unc)
+
+
+def test_xml_and_json_round_trip_bit_for_bit(tmp_path, thesis_rig, rng):
+    rig = perturbed_rig(thesis_rig, rng)
+    for write, read, name in [(write_calibration_xml, read_calibration_xml, "cal.xml"),
+                              (write_calibration_json, read_calibration_json, "cal.json")]:
+        write(rig, tmp_path / name, metadata={"rms_eps2_mm": 0.087})
+        back = read(tmp_path / name)
+        np.testing.assert_array_equal(back.params, rig.params)
+        np.testing.assert_array_equal(back.uncertainty, rig.uncertainty)
+        np.testing.assert_array_equal(back.free, rig.free)
+        assert back.reference == rig.reference
+        assert [(s.name, s.role, s.format) for s in back.sensors] == [(s.name, s.role, s.format) for s in rig.sensors]
+    assert not list(tmp_path.glob(".*tmp"))
+
+
+def test_xml_is_hierarchical_per_scanner(tmp_path, thesis_rig):
+    import xml.etree.ElementTree as ET
+
+    write_calibration_xml(thesis_rig, tmp_path / "cal.xml")
+    root = ET.parse(tmp_path / "cal.xml").getroot()
+    assert [s.get("name") for s in root.findall("scanner")] == ["scanner1", "scanner2"]
+    c1 = root.find("scanner/sensor[@name='C1']")
+    assert c1.get("role") == "camera"
+    assert c1.find("external/x0").text == "694.018" and c1.find("external/x0").get("free") == "false"
+    assert c1.find("distortion/k1").get("unit") == "mm^-2"
+
+
+def test_malformed_calibration_files(tmp_path, thesis_rig):
+    p = tmp_path / "cal.xml"
+    write_calibration_xml(thesis_rig, p)
+    p.write_text(p.read_text().replace(">52.701<", ">fifty<"))
+    with pytest.raises(CalibrationFileError, match="sensor 'C1' <c>: not a number: 'fifty'"):
+        read_calibration_xml(p)
+    p.write_text("<calibration><scanner")
+    with pytest.raises(CalibrationFileError, match="not well-formed"):
+        read_calibration_xml(p)
+
+
+def test_legacy_definition_round_trip(tmp_path, thesis_artefact):
+    p = tmp_path / "artefact.def"
+    write_legacy_definition(thesis_artefact, p)
+    lines = p.read_text().splitlines()
+    assert len(lines) == 60  # 15 spheres x 4 rows, as section 6.6
+    assert lines[0].split() == ["x", "0", "0.0", "0.01"]
+    assert lines[3].split()[:3] == ["r", "0", repr(49.998 / 2)]
+    art, flags = read_legacy_definition(p, ids=thesis_artefact.ids)
+    np.testing.assert_array_equal(art.centres, thesis_artefact.centres)
+    np.testing.assert_array_equal(art.diameters, thesis_artefact.diameters)
+    assert flags.shape == (15, 4) and not flags.any()
+
+
+def test_legacy_definition_reads_thesis_example(tmp_path):
+    p = tmp_path / "example.def"
+    p.write_text("x\t1\t600\t0\ny\t1\t600\t0\nz\t1\t600\t0\nr\t1\t25\t0\n")
+    art, flags = read_legacy_definition(p)
+    assert art.ids == ("1",) and art.centres.tolist() == [[600, 600, 600]] and art.diameters.tolist() == [50]
+    assert flags.all()
+
+
+def test_legacy_definition_errors(tmp_path):
+    p = tmp_path / "bad.def"
+    p.write_text("x\t1\t600\t0\ny\t1\t600\t0\nq\t1\t600\t0\nr\t1\t25\t0\n")
+    with pytest.raises(TableError, match=r"line 3, column 'description': expected 'z', found 'q'"):
+        read_legacy_definition(p)
+    p.write_text("x\t1\t600\t0\ny\t1\t600\n")
+    with pytest.raises(TableError, match="line 2: expected 4 columns"):
+        read_legacy_definition(p)
