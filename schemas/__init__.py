@@ -3,6 +3,7 @@
 from .tables import (  # noqa: F401
     FREE_COLUMNS,
     ArtefactTable,
+    ControlPointsTable,
     PosePlanTable,
     PosesTable,
     RodsTable,

@@ -30,6 +30,7 @@ __all__ = [
     "PosePlanTable",
     "SensorParametersTable",
     "ThermalLogTable",
+    "ControlPointsTable",
     "read_table",
     "read_csv_text",
     "validate_table",
@@ -188,6 +189,21 @@ class PosePlanTable(_Base):
     kappa_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
 
     _id_columns = ("measurement",)
+
+
+class ControlPointsTable(_Base):
+    """Control points of the bundle adjustment (section 6.4): a camera pixel on a
+    fitted sphere, the decoded projector phases there, and the sphere it lies on."""
+
+    measurement: Series[str] = pa.Field()
+    scanner: Series[str] = pa.Field()
+    sphere_id: Series[str] = pa.Field()
+    u_px: Series[float] = pa.Field(ge=0)
+    v_px: Series[float] = pa.Field(ge=0)
+    tau_x_rad: Series[float] = pa.Field(ge=-np.pi - 1e-9, le=np.pi + 1e-9)
+    tau_y_rad: Series[float] = pa.Field(ge=-np.pi - 1e-9, le=np.pi + 1e-9)
+
+    _id_columns = ("measurement", "scanner", "sphere_id")
 
 
 class ThermalLogTable(_Base):

@@ -1,0 +1,1 @@
+"""Fringe patterns: the projected sequence (contract), decoding and image stacks."""
