@@ -1,0 +1,54 @@
+"""``fringecal verify``: VDI/VDE 2634 evaluations of exported measurements."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.table import Table
+
+from .cli import console, guarded
+
+app = typer.Typer(no_args_is_help=True, help="Verification per VDI/VDE 2634 (parts 2 and 3).")
+
+
+@app.command("ballbar")
+@guarded
+def ballbar(
+    centres: Path = typer.Option(..., "--centres", "-c", help="Sphere centres CSV with spheres A and B per measurement."),
+    reference_length_mm: float = typer.Option(..., "--reference-length-mm", "-L", help="Calibrated centre distance."),
+    volume_diagonal_mm: Optional[float] = typer.Option(None, "--volume-diagonal-mm", "-D", help="Measurement volume diagonal."),
+    mpe_mm: Optional[float] = typer.Option(None, "--mpe-mm", help="Maximum permissible length error."),
+    certificate_u_mm: float = typer.Option(0.0, "--certificate-u-mm", help="Expanded uncertainty of the reference length (certificate)."),
+    certificate_k: float = typer.Option(2.0, "--certificate-k", help="Coverage factor of the certificate value."),
+    coverage_factor: float = typer.Option(1.96, "--k", help="Coverage factor of the stated uncertainty."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+):
+    """Length error of a ball-bar per position: mean, max |error|, one part in N of the diagonal."""
+    from fringecal.verification import ballbar_lengths, evaluate_ballbar
+    from schemas import read_table, SphereCentresTable
+
+    table = read_table(centres, SphereCentresTable)
+    lengths = ballbar_lengths(table, str(centres))
+    result = evaluate_ballbar(lengths.length_mm, reference_length_mm, lengths.measurement, mpe_mm,
+                              volume_diagonal_mm, certificate_u_mm, certificate_k, coverage_factor)
+    if as_json:
+        print(json.dumps(result.to_dict(), indent=2))
+        return
+    t = Table(title=f"ball-bar, reference {reference_length_mm:.4f} mm")
+    for c in ("position", "length (mm)", "error (um)", "pass"):
+        t.add_column(c, justify="right")
+    for r in result.positions.itertuples():
+        t.add_row(str(r.measurement), f"{r.length_mm:.4f}", f"{r.error_mm * 1000:+.1f}",
+                  "yes" if r._4 else "[red]no[/]")
+    console.print(t)
+    console.print(f"mean length {result.mean_length_mm:.4f} mm "
+                  f"(error {1000 * (result.mean_length_mm - reference_length_mm):+.1f} um), "
+                  f"max |error| {result.max_abs_error_mm * 1000:.1f} um")
+    if result.one_part_in is not None:
+        console.print(f"max |error| = one part in {result.one_part_in:,.0f} of the {volume_diagonal_mm:.0f} mm diagonal")
+    console.print(result.uncertainty.sentence())
+    if mpe_mm is not None:
+        console.print("[green]PASS[/]" if result.passed else "[red]FAIL[/]")
