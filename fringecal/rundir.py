@@ -1,0 +1,124 @@
+"""The run directory: one object that owns every path of a run (DESIGN.md, storage).
+
+Layout::
+
+    RUN_DIR/
+      manifest.json            resolved config, its hash, package versions, input digests
+      artefact.csv             the artefact definition the run used (copied in)
+      measurements/<id>.zarr   one zarr v3 store per measurement (pose x scanner)
+      tables/<name>.csv        every table of every step
+      figures/<name>.png       report plots
+      calibration.xml, calibration.json
+      report.html, summary.json
+
+A measurement id is ``<pose>-<scanner>``: the thesis's 24 measurements are 12 artefact
+poses seen by two scanners.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import sys
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+__all__ = ["RunDir", "measurement_id", "package_versions", "write_json_atomic"]
+
+_PACKAGES = ("fringecal", "numpy", "scipy", "numba", "zarr", "xarray", "pandas", "pandera",
+             "opencv-python-headless", "prefect", "matplotlib", "pydantic")
+
+
+def measurement_id(pose: str, scanner: str) -> str:
+    """``<pose>-<scanner>``, e.g. ``01-scanner1``."""
+    return f"{pose}-{scanner}"
+
+
+def package_versions() -> dict[str, str]:
+    out = {"python": sys.version.split()[0], "platform": platform.platform()}
+    for name in _PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
+def write_json_atomic(path, obj) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
+    tmp.replace(path)
+    return path
+
+
+@dataclass(frozen=True)
+class RunDir:
+    """Paths of one run. Creating the object touches nothing; :meth:`create` makes folders."""
+
+    root: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "root", Path(self.root))
+
+    def create(self) -> "RunDir":
+        for d in (self.root, self.measurements_dir, self.tables_dir, self.figures_dir):
+            d.mkdir(parents=True, exist_ok=True)
+        return self
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def artefact(self) -> Path:
+        return self.root / "artefact.csv"
+
+    @property
+    def measurements_dir(self) -> Path:
+        return self.root / "measurements"
+
+    @property
+    def tables_dir(self) -> Path:
+        return self.root / "tables"
+
+    @property
+    def figures_dir(self) -> Path:
+        return self.root / "figures"
+
+    @property
+    def calibration_xml(self) -> Path:
+        return self.root / "calibration.xml"
+
+    @property
+    def calibration_json(self) -> Path:
+        return self.root / "calibration.json"
+
+    @property
+    def report(self) -> Path:
+        return self.root / "report.html"
+
+    @property
+    def summary(self) -> Path:
+        return self.root / "summary.json"
+
+    def store(self, measurement: str) -> Path:
+        return self.measurements_dir / f"{measurement}.zarr"
+
+    def table(self, name: str) -> Path:
+        return self.tables_dir / f"{name}.csv"
+
+    def figure(self, name: str) -> Path:
+        return self.figures_dir / f"{name}.png"
+
+    def read_manifest(self) -> dict:
+        if not self.manifest.exists():
+            raise FileNotFoundError(f"{self.root} is not a run directory: {self.manifest.name} is missing")
+        return json.loads(self.manifest.read_text())
+
+    @staticmethod
+    def config_digest(config: dict) -> str:
+        return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()
