@@ -104,6 +104,11 @@ def pose(
         err_console.print(f"[yellow]skipped[/] measurement {s['measurement']}, scanner {s['scanner']}: {s['reason']}")
 
 
+from flows.cli_hexapod import app as _hexapod_app  # noqa: E402  (sub-app, imports flows.cli lazily)
+
+app.add_typer(_hexapod_app, name="hexapod")
+
+
 def main():  # pragma: no cover - console entry point
     app()
 

@@ -1,0 +1,166 @@
+"""Workspace of the platform: strokes within the actuator travel, joints within their limits.
+
+A pose is inside the workspace when every leg's stroke ``L - retracted_length`` lies in
+``[0, stroke_mm]`` and every joint angle (angle between the leg and the joint's neutral
+axis, the leg direction at the home pose; fixed in BASE for base joints, in TOP for
+top joints) is at most the configured limit. :func:`axis_range` walks out from the home
+pose along one pose coordinate and names the constraint that stops it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import HexapodConfig
+from .kinematics import POSE_NAMES, leg_vectors, rotation_base_top
+
+__all__ = ["WorkspaceCheck", "check_poses", "AxisRange", "axis_range", "reach_report", "describe_violations"]
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _neutral_axes(config: HexapodConfig):
+    home = config.home_pose.vector
+    u = _unit(leg_vectors(config.platform, home))  # (6, 3) in BASE
+    R = rotation_base_top(*home[3:])
+    return u, u @ R  # base-fixed and top-fixed (R^T u) neutral axes
+
+
+@dataclass(frozen=True)
+class WorkspaceCheck:
+    """Per-pose workspace quantities, arrays with leading shape (...).
+
+    lengths_mm, strokes_mm, base_angles_rad, top_angles_rad : (..., 6)
+    margins : (..., 24) normalised margins (>= 0 inside) in the order
+        stroke low (legs 1..6), stroke high, base joint, top joint.
+    """
+
+    lengths_mm: np.ndarray
+    strokes_mm: np.ndarray
+    base_angles_rad: np.ndarray
+    top_angles_rad: np.ndarray
+    margins: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.all(self.margins >= 0, axis=-1)
+
+
+#: what each margin column means, for messages
+CONSTRAINTS = ([f"leg {i} stroke below 0 mm (fully retracted)" for i in range(1, 7)]
+               + [f"leg {i} stroke beyond full extension" for i in range(1, 7)]
+               + [f"base joint {i} angle beyond limit" for i in range(1, 7)]
+               + [f"top joint {i} angle beyond limit" for i in range(1, 7)])
+
+
+def check_poses(config: HexapodConfig, poses) -> WorkspaceCheck:
+    """Workspace quantities for platform poses (..., 6) (mm, rad)."""
+    poses = np.asarray(poses, float)
+    legs = leg_vectors(config.platform, poses)
+    lengths = np.linalg.norm(legs, axis=-1)
+    u = legs / lengths[..., None]
+    nb, nt = _neutral_axes(config)
+    R = rotation_base_top(poses[..., 3], poses[..., 4], poses[..., 5])
+    u_top = np.einsum("...ji,...lj->...li", R, u)  # R^T u per leg
+    base_ang = np.arccos(np.clip(np.sum(u * nb, axis=-1), -1.0, 1.0))
+    top_ang = np.arccos(np.clip(np.sum(u_top * nt, axis=-1), -1.0, 1.0))
+    act = config.actuator
+    strokes = lengths - act.retracted_length_mm
+    lim_b, lim_t = np.radians(config.joints.base_max_deg), np.radians(config.joints.top_max_deg)
+    margins = np.concatenate([
+        strokes / act.stroke_mm,
+        (act.stroke_mm - strokes) / act.stroke_mm,
+        (lim_b - base_ang) / lim_b,
+        (lim_t - top_ang) / lim_t,
+    ], axis=-1)
+    return WorkspaceCheck(lengths, strokes, base_ang, top_ang, margins)
+
+
+def describe_violations(config: HexapodConfig, check: WorkspaceCheck, index=()) -> list[str]:
+    """Readable list of the constraints one pose (``index`` into the leading axes) breaks."""
+    m = check.margins[index]
+    s = check.strokes_mm[index]
+    out = []
+    for k in np.flatnonzero(m < 0):
+        leg = k % 6
+        if k < 12:
+            out.append(f"leg {leg + 1} stroke {s[leg]:.2f} mm outside 0..{config.actuator.stroke_mm:g} mm")
+        elif k < 18:
+            out.append(f"base joint {leg + 1} at {np.degrees(check.base_angles_rad[index][leg]):.2f} deg "
+                       f"> {config.joints.base_max_deg:g} deg")
+        else:
+            out.append(f"top joint {leg + 1} at {np.degrees(check.top_angles_rad[index][leg]):.2f} deg "
+                       f"> {config.joints.top_max_deg:g} deg")
+    return out
+
+
+@dataclass(frozen=True)
+class AxisRange:
+    """Reach from the home pose along one pose coordinate.
+
+    ``lower``/``upper`` are offsets from home (mm, or rad for angles), each the last
+    feasible offset up to ``limit`` (in magnitude); ``lower_by``/``upper_by`` name the
+    constraint that stops the motion there, or ``None`` when ``limit`` itself is reached.
+    """
+
+    axis: str
+    lower: float
+    upper: float
+    lower_by: str | None
+    upper_by: str | None
+    limit: float
+
+    @property
+    def reaches_limit(self) -> bool:
+        return self.lower_by is None and self.upper_by is None
+
+
+def _walk(config, axis_index, sign, limit, step, tol):
+    home = config.home_pose.vector
+
+    def margin(x):
+        p = home.copy()
+        p[axis_index] += sign * x
+        return check_poses(config, p).margins
+
+    if np.min(margin(0.0)) < 0:
+        raise ValueError("the home pose itself is outside the workspace")
+    x_ok = 0.0
+    while x_ok < limit:
+        x_try = min(x_ok + step, limit)
+        if np.min(margin(x_try)) < 0:
+            lo, hi = x_ok, x_try
+            while hi - lo > tol:
+                mid = (lo + hi) / 2
+                lo, hi = (mid, hi) if np.min(margin(mid)) >= 0 else (lo, mid)
+            return lo, CONSTRAINTS[int(np.argmin(margin(hi)))]
+        x_ok = x_try
+    return limit, None
+
+
+def axis_range(config: HexapodConfig, axis: str, limit: float, step: float | None = None,
+               tol: float | None = None) -> AxisRange:
+    """Reach from the home pose along ``axis`` (one of px, py, pz, alpha, beta, gamma).
+
+    Walks out in ``step`` increments (default 1 mm or 0.1 deg) up to ``limit`` (mm or
+    rad) and bisects the first violation to ``tol`` (default 1e-3 mm or 1e-6 rad).
+    """
+    k = POSE_NAMES.index(axis)
+    angular = k >= 3
+    step = step or (np.radians(0.1) if angular else 1.0)
+    tol = tol or (1e-6 if angular else 1e-3)
+    up, up_by = _walk(config, k, +1, limit, step, tol)
+    lo, lo_by = _walk(config, k, -1, limit, step, tol)
+    return AxisRange(axis, -lo, up, lo_by, up_by, limit)
+
+
+def reach_report(config: HexapodConfig, translation_mm: float = 250.0,
+                 rotation_deg: float = 10.0) -> list[AxisRange]:
+    """Reach along each of the six pose coordinates from home: +-``translation_mm`` for
+    px, py, pz (the thesis's +-0.25 m target, section 4.1), +-``rotation_deg`` for the angles."""
+    return [axis_range(config, a, translation_mm if a in ("px", "py", "pz") else np.radians(rotation_deg))
+            for a in POSE_NAMES]
