@@ -123,7 +123,7 @@ class HexapodRig:
             for c, v in zip(cols, np.asarray(values).T):
                 df[c] = v
         df["reachable"] = check.ok
-        df["limits"] = ["; ".join(describe_violations(self.config, check, i)) or "none" for i in range(len(poses))]
+        df["limits"] = ["; ".join(describe_violations(self.config, check, i)) or "ok" for i in range(len(poses))]
         return df[PLAN_COLUMNS]
 
 

@@ -235,7 +235,7 @@ def _configure(name: str, opts: dict) -> SimulatedController:
         cfg = load_hexapod_config(opts.get("config"))
         act = cfg.actuator
         cpm = float(opts.get("counts_per_mm", act.counts_per_mm))
-        max_counts = int(opts.get("max_counts", act.max_counts))
+        max_counts = int(opts.get("max_counts", np.floor(act.stroke_mm * cpm + 1e-9)))
         start = opts.get("start", "home")
         if start == "home":
             stroke = inverse_kinematics(cfg.platform, cfg.home_pose.vector) - act.retracted_length_mm

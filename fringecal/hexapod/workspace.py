@@ -50,6 +50,10 @@ class WorkspaceCheck:
         return np.all(self.margins >= 0, axis=-1)
 
 
+#: rounding slack on the stroke ends, so that a leg exactly at 0 or full stroke (the
+#: HOME reference run, a target of MAX counts) passes after forward kinematics
+STROKE_SLACK_MM = 1e-6
+
 #: what each margin column means, for messages
 CONSTRAINTS = ([f"leg {i} stroke below 0 mm (fully retracted)" for i in range(1, 7)]
                + [f"leg {i} stroke beyond full extension" for i in range(1, 7)]
@@ -72,8 +76,8 @@ def check_poses(config: HexapodConfig, poses) -> WorkspaceCheck:
     strokes = lengths - act.retracted_length_mm
     lim_b, lim_t = np.radians(config.joints.base_max_deg), np.radians(config.joints.top_max_deg)
     margins = np.concatenate([
-        strokes / act.stroke_mm,
-        (act.stroke_mm - strokes) / act.stroke_mm,
+        (strokes + STROKE_SLACK_MM) / act.stroke_mm,
+        (act.stroke_mm + STROKE_SLACK_MM - strokes) / act.stroke_mm,
         (lim_b - base_ang) / lim_b,
         (lim_t - top_ang) / lim_t,
     ], axis=-1)
@@ -103,8 +107,9 @@ class AxisRange:
     """Reach from the home pose along one pose coordinate.
 
     ``lower``/``upper`` are offsets from home (mm, or rad for angles), each the last
-    feasible offset up to ``limit`` (in magnitude); ``lower_by``/``upper_by`` name the
-    constraint that stops the motion there, or ``None`` when ``limit`` itself is reached.
+    feasible offset up to ``limit`` (in magnitude, found to the bisection tolerance);
+    ``lower_by``/``upper_by`` name the constraint(s) broken just beyond it ("; "-joined
+    when several break together), or ``None`` when ``limit`` itself is reached.
     """
 
     axis: str
@@ -122,24 +127,24 @@ class AxisRange:
 def _walk(config, axis_index, sign, limit, step, tol):
     home = config.home_pose.vector
 
-    def margin(x):
-        p = home.copy()
-        p[axis_index] += sign * x
+    def margins(x):
+        x = np.atleast_1d(x)
+        p = np.repeat(home[None, :], len(x), axis=0)
+        p[:, axis_index] += sign * x
         return check_poses(config, p).margins
 
-    if np.min(margin(0.0)) < 0:
+    if np.min(margins(0.0)) < 0:
         raise ValueError("the home pose itself is outside the workspace")
-    x_ok = 0.0
-    while x_ok < limit:
-        x_try = min(x_ok + step, limit)
-        if np.min(margin(x_try)) < 0:
-            lo, hi = x_ok, x_try
-            while hi - lo > tol:
-                mid = (lo + hi) / 2
-                lo, hi = (mid, hi) if np.min(margin(mid)) >= 0 else (lo, mid)
-            return lo, CONSTRAINTS[int(np.argmin(margin(hi)))]
-        x_ok = x_try
-    return limit, None
+    xs = np.append(np.arange(0.0, limit, step), limit)
+    bad = np.flatnonzero(np.min(margins(xs), axis=-1) < 0)
+    if bad.size == 0:
+        return float(limit), None
+    lo, hi = xs[bad[0] - 1], xs[bad[0]]
+    while hi - lo > tol:
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if np.min(margins(mid)) >= 0 else (lo, mid)
+    broken = np.flatnonzero(margins(hi)[0] < 0)
+    return float(lo), "; ".join(CONSTRAINTS[k] for k in broken)
 
 
 def axis_range(config: HexapodConfig, axis: str, limit: float, step: float | None = None,
