@@ -171,8 +171,10 @@ def workspace(
 ):
     """Reach from the home pose along each pose coordinate, with the constraint that limits it."""
     from fringecal.hexapod import reach_report
+    from fringecal.hexapod.workspace import cube_reach
 
     cfg = _config(config)
+    cube = cube_reach(cfg, limit_mm)
     rows = []
     for r in reach_report(cfg, limit_mm, limit_deg):
         ang = r.axis in ("alpha", "beta", "gamma")
@@ -182,7 +184,9 @@ def workspace(
                      "lower_limited_by": r.lower_by, "upper_limited_by": r.upper_by,
                      "reaches_limit": r.reaches_limit})
     if as_json:
-        _dump({"home_pose": _pose_dict(cfg.home_pose.vector), "axes": rows})
+        _dump({"home_pose": _pose_dict(cfg.home_pose.vector), "axes": rows,
+               "cube": {"half_mm": cube.half_mm, "inside": cube.inside, "largest_half_mm": cube.largest_half_mm,
+                        "worst_offset_mm": cube.worst_offset_mm, "limited_by": cube.limited_by}})
         return
     from rich.table import Table
 
@@ -195,6 +199,13 @@ def workspace(
         t.add_row(r["axis"], f"{r['lower']:.3f} {r['unit']}", f"{r['upper']:.3f} {r['unit']}",
                   r["lower_limited_by"] or "-", r["upper_limited_by"] or "-")
     console.print(t)
+    if cube.inside:
+        console.print(f"combined translations: the whole +-{limit_mm:g} mm cube is inside the workspace")
+    else:
+        off = ", ".join(f"{v:+.1f}" for v in cube.worst_offset_mm)
+        console.print(f"combined translations: the +-{limit_mm:g} mm cube is not; the largest cube about home is "
+                      f"+-{cube.largest_half_mm:.2f} mm, beyond which the offset ({off}) mm breaks: "
+                      f"{cube.limited_by}", highlight=False)
 
 
 @app.command()

@@ -91,3 +91,24 @@ def test_home_outside_stroke_is_a_config_error(tmp_path):
     bad.write_text(default_hexapod_config_path().read_text().replace("speed_mm_s:", "sped_mm_s:"))
     with pytest.raises(ConfigError, match=r"bad.yaml: invalid configuration(.|\n)*actuator.sped_mm_s: unknown key"):
         load_hexapod_config(bad)
+
+
+def test_combined_translations_report_the_largest_cube():
+    """+-250 mm along each axis alone is not +-250 mm along all three at once."""
+    import itertools
+
+    from fringecal.hexapod.workspace import cube_reach, describe_violations
+
+    cube = cube_reach(CFG, 250.0)
+    assert not cube.inside and 100.0 < cube.largest_half_mm < 250.0
+    home = CFG.home_pose.vector
+    signs = np.array(list(itertools.product((-1, 1), repeat=3)), float)
+    corners = np.repeat(home[None], 8, axis=0)
+    corners[:, :3] += cube.largest_half_mm * signs
+    assert check_poses(CFG, corners).ok.all()
+    beyond = home.copy()
+    beyond[:3] += np.array(cube.worst_offset_mm) * (cube.largest_half_mm + 0.02) / cube.largest_half_mm
+    chk = check_poses(CFG, beyond)
+    assert not chk.ok
+    assert describe_violations(CFG, chk)[0].split(" stroke")[0] in cube.limited_by
+    assert cube_reach(CFG, 100.0).inside

@@ -121,7 +121,11 @@ class HexapodDriver:
         except (serial.SerialException, ValueError, OSError) as err:
             raise HexapodFault("unplugged", f"cannot open the hexapod controller at {url}: {err}") from None
         drv = cls(port, config)
-        drv.identify()
+        try:
+            drv.identify()
+        except BaseException:
+            port.close()
+            raise
         return drv
 
     def close(self):

@@ -16,7 +16,8 @@ import numpy as np
 from .config import HexapodConfig
 from .kinematics import POSE_NAMES, leg_vectors, rotation_base_top
 
-__all__ = ["WorkspaceCheck", "check_poses", "AxisRange", "axis_range", "reach_report", "describe_violations"]
+__all__ = ["WorkspaceCheck", "check_poses", "AxisRange", "axis_range", "reach_report", "describe_violations",
+           "CubeReach", "cube_reach"]
 
 
 def _unit(v):
@@ -169,3 +170,43 @@ def reach_report(config: HexapodConfig, translation_mm: float = 250.0,
     px, py, pz (the thesis's +-0.25 m target, section 4.1), +-``rotation_deg`` for the angles."""
     return [axis_range(config, a, translation_mm if a in ("px", "py", "pz") else np.radians(rotation_deg))
             for a in POSE_NAMES]
+
+
+@dataclass(frozen=True)
+class CubeReach:
+    """Translations combined: the cube of half-size ``half_mm`` about the home pose
+    (orientation fixed), sampled on a ``n`` x ``n`` x ``n`` grid including its corners.
+
+    ``inside`` says whether every sample is in the workspace; ``largest_half_mm`` is the
+    largest half-size whose samples all are (bisection to 0.01 mm), ``worst_offset_mm``
+    the sample just beyond it and ``limited_by`` what it breaks there.
+    """
+
+    half_mm: float
+    inside: bool
+    largest_half_mm: float
+    worst_offset_mm: tuple[float, float, float]
+    limited_by: str
+
+
+def cube_reach(config: HexapodConfig, half_mm: float = 250.0, n: int = 9) -> CubeReach:
+    """Reach of combined translations (section 4.1 asks for +-0.25 m along all three axes)."""
+    home = config.home_pose.vector
+    unit = np.stack(np.meshgrid(*[np.linspace(-1, 1, n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def check(h):
+        p = np.repeat(home[None, :], len(unit), axis=0)
+        p[:, :3] += h * unit
+        return check_poses(config, p)
+
+    inside = bool(check(half_mm).ok.all())
+    lo, hi = 0.0, half_mm
+    if inside:
+        lo = hi = half_mm
+    while hi - lo > 0.01:
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if check(mid).ok.all() else (lo, mid)
+    chk = check(hi)
+    k = int(np.argmin(chk.margins.min(axis=-1)))
+    broken = "; ".join(describe_violations(config, chk, k)) or "none"
+    return CubeReach(float(half_mm), inside, float(lo), tuple(float(v) for v in hi * unit[k]), broken)
