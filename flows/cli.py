@@ -106,9 +106,10 @@ def pose(
 
 def _register_subcommands():
     """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
-    from . import cli_verify
+    from . import cli_hexapod, cli_verify
 
     app.add_typer(cli_verify.app, name="verify")
+    app.add_typer(cli_hexapod.app, name="hexapod")
 
 
 if __name__ != "__main__":

@@ -4,6 +4,8 @@ from .tables import (  # noqa: F401
     FREE_COLUMNS,
     ArtefactTable,
     ControlPointsTable,
+    DriftCentresTable,
+    HexapodPlanTable,
     PosePlanTable,
     PosesTable,
     RodsTable,

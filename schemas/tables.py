@@ -31,6 +31,8 @@ __all__ = [
     "SensorParametersTable",
     "ThermalLogTable",
     "ControlPointsTable",
+    "HexapodPlanTable",
+    "DriftCentresTable",
     "read_table",
     "read_csv_text",
     "validate_table",
@@ -212,6 +214,68 @@ class ThermalLogTable(_Base):
     time_s: Series[float] = pa.Field(ge=0)
     temperature_c: Series[float] = pa.Field(ge=-50, le=150)
     length_mm: Series[float] = pa.Field(gt=0)
+
+
+class HexapodPlanTable(_Base):
+    """Hexapod moves for planned artefact poses (fringecal.hexapod.planning).
+
+    Per measurement: the base placement T_world_base (``base_*``), the platform pose
+    (eq. 4-3: TOP origin in BASE and alpha, beta, gamma), leg lengths joint to joint,
+    strokes from the retracted length, encoder counts, whether the pose is inside the
+    workspace and, if not, the constraints it breaks (``limits``).
+    """
+
+    measurement: Series[str] = pa.Field(unique=True)
+    station: Series[str] = pa.Field()
+    base_tx_mm: Series[float] = pa.Field()
+    base_ty_mm: Series[float] = pa.Field()
+    base_tz_mm: Series[float] = pa.Field()
+    base_omega_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    base_phi_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    base_kappa_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    px_mm: Series[float] = pa.Field()
+    py_mm: Series[float] = pa.Field()
+    pz_mm: Series[float] = pa.Field()
+    alpha_rad: Series[float] = pa.Field(ge=-np.pi, le=np.pi)
+    beta_rad: Series[float] = pa.Field(ge=-np.pi, le=np.pi)
+    gamma_rad: Series[float] = pa.Field(ge=-np.pi, le=np.pi)
+    length_1_mm: Series[float] = pa.Field(gt=0)
+    length_2_mm: Series[float] = pa.Field(gt=0)
+    length_3_mm: Series[float] = pa.Field(gt=0)
+    length_4_mm: Series[float] = pa.Field(gt=0)
+    length_5_mm: Series[float] = pa.Field(gt=0)
+    length_6_mm: Series[float] = pa.Field(gt=0)
+    stroke_1_mm: Series[float] = pa.Field()
+    stroke_2_mm: Series[float] = pa.Field()
+    stroke_3_mm: Series[float] = pa.Field()
+    stroke_4_mm: Series[float] = pa.Field()
+    stroke_5_mm: Series[float] = pa.Field()
+    stroke_6_mm: Series[float] = pa.Field()
+    counts_1: Series[int] = pa.Field()
+    counts_2: Series[int] = pa.Field()
+    counts_3: Series[int] = pa.Field()
+    counts_4: Series[int] = pa.Field()
+    counts_5: Series[int] = pa.Field()
+    counts_6: Series[int] = pa.Field()
+    reachable: Series[bool] = pa.Field()
+    limits: Series[str] = pa.Field()
+
+    _id_columns = ("measurement", "station")
+
+
+class DriftCentresTable(_Base):
+    """Repeated sphere centres of a platform standing still (drift check, section 4.5.2);
+    ``time_s`` (optional) is when each measurement was taken."""
+
+    measurement: Series[str] = pa.Field()
+    sphere_id: Series[str] = pa.Field()
+    x_mm: Series[float] = pa.Field()
+    y_mm: Series[float] = pa.Field()
+    z_mm: Series[float] = pa.Field()
+    time_s: Optional[Series[float]] = pa.Field(ge=0)
+
+    _id_columns = ("measurement", "sphere_id")
+    _unique_together = (("measurement", "sphere_id"),)
 
 
 _BOOL_TEXT = {"true": True, "1": True, "yes": True, "free": True,
