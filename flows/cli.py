@@ -104,9 +104,23 @@ def pose(
         err_console.print(f"[yellow]skipped[/] measurement {s['measurement']}, scanner {s['scanner']}: {s['reason']}")
 
 
+def _register_subcommands():
+    """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
+    from . import cli_artefact
+
+    app.add_typer(cli_artefact.app, name="artefact")
+
+
+if __name__ != "__main__":
+    _register_subcommands()
+
+
 def main():  # pragma: no cover - console entry point
     app()
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # `python -m flows.cli`: run the imported module so sub-apps register exactly once.
+    from flows.cli import main as _main
+
+    sys.exit(_main())

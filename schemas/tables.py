@@ -381,6 +381,8 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
             seen.add((line, col))
             if check == "field_uniqueness" and line is not None:
                 firsts = df.index[df[col].astype(str) == str(value)]
+                if not len(firsts):  # a coerced number (1.0) against its text ("1")
+                    firsts = df.index[pd.to_numeric(df[col], errors="coerce") == value]
                 first_line = int(firsts[0]) + 2
                 if first_line == line:
                     continue

@@ -28,10 +28,10 @@ import numpy as np
 import pandas as pd
 
 from fringecal.artefact import Artefact
+from fringecal.registration import kabsch
 
 from .loads import STANDARD_GRAVITY, mass_loads, unit_vector
 from .materials import Materials
-from .rigidity import trivial_motions
 from .supports import Supports, parse_supports
 from .truss import Truss, TrussSolution, solve_truss
 
@@ -73,11 +73,18 @@ def gravity_in_artefact_frame(T_world_artefact, gravity_world=(0.0, 0.0, -1.0)) 
 
 
 def remove_rigid_motion(coords, displacements) -> np.ndarray:
-    """``displacements`` (n, 3) minus their least-squares rigid (infinitesimal) motion."""
+    """``displacements`` (n, 3) without their least-squares rigid motion.
+
+    The displaced points are registered back onto ``coords`` (SVD, a finite
+    rotation), so distances between the displaced points are kept exactly.
+    """
     X = np.asarray(coords, float)
     d = np.asarray(displacements, float)
-    T = trivial_motions(X)
-    return d - (T @ (T.T @ d.ravel())).reshape(d.shape)
+    if not np.any(d):
+        return np.zeros_like(d)
+    moved = X + d
+    M, T = kabsch(moved, X)
+    return moved @ M.T + T - X
 
 
 @dataclass(frozen=True)

@@ -145,8 +145,8 @@ def compensate_temperature(artefact: Artefact, temperature_c: float, cte_per_c: 
         raise EngineeringInputError(f"temperature {temperature_c!r} is not a number")
     c = artefact.centres.mean(axis=0) if centre is None else np.asarray(centre, float).reshape(3)
     dT = float(temperature_c) - float(reference_c)
-    s = 1.0 + cte_per_c * dT
     r = artefact.centres - c
     u_s = np.hypot(dT * u_cte_per_c, cte_per_c * u_temperature_c)
     u = np.hypot(artefact.u, u_s * np.linalg.norm(r, axis=1))
-    return Artefact(artefact.ids, c + s * r, artefact.diameters, u, f"{artefact.name}@{temperature_c:g}C")
+    moved = artefact.centres + (cte_per_c * dT) * r  # = c + (1 + alpha dT)(x - c), without round-off at dT = 0
+    return Artefact(artefact.ids, moved, artefact.diameters, u, f"{artefact.name}@{temperature_c:g}C")

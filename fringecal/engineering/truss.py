@@ -270,8 +270,38 @@ def free_motions(truss: Truss, supports: Supports, rcond: float = 1e-10) -> np.n
     return (Z @ null).T.reshape(-1, truss.n_nodes, 3)
 
 
-def describe_motion(mode: np.ndarray, node_ids, n_nodes: int = 6, tol: float = 1e-6) -> str:
-    """One line naming the nodes that move in ``mode`` (shape (n, 3)), largest first."""
+def _rigid_fit(mode: np.ndarray, coords: np.ndarray):
+    """Least-squares ``v + w x (x - c)`` to a mode (n, 3): (v, w, c, relative residual)."""
+    c = coords.mean(axis=0)
+    r = coords - c
+    A = np.zeros((len(coords), 3, 6))
+    A[:, :, :3] = np.eye(3)
+    # w x r = -r x w = [r]_x^T w
+    A[:, 0, 4], A[:, 0, 5] = r[:, 2], -r[:, 1]
+    A[:, 1, 3], A[:, 1, 5] = -r[:, 2], r[:, 0]
+    A[:, 2, 3], A[:, 2, 4] = r[:, 1], -r[:, 0]
+    p, *_ = np.linalg.lstsq(A.reshape(-1, 6), mode.ravel(), rcond=None)
+    res = np.linalg.norm(A.reshape(-1, 6) @ p - mode.ravel()) / max(np.linalg.norm(mode), 1e-300)
+    return p[:3], p[3:], c, res
+
+
+def describe_motion(mode: np.ndarray, node_ids, coords=None, n_nodes: int = 6, tol: float = 1e-6) -> str:
+    """One line describing a free motion ``mode`` (shape (n, 3)).
+
+    With ``coords`` a rigid-body motion is named as such (a translation, or a
+    rotation about an axis); otherwise the moving nodes are listed, largest first.
+    """
+    if coords is not None:
+        v, w, c, res = _rigid_fit(mode, np.asarray(coords, float))
+        if res < 1e-6:
+            wn = np.linalg.norm(w)
+            fmt = lambda a: "(" + ", ".join(f"{x:+.3f}" for x in a) + ")"  # noqa: E731
+            if wn < 1e-9 * np.linalg.norm(v) / max(np.ptp(coords, axis=0).max(), 1e-300):
+                return f"the whole structure translates along {fmt(v / np.linalg.norm(v))}"
+            axis = w / wn
+            point = c + np.cross(w, v) / wn ** 2
+            return (f"the whole structure rotates about the axis through {fmt(point)} mm "
+                    f"along {fmt(axis)}")
     amp = np.linalg.norm(mode, axis=1)
     order = np.argsort(-amp, kind="stable")
     moving = [i for i in order if amp[i] > tol * max(amp.max(), 1e-300)]
@@ -310,7 +340,8 @@ def solve_truss(truss: Truss, supports: Supports, loads_n, rcond: float = 1e-10)
     zero = lam <= rcond * scale
     if zero.any():
         modes = (Z @ V[:, zero]).T.reshape(-1, truss.n_nodes, 3)
-        lines = [f"  free motion {k + 1}: {describe_motion(m, truss.node_ids)}" for k, m in enumerate(modes)]
+        lines = [f"  free motion {k + 1}: {describe_motion(m, truss.node_ids, truss.coords)}"
+                 for k, m in enumerate(modes)]
         raise MechanismError(
             f"the truss with supports {supports.describe()} is a mechanism: its stiffness is singular "
             f"({len(modes)} free motion(s)); add rods or supports.\n" + "\n".join(lines),
