@@ -106,10 +106,11 @@ def pose(
 
 def _register_subcommands():
     """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
-    from . import cli_hexapod, cli_verify
+    from . import cli_artefact, cli_hexapod, cli_verify
 
     app.add_typer(cli_verify.app, name="verify")
     app.add_typer(cli_hexapod.app, name="hexapod")
+    app.add_typer(cli_artefact.app, name="artefact")
 
 
 if __name__ != "__main__":

@@ -33,6 +33,12 @@ __all__ = [
     "ControlPointsTable",
     "HexapodPlanTable",
     "DriftCentresTable",
+    "TrussForcesTable",
+    "TrussDisplacementsTable",
+    "SupportsTable",
+    "MoistureUptakeTable",
+    "HumidityLengthsTable",
+    "RodConsistencyTable",
     "read_table",
     "read_csv_text",
     "validate_table",
@@ -276,6 +282,69 @@ class DriftCentresTable(_Base):
 
     _id_columns = ("measurement", "sphere_id")
     _unique_together = (("measurement", "sphere_id"),)
+class TrussForcesTable(_Base):
+    """Member axial forces of a truss analysis (tension positive), e.g. thesis table 3-3."""
+
+    sphere_a: Series[str] = pa.Field()
+    sphere_b: Series[str] = pa.Field()
+    force_n: Series[float] = pa.Field()
+    rod_id: Optional[Series[str]] = pa.Field()
+    length_mm: Optional[Series[float]] = pa.Field(gt=0)
+    stress_mpa: Optional[Series[float]] = pa.Field()
+
+    _id_columns = ("sphere_a", "sphere_b", "rod_id")
+    _unique_together = (("sphere_a", "sphere_b"),)
+
+
+class TrussDisplacementsTable(_Base):
+    """Nodal displacements (truss analysis, gravity-sag correction), mm."""
+
+    sphere_id: Series[str] = pa.Field(unique=True)
+    dx_mm: Series[float] = pa.Field()
+    dy_mm: Series[float] = pa.Field()
+    dz_mm: Series[float] = pa.Field()
+    d_mm: Optional[Series[float]] = pa.Field(ge=0)
+
+    _id_columns = ("sphere_id",)
+
+
+class SupportsTable(_Base):
+    """Support constraints: one row per constrained direction (n need not be unit)."""
+
+    sphere_id: Series[str] = pa.Field()
+    nx: Series[float] = pa.Field()
+    ny: Series[float] = pa.Field()
+    nz: Series[float] = pa.Field()
+
+    _id_columns = ("sphere_id",)
+
+
+class MoistureUptakeTable(_Base):
+    """Moisture uptake series: time since the humidity step and the specimen's mass
+    (``mass_g``) or moisture content (``moisture_pct``, percent of dry mass); at least one."""
+
+    time_s: Series[float] = pa.Field(ge=0, unique=True)
+    mass_g: Optional[Series[float]] = pa.Field(gt=0)
+    moisture_pct: Optional[Series[float]] = pa.Field()
+
+
+class HumidityLengthsTable(_Base):
+    """Rod length through a humidity step (thesis table 3-6)."""
+
+    time_h: Series[float] = pa.Field(ge=0)
+    length_mm: Series[float] = pa.Field(gt=0)
+
+
+class RodConsistencyTable(_Base):
+    """Per-rod lengths from the rod measured singly, the assembly and coordinates."""
+
+    rod_id: Series[str] = pa.Field(unique=True)
+    sphere_a: Series[str] = pa.Field()
+    sphere_b: Series[str] = pa.Field()
+    single_mm: Series[float] = pa.Field(gt=0)
+    assembled_mm: Optional[Series[float]] = pa.Field(gt=0)
+
+    _id_columns = ("rod_id", "sphere_a", "sphere_b")
 
 
 _BOOL_TEXT = {"true": True, "1": True, "yes": True, "free": True,
@@ -374,6 +443,8 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
             seen.add((line, col))
             if check == "field_uniqueness" and line is not None:
                 firsts = df.index[df[col].astype(str) == str(value)]
+                if not len(firsts):  # a coerced number (1.0) against its text ("1")
+                    firsts = df.index[pd.to_numeric(df[col], errors="coerce") == value]
                 first_line = int(firsts[0]) + 2
                 if first_line == line:
                     continue
