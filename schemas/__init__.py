@@ -2,12 +2,17 @@
 
 from .tables import (  # noqa: F401
     FREE_COLUMNS,
+    REJECTION_REASONS,
     ArtefactTable,
     ControlPointsTable,
+    LabelOutcomesTable,
+    PointsTable,
     PosePlanTable,
     PosesTable,
     RodsTable,
+    ScannerLinksTable,
     SensorParametersTable,
+    SphereFitsTable,
     SphereCentresTable,
     TableError,
     ThermalLogTable,
