@@ -104,6 +104,10 @@ def pose(
         err_console.print(f"[yellow]skipped[/] measurement {s['measurement']}, scanner {s['scanner']}: {s['reason']}")
 
 
+from flows.cli_fit import fit_app  # noqa: E402  (registered last: it imports from this module)
+app.add_typer(fit_app, name="fit")
+
+
 def main():  # pragma: no cover - console entry point
     app()
 

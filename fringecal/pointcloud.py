@@ -24,8 +24,9 @@ per measurement constants.
 
 The fused kernel (numba, parallel over rows, compiled once and cached on disk)
 reads tau_x, tau_y and the valid mask and writes the four outputs in one pass.
-Pixels that are invalid, NaN, on parallel rays or where the projector's
-distortion model cannot be inverted come out as NaN; the last two are counted.
+Pixels that are invalid, NaN, on (near-)parallel rays (less than 1e-6 rad apart)
+or where the projector's distortion model cannot be inverted come out as NaN, each
+with its status code.
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ __all__ = [
 ]
 
 _NEWTON_STEP_MM = 1e-7
+# sin^2 of the angle between the rays below which they count as parallel (1e-6 rad):
+# the depth of such a "point" is meaningless (thesis rig: ~25 deg, sin^2 ~ 0.18).
+_PARALLEL_DEN = 1e-12
 _UNDISTORT_MAX_ITER = 30
 # Reassociation and reciprocal multiplication let LLVM vectorise the pixel loop;
 # no "nnan"/"ninf", so NaN inputs still propagate and are detected.
@@ -163,7 +167,7 @@ def _ray_pair(ix, iy, px, py, Rc, c_cam, o1, Rp, c_prj, o2):
     Y = 0.5 * ((o1[1] + s1 * d1y) + (o2[1] + s2 * d2y))
     Z = 0.5 * ((o1[2] + s1 * d1z) + (o2[2] + s2 * d2z))
     E = (bx * nx + by * ny + bz * nz) / nn
-    return X, Y, Z, E, den > 0.0 and nn > 0.0
+    return X, Y, Z, E, den > _PARALLEL_DEN and nn > 0.0
 
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
@@ -233,8 +237,9 @@ class CameraRayCache:
     principal point (planar, so the kernel reads them with vector loads).
 
     Depends only on the camera's format, principal point and distortion (not on its
-    pose), so one cache serves every measurement of the camera and every exterior
-    orientation tried for it. ``key`` identifies those interior parameters.
+    pose nor its principal distance), so one cache serves every measurement of the
+    camera and every exterior orientation tried for it. ``key`` identifies those
+    parameters.
     """
 
     key: bytes
@@ -263,7 +268,9 @@ class CameraRayCache:
 def _interior_key(camera: Sensor) -> bytes:
     f = camera.format
     head = np.array([f.width_px, f.height_px, f.width_mm, f.height_mm], float)
-    return head.tobytes() + np.asarray(camera.params[6:], float).tobytes()
+    # principal point and distortion; not c, which only enters the kernel's (-x, -y, c)
+    p = np.asarray(camera.params, float)
+    return head.tobytes() + np.r_[p[6:8], p[9:14]].tobytes()
 
 
 _CACHE: "OrderedDict[bytes, CameraRayCache]" = OrderedDict()
