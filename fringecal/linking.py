@@ -75,24 +75,27 @@ def robust_mean_frame(frames, k: float = 4.0, floor_mm: float = 0.05, floor_rad:
                       lever_mm: float = 1000.0) -> tuple[Frame, np.ndarray]:
     """:func:`mean_frame` after dropping outliers.
 
-    An estimate is an outlier when its combined deviation ``dt + lever_mm * dr``
-    exceeds ``k`` robust standard deviations (1.4826 MAD, at least
-    ``floor_mm + lever_mm * floor_rad``) of all estimates' deviations. Needs three
-    or more estimates to reject anything. Returns the mean and the kept mask.
+    Deviations combine translation and rotation as ``dt + lever_mm * dr``. They are
+    first measured from the medoid (the estimate closest to all others, robust while
+    most estimates are good), an estimate beyond ``k`` robust standard deviations
+    (1.4826 MAD, at least ``floor_mm + lever_mm * floor_rad``) is dropped, then the
+    test is repeated about the mean of the rest. Needs three or more estimates to
+    reject anything. Returns the mean and the kept mask.
     """
     frames = list(frames)
     keep = np.ones(len(frames), bool)
-    for _ in range(3):
-        mean, dt, dr = mean_frame([f for f, k_ in zip(frames, keep) if k_])
-        if len(frames) < 3:
-            break
-        _, dt_all, dr_all = _deviations(frames, mean)
-        dev = dt_all + lever_mm * dr_all
-        sigma = max(1.4826 * float(np.median(dev[keep])), floor_mm + lever_mm * floor_rad)
-        new_keep = dev <= k * sigma
-        if new_keep.sum() < 2 or np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
+    if len(frames) >= 3:
+        R = np.stack([f.R for f in frames])
+        t = np.stack([f.t for f in frames])
+        pair = (np.linalg.norm(t[:, None] - t[None, :], axis=2)
+                + lever_mm * _rotation_angle(np.einsum("aij,bkj->abik", R, R)))
+        dev = pair[int(np.argmin(pair.sum(axis=1)))]
+        floor = floor_mm + lever_mm * floor_rad
+        for _ in range(2):
+            sigma = max(1.4826 * float(np.median(dev[keep] if keep.sum() > 2 else dev)), floor)
+            keep = dev <= k * sigma
+            _, dt, dr = _deviations(frames, mean_frame([f for f, k_ in zip(frames, keep) if k_])[0])
+            dev = dt + lever_mm * dr
     mean, _, _ = mean_frame([f for f, k_ in zip(frames, keep) if k_])
     return mean, keep
 
