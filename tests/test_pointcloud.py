@@ -137,3 +137,43 @@ def test_ray_cache_depends_on_interior_only(thesis_rig):
     assert not CameraRayCache.for_camera(cam).matches(shifted)
     redistorted = cam.with_params(np.r_[cam.params[:9], cam.params[9] * 1.01, cam.params[10:]])
     assert not CameraRayCache.for_camera(cam).matches(redistorted)
+
+
+def test_region_fit_of_a_rendered_sphere_with_edge_flags(thesis_rig):
+    """A 25 mm sphere 2.6 m away, every pixel triangulated: the region fit finds the true
+    sphere, flags its rim as edge, and keeps the pixels of what it kept."""
+    import json
+
+    from fringecal.pointcloud import provenance
+    from fringecal.spheres.regions import boundary_flags, fit_region
+    from schemas import SphereFitsTable, validate_table
+
+    s = thesis_rig.scanners[0]
+    cam = small_camera(s.camera, 512)
+    centre, radius = np.array([50.0, -30.0, 0.0]), 25.0
+    ideal = np.moveaxis(camera_ray_cache(cam).ideal, 0, -1)
+    d = (np.concatenate([-ideal, np.full(ideal.shape[:2] + (1,), cam.c)], axis=-1) @ cam.R).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, _ = Sphere(centre, radius).intersect(np.broadcast_to(cam.pinhole, d.shape), d)
+    surface = cam.pinhole + np.where(np.isfinite(t), t, np.nan)[:, None] * d
+    tau = s.projector.measured(s.projector.project(surface)).reshape(512, 512, 2)
+    valid = np.isfinite(tau).all(axis=-1)
+    maps = triangulate_maps(cam, s.projector, tau[..., 0], tau[..., 1], valid)
+    edge = boundary_flags(valid, 1)
+    rf = fit_region(maps, valid, expected_radius=radius, flag_maps={"edge": edge},
+                    viewpoints=[s.camera.pinhole, s.projector.pinhole])
+    assert 500 < len(rf.pixels) == valid.sum()
+    assert rf.fit.rejected["edge"] == edge.sum() > 50
+    assert np.abs(rf.fit.model.centre - centre).max() < 1e-6 and abs(rf.fit.model.radius - radius) < 1e-6
+    rows, cols = rf.kept_pixels
+    assert not edge[rows, cols].any() and len(rows) == rf.fit.model.n_points
+    np.testing.assert_allclose(np.c_[maps.x[rows, cols], maps.y[rows, cols], maps.z[rows, cols]],
+                               rf.pixels.points[rf.fit.kept])
+    row = rf.row("m1", "scanner1", "0")
+    u0, v0, u1, v1 = row["u_min_px"], row["v_min_px"], row["u_max_px"], row["v_max_px"]
+    vr, vc = np.nonzero(valid)
+    assert (u0, v0, u1, v1) == (vc.min(), vr.min(), vc.max(), vr.max())
+    assert u0 < cols.min() and u1 > cols.max()  # the rim (edge) lies outside what is kept
+    validate_table(__import__("pandas").DataFrame([row]), SphereFitsTable)
+    attrs = provenance(cam, s.projector)
+    assert json.loads(json.dumps(attrs)) == attrs and attrs["projector"]["params"]["c"] == s.projector.c

@@ -102,3 +102,20 @@ def test_label_pose_link_recovers_poses_and_the_scanner_frame(simulated_fits, th
     assert labels_back["rms_mm"].isna().sum() == 2
     assert len(centres_from_fits(res.fits)) == (res.fits["sphere_id"] != "").sum()
     assert list(res.links_table()["scanner"]) == ["scanner1", "scanner2"]
+
+
+def test_task_writes_every_table_and_reports_bad_groups(simulated_fits, thesis_dir, tmp_path):
+    from tasks.refs import ref_for
+    from tasks.spheres import OUTPUTS, label_pose_link_task
+    from schemas import PosesTable, ScannerLinksTable
+
+    fits, truth = simulated_fits
+    fits_path = write_table(fits, tmp_path / "sphere_fits.csv", SphereFitsTable)
+    out = label_pose_link_task.fn(ref_for(thesis_dir / "artefact_cmm2.csv", "table"), ref_for(fits_path, "table"),
+                                  str(tmp_path / "tables"), "scanner1", centre_u_mm=0.01)
+    assert set(OUTPUTS) <= set(out) and all((tmp_path / "tables" / n).exists() for n in OUTPUTS.values())
+    assert {(r["measurement"], r["scanner"]) for r in out["refused"]} == {("2", "scanner1"), ("5", "scanner2")}
+    assert len(read_table(out["poses"].path, PosesTable)) == 22
+    links = read_table(out["links"].path, ScannerLinksTable).set_index("scanner")
+    assert abs(links.loc["scanner2", "tx_mm"] - T_S1_S2.t[0]) < 0.03
+    assert not list((tmp_path / "tables").glob(".*tmp"))  # nothing half-written left behind
