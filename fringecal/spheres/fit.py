@@ -93,41 +93,88 @@ def _sum_squares(q, cx, cy, cz, radius):
     return s
 
 
+@nb.njit(cache=True)
+def _algebraic_normal_equations(q):
+    """Normal equations of |q|^2 = 2 c.q + k, rows (2x, 2y, 2z, 1), in one pass."""
+    A = np.zeros((4, 4))
+    b = np.zeros(4)
+    row = np.empty(4)
+    for i in range(q.shape[0]):
+        row[0] = 2 * q[i, 0]
+        row[1] = 2 * q[i, 1]
+        row[2] = 2 * q[i, 2]
+        row[3] = 1.0
+        rhs = q[i, 0] * q[i, 0] + q[i, 1] * q[i, 1] + q[i, 2] * q[i, 2]
+        for j in range(4):
+            b[j] += row[j] * rhs
+            for k in range(j, 4):
+                A[j, k] += row[j] * row[k]
+    for j in range(4):
+        for k in range(j):
+            A[j, k] = A[k, j]
+    return A, b
+
+
 def _algebraic_sphere(q: np.ndarray) -> tuple[np.ndarray, float]:
-    """Linear fit |q|^2 = 2 c.q + k (q centred on its mean); R^2 = k + |c|^2."""
-    A = np.empty((len(q), 4))
-    A[:, :3] = 2 * q
-    A[:, 3] = 1.0
-    b = np.einsum("ij,ij->i", q, q)
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    """Linear fit |q|^2 = 2 c.q + k (q centred on its mean); R^2 = k + |c|^2.
+
+    Normal equations suffice: q is centred and the result only starts the
+    geometric iterations.
+    """
+    A, b = _algebraic_normal_equations(q)
+    bad = FitError("sphere: the points do not determine a sphere (coplanar or collinear?)")
+    if not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e13:
+        raise bad
+    sol = np.linalg.solve(A, b)
     c = sol[:3]
     r2 = sol[3] + c @ c
     if not np.all(np.isfinite(sol)) or r2 <= 0:
-        raise FitError("sphere: the points do not determine a sphere (coplanar or collinear?)")
+        raise bad
     return c, float(np.sqrt(r2))
+
+
+@nb.njit(cache=True)
+def _coverage(q, cx, cy, cz, n_bands):
+    """Cap angle about the mean direction and occupied-cell fraction of q - c."""
+    n = q.shape[0]
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for i in range(n):
+        dx, dy, dz = q[i, 0] - cx, q[i, 1] - cy, q[i, 2] - cz
+        inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+        mx += dx * inv
+        my += dy * inv
+        mz += dz * inv
+    norm = np.sqrt(mx * mx + my * my + mz * mz)
+    surrounded = norm <= 1e-9 * n
+    cells = np.zeros(2 * n_bands * n_bands, np.bool_)
+    lowest = 1.0
+    for i in range(n):
+        dx, dy, dz = q[i, 0] - cx, q[i, 1] - cy, q[i, 2] - cz
+        inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+        ux, uy, uz = dx * inv, dy * inv, dz * inv
+        if not surrounded:
+            lowest = min(lowest, (ux * mx + uy * my + uz * mz) / norm)
+        band = min(int((uz + 1) / 2 * n_bands), n_bands - 1)
+        sector = min(int((np.arctan2(uy, ux) + np.pi) / (2 * np.pi) * 2 * n_bands), 2 * n_bands - 1)
+        cells[band * 2 * n_bands + sector] = True
+    cap = np.pi if surrounded else np.arccos(max(-1.0, min(1.0, lowest)))
+    return cap, cells.sum() / cells.size
 
 
 def angular_coverage(directions: np.ndarray, n_bands: int = 12) -> tuple[float, float]:
     """How much of a sphere unit ``directions`` (n, 3) cover, seen from the centre.
 
     Returns ``(cap_angle_rad, fraction)``: the half-angle of the smallest cap about
-    the mean direction that holds every direction (pi when they surround the centre),
+    the mean direction that holds every direction (pi when they surround the centre;
+    about the *sample* mean, so a few hundred points scatter it by a few degrees),
     and the fraction of ``2 n_bands^2`` equal-area cells (bands of equal height in
     z, equal azimuth sectors) that hold at least one direction. The fraction depends
     on point density; with thousands of points a hemisphere gives ~0.5.
     """
-    u = np.asarray(directions, float)
-    m = u.mean(axis=0)
-    norm = np.linalg.norm(m)
-    if norm < 1e-9:
-        cap = np.pi
-    else:
-        cap = float(np.arccos(np.clip((u @ (m / norm)).min(), -1.0, 1.0)))
-    band = np.minimum(((u[:, 2] + 1) / 2 * n_bands).astype(int), n_bands - 1)
-    sector = np.minimum(((np.arctan2(u[:, 1], u[:, 0]) + np.pi) / (2 * np.pi) * 2 * n_bands).astype(int),
-                        2 * n_bands - 1)
-    cells = np.unique(band * 2 * n_bands + sector)
-    return cap, len(cells) / (2 * n_bands * n_bands)
+    cap, frac = _coverage(np.ascontiguousarray(directions, dtype=float), 0.0, 0.0, 0.0, n_bands)
+    return float(cap), float(frac)
 
 
 @dataclass(frozen=True)
@@ -230,8 +277,7 @@ class SphereModel:
                 cov[:] = np.nan
         else:
             cov[:npar, :npar] = np.nan
-        d = q - c
-        cap, frac = angular_coverage(d / np.linalg.norm(d, axis=1, keepdims=True))
+        cap, frac = _coverage(q, c[0], c[1], c[2], 12)
         return cls(c + shift, float(r), float(np.sqrt(ssr / n)), n, cov, fixed, cap, frac, it)
 
     @property
