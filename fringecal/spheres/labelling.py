@@ -255,7 +255,8 @@ def label_spheres(centres, artefact: Artefact, uncertainties=None, radii=None, a
     u = np.full(n, cfg.centre_u_mm) if uncertainties is None else np.asarray(uncertainties, float)
     if u.ndim == 2:
         u = np.sqrt(np.mean(u**2, axis=1))
-    u = np.maximum(np.nan_to_num(u, nan=np.inf), cfg.centre_u_mm)
+    # unknown (NaN) uncertainty takes the floor: an infinite one would match anything
+    u = np.maximum(np.nan_to_num(u, nan=cfg.centre_u_mm, posinf=cfg.centre_u_mm), cfg.centre_u_mm)
     ua = np.asarray(artefact.u, float)
     m = len(artefact)
     compat = np.ones((n, m), bool)
