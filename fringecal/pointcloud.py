@@ -14,16 +14,19 @@ distortion, not on its pose nor on the measurement, so :class:`CameraRayCache`
 computes them once per camera (Newton per pixel, once) and every measurement then
 only rotates them into the world. Keeping them in the camera frame (16 bytes per
 pixel) rather than as world directions (24 bytes) means the cache also survives
-changes of the camera's exterior orientation (a bundle-adjustment iteration, a
-frame change) and is lighter on memory bandwidth, which bounds this kernel.
+changes of the camera's exterior orientation and principal distance (a
+bundle-adjustment iteration, a frame change) and costs less memory traffic.
 The projector's ideal coordinates depend on the measured phases and are solved by
 Newton per pixel inside the fused kernel, started from the first-order inverse
-``m - d(m)`` so two or three iterations reach the 1e-13 mm tolerance of
-:func:`fringecal.sensor.undistort`. The two pinholes, rotations and the baseline are
-per measurement constants.
+``m - d(m)``: two steps leave an error below 1e-14 mm on the image plane for the
+thesis lenses (the last step is below 1e-7 mm; convergence is quadratic), pixels
+that need more get them. The two pinholes, rotations and the baseline are per
+measurement constants.
 
 The fused kernel (numba, parallel over rows, compiled once and cached on disk)
-reads tau_x, tau_y and the valid mask and writes the four outputs in one pass.
+reads tau_x, tau_y and the valid mask and writes the four outputs in one pass; its
+pixel loop is branch-free so LLVM vectorises it (it is compute-bound: ~10x the time
+of streaming the same bytes, and ~60x faster than the numpy reference).
 Pixels that are invalid, NaN, on (near-)parallel rays (less than 1e-6 rad apart)
 or where the projector's distortion model cannot be inverted come out as NaN, each
 with its status code.
