@@ -2,6 +2,7 @@
 
 from .tables import (  # noqa: F401
     FREE_COLUMNS,
+    REJECTION_REASONS,
     ArtefactTable,
     ControlPointsTable,
     DriftCentresTable,
@@ -12,10 +13,14 @@ from .tables import (  # noqa: F401
     SupportsTable,
     TrussDisplacementsTable,
     TrussForcesTable,
+    LabelOutcomesTable,
+    PointsTable,
     PosePlanTable,
     PosesTable,
     RodsTable,
+    ScannerLinksTable,
     SensorParametersTable,
+    SphereFitsTable,
     SphereCentresTable,
     TableError,
     ThermalLogTable,

@@ -39,6 +39,11 @@ __all__ = [
     "MoistureUptakeTable",
     "HumidityLengthsTable",
     "RodConsistencyTable",
+    "SphereFitsTable",
+    "LabelOutcomesTable",
+    "ScannerLinksTable",
+    "PointsTable",
+    "REJECTION_REASONS",
     "read_table",
     "read_csv_text",
     "validate_table",
@@ -118,6 +123,102 @@ class SphereCentresTable(_Base):
 
     _id_columns = ("measurement", "scanner", "sphere_id")
     _unique_together = (("measurement", "scanner", "sphere_id"),)
+
+
+#: Point-rejection reasons with a ``rejected_<reason>`` column in :class:`SphereFitsTable`
+#: (fringecal.spheres.robust): caller flags from image space, then the geometric tests.
+REJECTION_REASONS = ("invalid", "edge", "saturated", "low_modulation", "phase_error", "glint",
+                     "rod", "silhouette", "residual")
+
+
+class SphereFitsTable(SphereCentresTable):
+    """Every sphere candidate fitted in a measurement, labelled or not.
+
+    Extends :class:`SphereCentresTable`: the rows with a non-empty ``sphere_id`` are
+    valid sphere centres (``centres_from_fits``). ``candidate`` identifies the
+    candidate within its (measurement, scanner); ``sphere_id`` is empty until (or
+    unless) labelling assigns one. The image region is the candidate's bounding box
+    in camera pixels. ``rejected_<reason>`` count the points rejected per reason
+    (:data:`REJECTION_REASONS`; other caller flags may add more such columns).
+    """
+
+    sphere_id: Series[str] = pa.Field(nullable=True)
+    candidate: Series[str] = pa.Field(str_length={"min_value": 1})
+    radius_mm: Series[float] = pa.Field(gt=0)
+    rms_mm: Series[float] = pa.Field(ge=0)
+    n_points: Series[int] = pa.Field(ge=3)
+    u_x_mm: Series[float] = pa.Field(ge=0, nullable=True)
+    u_y_mm: Series[float] = pa.Field(ge=0, nullable=True)
+    u_z_mm: Series[float] = pa.Field(ge=0, nullable=True)
+    radius_fixed: Optional[Series[bool]] = pa.Field()
+    cap_angle_deg: Series[float] = pa.Field(ge=0, le=180)
+    coverage: Series[float] = pa.Field(ge=0, le=1)
+    n_rejected: Series[int] = pa.Field(ge=0)
+    u_min_px: Optional[Series[float]] = pa.Field(ge=0, nullable=True)
+    v_min_px: Optional[Series[float]] = pa.Field(ge=0, nullable=True)
+    u_max_px: Optional[Series[float]] = pa.Field(ge=0, nullable=True)
+    v_max_px: Optional[Series[float]] = pa.Field(ge=0, nullable=True)
+    rejected_invalid: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_edge: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_saturated: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_low_modulation: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_phase_error: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_glint: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_rod: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_silhouette: Optional[Series[int]] = pa.Field(ge=0)
+    rejected_residual: Optional[Series[int]] = pa.Field(ge=0)
+
+    _id_columns = ("measurement", "scanner", "sphere_id", "candidate")
+    _unique_together = (("measurement", "scanner", "candidate"),)
+
+
+class LabelOutcomesTable(_Base):
+    """Labelling per (measurement, scanner): ``labelled`` or ``refused`` with the reason
+    (fringecal.spheres.labelling.REFUSAL_REASONS) and a message naming the alternatives."""
+
+    measurement: Series[str] = pa.Field()
+    scanner: Series[str] = pa.Field()
+    status: Series[str] = pa.Field(isin=["labelled", "refused"])
+    reason: Series[str] = pa.Field(nullable=True)
+    method: Series[str] = pa.Field(nullable=True)
+    n_candidates: Series[int] = pa.Field(ge=0)
+    n_labelled: Series[int] = pa.Field(ge=0)
+    rms_mm: Series[float] = pa.Field(ge=0, nullable=True)
+    message: Series[str] = pa.Field(nullable=True)
+
+    _id_columns = ("measurement", "scanner", "status", "reason", "method", "message")
+    _unique_together = (("measurement", "scanner"),)
+
+
+class ScannerLinksTable(_Base):
+    """T_reference_scanner per scanner (fringecal.linking), with the spread of the
+    per-measurement estimates and the path of scanners it was chained through."""
+
+    scanner: Series[str] = pa.Field(unique=True)
+    reference: Series[str] = pa.Field()
+    tx_mm: Series[float] = pa.Field()
+    ty_mm: Series[float] = pa.Field()
+    tz_mm: Series[float] = pa.Field()
+    omega_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    phi_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    kappa_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    n_measurements: Series[int] = pa.Field(ge=0)
+    n_rejected: Series[int] = pa.Field(ge=0)
+    translation_spread_mm: Series[float] = pa.Field(ge=0, nullable=True)
+    rotation_spread_rad: Series[float] = pa.Field(ge=0, nullable=True)
+    u_translation_mm: Series[float] = pa.Field(ge=0, nullable=True)
+    u_rotation_rad: Series[float] = pa.Field(ge=0, nullable=True)
+    via: Series[str] = pa.Field()
+
+    _id_columns = ("scanner", "reference", "via")
+
+
+class PointsTable(_Base):
+    """Exported points, one per row (``fringecal fit``)."""
+
+    x_mm: Series[float] = pa.Field()
+    y_mm: Series[float] = pa.Field()
+    z_mm: Series[float] = pa.Field()
 
 
 class PosesTable(_Base):
@@ -389,6 +490,7 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
     default RangeIndex in file order.
     """
     req, opt = _required_and_optional(model)
+    nullable = {n for n, c in model.to_schema().columns.items() if c.nullable}
     problems: list[tuple[Optional[int], Optional[str], str]] = []
     missing = [c for c in req if c not in df.columns]
     if missing:
@@ -407,9 +509,13 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
                     problems.append((i + 2, col, f"value {s.iloc[i]!r} is not true/false"))
                 df[col] = low.map(_BOOL_TEXT)
             elif col in model._id_columns:
-                df[col] = text
+                df[col] = text.where(~empty, "") if col in nullable else text
+            elif col in nullable:
+                df[col] = s.where(~empty, np.nan)
         else:
             empty = s.isna()
+        if col in nullable:
+            continue  # empty is allowed (an unlabelled candidate, a spread from one estimate)
         for i in np.flatnonzero(empty.to_numpy()):
             problems.append((i + 2, col, "value is missing (empty or NaN)"))
     for group in model._unique_together:

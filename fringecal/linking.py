@@ -1,0 +1,268 @@
+"""Scanner frames linked into the reference scanner's frame (thesis sections 6.2-6.3).
+
+Every scanner measures the artefact in its own frame, giving per measurement ``m``
+a pose ``T_scanner_artefact(m)`` (the poses table). A measurement seen by two
+scanners A and B links their frames::
+
+    T_A_B(m) = T_A_artefact(m) o T_B_artefact(m)^-1
+
+which is the same rigid transform for every shared measurement up to noise. The
+estimates are averaged robustly (chordal mean of the rotations, mean of the
+translations, outliers beyond ``k`` robust standard deviations dropped) and their
+spread is reported. Scanners that share no measurement with the reference are
+chained through intermediate scanners: the scanners form a graph whose edges are
+shared measurements, and each scanner is reached by the path with the fewest links
+(ties: the most shared measurements).
+
+:func:`sensor_in_frame` then expresses a scanner's sensors in the reference frame,
+so every scanner starts the bundle adjustment in one global frame.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import pandas as pd
+
+from schemas import PosesTable, validate_table
+
+from .frames import Frame
+from .rotation import angles_from_matrix
+
+__all__ = [
+    "FrameLink", "LinkResult", "mean_frame", "robust_mean_frame", "link_scanners",
+    "sensor_in_frame", "rig_in_frame", "LINK_COLUMNS",
+]
+
+LINK_COLUMNS = ["scanner", "reference", "tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad",
+                "n_measurements", "n_rejected", "translation_spread_mm", "rotation_spread_rad",
+                "u_translation_mm", "u_rotation_rad", "via"]
+
+
+def _project_to_rotation(M: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def _rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle (...) of rotation matrices (..., 3, 3)."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def mean_frame(frames, near=None) -> tuple[Frame, np.ndarray, np.ndarray]:
+    """Mean of rigid frames: chordal L2 mean rotation, arithmetic mean origin.
+
+    Returns the mean frame and, per input frame, its translation deviation (mm) and
+    rotation deviation (rad) from the mean.
+    """
+    frames = list(frames)
+    R = np.stack([f.R for f in frames])
+    t = np.stack([f.t for f in frames])
+    R_mean = _project_to_rotation(R.sum(axis=0))
+    t_mean = t.mean(axis=0)
+    near = frames[0].angles if near is None else near
+    mean = Frame.from_matrix(R_mean, t_mean, near=near)
+    dt = np.linalg.norm(t - t_mean, axis=1)
+    dr = _rotation_angle(R @ R_mean.T)
+    return mean, dt, dr
+
+
+def robust_mean_frame(frames, k: float = 4.0, floor_mm: float = 0.05, floor_rad: float = 2e-5,
+                      lever_mm: float = 1000.0) -> tuple[Frame, np.ndarray]:
+    """:func:`mean_frame` after dropping outliers.
+
+    Deviations combine translation and rotation as ``dt + lever_mm * dr``. They are
+    first measured from the medoid (the estimate closest to all others, robust while
+    most estimates are good), an estimate beyond ``k`` robust standard deviations
+    (1.4826 MAD, at least ``floor_mm + lever_mm * floor_rad``) is dropped, then the
+    test is repeated about the mean of the rest. Needs three or more estimates to
+    reject anything. Returns the mean and the kept mask.
+    """
+    frames = list(frames)
+    keep = np.ones(len(frames), bool)
+    if len(frames) >= 3:
+        R = np.stack([f.R for f in frames])
+        t = np.stack([f.t for f in frames])
+        pair = (np.linalg.norm(t[:, None] - t[None, :], axis=2)
+                + lever_mm * _rotation_angle(np.einsum("aij,bkj->abik", R, R)))
+        dev = pair[int(np.argmin(pair.sum(axis=1)))]
+        floor = floor_mm + lever_mm * floor_rad
+        for _ in range(2):
+            sigma = max(1.4826 * float(np.median(dev[keep] if keep.sum() > 2 else dev)), floor)
+            keep = dev <= k * sigma
+            _, dt, dr = _deviations(frames, mean_frame([f for f, k_ in zip(frames, keep) if k_])[0])
+            dev = dt + lever_mm * dr
+    mean, _, _ = mean_frame([f for f, k_ in zip(frames, keep) if k_])
+    return mean, keep
+
+
+def _deviations(frames, mean: Frame):
+    R = np.stack([f.R for f in frames])
+    t = np.stack([f.t for f in frames])
+    return mean, np.linalg.norm(t - mean.t, axis=1), _rotation_angle(R @ mean.R.T)
+
+
+@dataclass(frozen=True)
+class FrameLink:
+    """``T_reference_scanner`` with its evidence.
+
+    ``via`` lists the scanners from the reference to this one; spreads are the RMS
+    deviations of the per-measurement estimates of the *last* link from its mean,
+    accumulated in quadrature along the path; ``u_*`` are the standard
+    uncertainties of the mean (spread / sqrt(n) per link, in quadrature).
+    """
+
+    scanner: str
+    reference: str
+    frame: Frame
+    n_measurements: int
+    n_rejected: int
+    translation_spread_mm: float
+    rotation_spread_rad: float
+    u_translation_mm: float
+    u_rotation_rad: float
+    via: tuple[str, ...]
+    measurements: tuple[str, ...] = field(default=(), repr=False)
+
+
+@dataclass(frozen=True)
+class LinkResult:
+    """Links of every reachable scanner and the reasons for the others."""
+
+    reference: str
+    links: dict
+    unlinked: dict
+
+    def table(self) -> pd.DataFrame:
+        rows = []
+        for s, lk in self.links.items():
+            rows.append((s, lk.reference, *lk.frame.t, *lk.frame.angles, lk.n_measurements, lk.n_rejected,
+                         lk.translation_spread_mm, lk.rotation_spread_rad, lk.u_translation_mm,
+                         lk.u_rotation_rad, " > ".join(lk.via)))
+        return pd.DataFrame(rows, columns=LINK_COLUMNS)
+
+
+def _edge(poses_a: dict, poses_b: dict, k: float):
+    shared = sorted(set(poses_a) & set(poses_b))
+    estimates = [poses_a[m].compose(poses_b[m].inverse()) for m in shared]
+    mean, keep = robust_mean_frame(estimates, k=k)
+    used = [e for e, k_ in zip(estimates, keep) if k_]
+    _, dt, dr = _deviations(used, mean)
+    n = len(used)
+    spread_t = float(np.sqrt(np.mean(dt**2))) if n > 1 else float("nan")
+    spread_r = float(np.sqrt(np.mean(dr**2))) if n > 1 else float("nan")
+    return mean, n, int((~keep).sum()), spread_t, spread_r, tuple(m for m, k_ in zip(shared, keep) if k_)
+
+
+def link_scanners(poses: pd.DataFrame, reference: str, k: float = 4.0, source: str = "<poses>") -> LinkResult:
+    """Link every scanner of a poses table into ``reference``'s frame.
+
+    Parameters
+    ----------
+    poses : DataFrame
+        :class:`schemas.PosesTable` rows: ``T_scanner_artefact`` per (measurement, scanner).
+    reference : str
+        The scanner whose frame becomes the global frame.
+    k : float
+        Outlier threshold in robust standard deviations.
+
+    Returns
+    -------
+    LinkResult
+        ``links[scanner].frame`` is ``T_reference_scanner``; ``unlinked`` names
+        scanners sharing no measurement path with the reference.
+
+    Examples
+    --------
+    >>> T_r_a = [Frame.from_params([0, 0, 1000 + 10 * m, 0.1 * m, 0, 0]) for m in range(3)]
+    >>> T_r_s = Frame.from_params([500, 0, 0, 0, 0.2, 0])      # the truth
+    >>> rows = []
+    >>> for m, T in enumerate(T_r_a):
+    ...     rows.append((str(m), "ref", *T.params, 0.0, 4))
+    ...     rows.append((str(m), "s2", *T_r_s.inverse().compose(T).params, 0.0, 4))
+    >>> cols = ["measurement", "scanner", "tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad",
+    ...         "kappa_rad", "rms_mm", "n_spheres"]
+    >>> res = link_scanners(pd.DataFrame(rows, columns=cols), "ref")
+    >>> bool(np.allclose(res.links["s2"].frame.params, T_r_s.params))
+    True
+    """
+    poses = validate_table(poses, PosesTable, source)
+    by_scanner: dict[str, dict[str, Frame]] = {}
+    for r in poses.itertuples(index=False):
+        by_scanner.setdefault(r.scanner, {})[r.measurement] = Frame(
+            [r.tx_mm, r.ty_mm, r.tz_mm], [r.omega_rad, r.phi_rad, r.kappa_rad])
+    scanners = list(by_scanner)
+    if reference not in by_scanner:
+        raise ValueError(f"{source}: reference scanner {reference!r} has no poses "
+                         f"(scanners with poses: {scanners})")
+    identity = FrameLink(reference, reference, Frame(np.zeros(3), np.zeros(3)), len(by_scanner[reference]), 0,
+                         0.0, 0.0, 0.0, 0.0, (reference,), tuple(sorted(by_scanner[reference])))
+    links = {reference: identity}
+    # Dijkstra on (links, -shared measurements)
+    shared = {(a, b): len(set(by_scanner[a]) & set(by_scanner[b])) for a in scanners for b in scanners if a != b}
+    best = {reference: (0, 0)}
+    parent: dict[str, str] = {}
+    heap = [(0, 0, reference)]
+    while heap:
+        hops, neg, s = heapq.heappop(heap)
+        if best.get(s, (np.inf, 0)) < (hops, neg):
+            continue
+        for t in scanners:
+            n_sh = shared.get((s, t), 0)
+            if t == s or n_sh == 0:
+                continue
+            cand = (hops + 1, neg - n_sh)
+            if cand < best.get(t, (np.inf, 0)):
+                best[t] = cand
+                parent[t] = s
+                heapq.heappush(heap, (*cand, t))
+    order = sorted((s for s in best if s != reference), key=lambda s: best[s][0])
+    for s in order:
+        p = parent[s]
+        mean, n, n_rej, st, sr, used = _edge(by_scanner[p], by_scanner[s], k)
+        prev = links[p]
+        frame = mean if p == reference else prev.frame.compose(mean)
+        links[s] = FrameLink(
+            s, reference, frame, n, n_rej,
+            float(np.hypot(prev.translation_spread_mm, st)), float(np.hypot(prev.rotation_spread_rad, sr)),
+            float(np.hypot(prev.u_translation_mm, st / np.sqrt(n))), float(np.hypot(prev.u_rotation_rad, sr / np.sqrt(n))),
+            prev.via + (s,), used)
+    unlinked = {s: f"shares no measurement (directly or through other scanners) with {reference!r}"
+                for s in scanners if s not in links}
+    return LinkResult(reference, links, unlinked)
+
+
+def sensor_in_frame(sensor, T_reference_scanner: Frame, near=None):
+    """A sensor expressed in the reference frame.
+
+    A sensor frame maps ``x_sensor = R_s (x_scanner - x0)`` and the link maps
+    ``x_scanner = R_T (x_ref - t)``, so in the reference frame the pinhole is
+    ``T(x0)`` and the rotation ``R_s R_T``; the angles are taken on the branch
+    nearest ``near`` (default: the sensor's own angles). Interior and distortion
+    parameters are unchanged.
+    """
+    T = T_reference_scanner
+    R_new = sensor.R @ T.R
+    near = sensor.angles if near is None else near
+    params = np.array(sensor.params, float)
+    params[0:3] = T.to_world(sensor.pinhole)
+    params[3:6] = angles_from_matrix(R_new, near=near)
+    return sensor.with_params(params)
+
+
+def rig_in_frame(rig, links: dict):
+    """A :class:`fringecal.rig.Rig` with every linked scanner's sensors in the reference
+    frame (``links``: scanner -> FrameLink or Frame). Scanners without a link raise KeyError."""
+    from .rig import Scanner
+
+    scanners = []
+    for s in rig.scanners:
+        if s.name not in links:
+            raise KeyError(f"scanner {s.name!r} has no link to the reference frame")
+        T = links[s.name].frame if isinstance(links[s.name], FrameLink) else links[s.name]
+        scanners.append(Scanner(s.name, sensor_in_frame(s.camera, T), sensor_in_frame(s.projector, T)))
+    return replace(rig, scanners=tuple(scanners))
