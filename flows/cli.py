@@ -104,6 +104,10 @@ def pose(
         err_console.print(f"[yellow]skipped[/] measurement {s['measurement']}, scanner {s['scanner']}: {s['reason']}")
 
 
+from flows.cli_decode import decode_command  # noqa: E402
+app.command("decode")(decode_command)
+
+
 def main():  # pragma: no cover - console entry point
     app()
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
+from pydantic import Field
 
 from ..config import StrictModel
 from .sequence import FringeSequence
@@ -49,8 +50,8 @@ class DecodeSettings(StrictModel):
     frame is saturated there.
     """
 
-    min_modulation: float = 0.02
-    max_phase_error: float = 0.3
+    min_modulation: float = Field(0.02, ge=0.0, le=1.0)
+    max_phase_error: float = Field(0.3, gt=0.0)
 
 
 @dataclass

@@ -48,9 +48,10 @@ def check_decoded(result: DecodedPhase, source: str) -> None:
         if peak < min_mod:
             first = seq.frame_name(o, seq.fringe_counts[0], 0).rsplit(".", 1)[0]
             last = seq.frame_name(o, seq.fringe_counts[-1], seq.n_steps - 1).rsplit(".", 1)[0]
+            what = "zero modulation everywhere" if peak < 1e-6 * max(min_mod, 1.0) else "no fringes"
             raise NoFringesError(
-                f"{source}: zero modulation everywhere in orientation {o} (frames {first}..{last}: largest "
-                f"modulation {peak:.3g} DN, threshold {min_mod:.3g} DN); was the projector on?")
+                f"{source}: {what} in orientation {o}: frames {first}..{last} have modulation below the "
+                f"threshold {min_mod:.3g} DN at every pixel (largest {peak:.3g} DN); was the projector on?")
     if not result.valid.any():
         reasons = [f"{np.mean(result.saturated):.0%} saturated"]
         for o in seq.orientations:
