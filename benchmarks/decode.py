@@ -242,7 +242,9 @@ def bench_fringes(frames, w, ours, rows, repeats):
         wf = wrap(2 * np.pi * x[d, :, :, 0] / f.Lext)
         inner = (slice(16, rows), slice(16, -16))
         err = wrap(wf - w[o][:rows])[inner]
+        ours_err = wrap(ours.tau[o][:rows] - w[o][:rows])[inner]
         acc[o] = {"tau_rms_error_rad": float(np.sqrt(np.mean(err**2))),
+                  "fringecal_tau_rms_error_same_pixels_rad": float(np.sqrt(np.mean(ours_err**2))),
                   "rms_difference_to_fringecal_rad": float(np.sqrt(np.mean(wrap(wf - ours.tau[o][:rows])[inner] ** 2))),
                   "unwrapping_errors": int(np.count_nonzero(np.abs(err) > 0.02))}
     px = rows * frames.shape[2]
