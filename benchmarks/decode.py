@@ -293,7 +293,7 @@ def bench_formats(frames, repeats, formats):
     return out
 
 
-def bench_store(res, frames):
+def bench_store(res):
     root = Path(tempfile.mkdtemp(prefix="fringecal-store-"))
     try:
         ds = measurement_dataset(res, {"benchmark": True})
@@ -320,7 +320,7 @@ def main(argv=None):
     theirs = bench_fringes(frames, w, res, min(args.fringes_rows, args.size), args.repeats)
     if "camera_px_per_s" in theirs:
         theirs["fringecal_speedup"] = round(ours["camera_px_per_s"] / theirs["camera_px_per_s"], 1)
-    store = bench_store(res, frames)
+    store = bench_store(res)
     formats = bench_formats(frames, args.repeats, [f for f in args.formats.split(",") if f])
     doc = {
         "machine": {"cpus": os.cpu_count(), "numba_threads": nb.get_num_threads(),

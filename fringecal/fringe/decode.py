@@ -44,7 +44,7 @@ class DecodeSettings(StrictModel):
     """Validity thresholds of the decoder.
 
     ``min_modulation`` is a fraction of the full scale (the saturation level, e.g.
-    4095 for 12-bit frames); ``max_phase_error`` is the largest accepted RMS residual
+    4095 for 12-bit frames; 1.0 for float frames decoded without one); ``max_phase_error`` is the largest accepted RMS residual
     of the tau fit in radians. A pixel is valid when, in every orientation, its
     modulation reaches the threshold and its phase error does not exceed it, and no
     frame is saturated there.
@@ -120,6 +120,8 @@ def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSetting
     ----------
     frames : array (n_frames, H, W), any integer or float dtype
         In the order of ``sequence.frames()`` (orientation, fringe count, step).
+        uint8, uint16 and float32 are read in place; other types are converted to
+        float32 first (a copy).
     sequence : FringeSequence
     settings : DecodeSettings, optional
     full_scale : float, optional
@@ -144,10 +146,13 @@ def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSetting
                          f"got {frames.shape}")
     if frames.dtype.kind not in "uif":
         raise ValueError(f"frames must be integer or float, got {frames.dtype}")
-    if not frames.flags.c_contiguous:
-        frames = np.ascontiguousarray(frames)
     if full_scale is None:
         full_scale = float(np.iinfo(frames.dtype).max) if frames.dtype.kind in "ui" else np.inf
+    # uint8 and uint16 (camera data) are decoded as they are; anything else as float32,
+    # so the kernel is compiled for three types only
+    if frames.dtype not in (np.uint8, np.uint16, np.float32):
+        frames = frames.astype(np.float32)
+    frames = np.ascontiguousarray(frames)
     n_o, (h, w) = len(sequence.orientations), frames.shape[1:]
     counts = np.asarray(sequence.fringe_counts, np.int64)
     steps = sequence.step_phases()
@@ -187,7 +192,7 @@ def _atan_coefficients(n_terms: int = 7) -> tuple[float, ...]:
 _ATAN = _atan_coefficients()
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=True, error_model="numpy")
 def _atan2(y, x):  # pragma: no cover - numba
     """Branch-free atan2 (vectorises where libm's does not); |error| < 1e-11 rad."""
     ax = abs(x)
@@ -212,7 +217,7 @@ def _atan2(y, x):  # pragma: no cover - numba
     return -r if y < 0.0 else r
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, error_model="numpy")
 def _decode_rows(frames, counts, cos_k, sin_k, full_scale, min_mod, max_err,
                  tau, mod, err, beat, texture, saturated, valid):  # pragma: no cover - numba
     """Everything in column loops over per-row scratch rows so LLVM vectorises them."""
