@@ -49,10 +49,11 @@ def write_folder(folder, bits=16, fmt="png", seq=SEQ, spec=None, skip=(), image=
     return folder
 
 
+@pytest.mark.parametrize("n_steps", [3, 4, 7])
 @pytest.mark.parametrize("fmt", ["png", "tif"])
 @pytest.mark.parametrize("bits", [8, 12, 16])
-def test_png_and_tiff_stacks_decode_to_the_known_phase(tmp_path, fmt, bits):
-    folder = write_folder(tmp_path / "m1", bits=bits, fmt=fmt)
+def test_png_and_tiff_stacks_decode_to_the_known_phase(tmp_path, fmt, bits, n_steps):
+    folder = write_folder(tmp_path / "m1", bits=bits, fmt=fmt, seq=FringeSequence((16, 15, 14, 12), n_steps))
     stack = read_frames(folder)
     assert stack.format == fmt and stack.frames.dtype == (np.uint8 if bits == 8 else np.uint16)
     assert stack.full_scale == 2**bits - 1
