@@ -140,7 +140,7 @@ def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSetting
     (array([[-3. , -1.5,  0. ,  1.5,  3. ]], dtype=float32), array([[50., 50., 50., 50., 50.]], dtype=float32))
     """
     settings = settings or DecodeSettings()
-    frames = np.asarray(frames) if not isinstance(frames, np.ndarray) else frames
+    frames = np.asarray(frames)
     if frames.ndim != 3 or frames.shape[0] != sequence.n_frames:
         raise ValueError(f"expected frames of shape ({sequence.n_frames}, H, W) for {sequence.n_frames} frames, "
                          f"got {frames.shape}")
