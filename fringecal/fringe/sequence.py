@@ -106,3 +106,25 @@ class FringeSequence:
     def to_dict(self) -> dict:
         return {"fringe_counts": list(self.fringe_counts), "n_steps": self.n_steps,
                 "orientations": list(self.orientations)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FringeSequence":
+        """Inverse of :meth:`to_dict`.
+
+        >>> FringeSequence.from_dict(FringeSequence().to_dict()) == FringeSequence()
+        True
+        """
+        return cls(fringe_counts=tuple(d["fringe_counts"]), n_steps=int(d["n_steps"]),
+                   orientations=tuple(d["orientations"]))
+
+    def frame_index(self, orientation: str, fringes: int, step: int) -> int:
+        """Position of a frame in :meth:`frames` order.
+
+        >>> FringeSequence().frame_index("y", 63, 2)
+        58
+        """
+        o = self.orientations.index(orientation)
+        t = self.fringe_counts.index(fringes)
+        if not 0 <= step < self.n_steps:
+            raise SequenceError(f"step {step} outside 0..{self.n_steps - 1}")
+        return (o * len(self.fringe_counts) + t) * self.n_steps + step

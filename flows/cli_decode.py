@@ -1,0 +1,103 @@
+"""``fringecal decode``: fringe frame folders -> measurement stores.
+
+This module does not import ``flows.cli``: under ``python -m flows.cli`` that module
+runs as ``__main__`` and importing it again here would load a second copy (and a
+circular import). Bad input therefore ends here, in the same format as
+``flows.cli.fail``: one message on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+import typer
+from pydantic import ValidationError
+from rich.console import Console
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+class UserInputError(Exception):
+    """Bad input the user can fix; printed without a traceback."""
+
+
+def guarded(fn):
+    """Turn input errors (frame folders, stores, settings) into one message and exit status 2."""
+    from fringecal.fringe.importer import FrameStackError
+    from fringecal.store import StoreError
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except (UserInputError, FrameStackError, StoreError, FileNotFoundError) as err:
+            err_console.print(f"[bold red]error:[/] {err}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+
+    return wrapper
+
+
+def _measurements(frames: Path, out: Path) -> tuple[list[Path], list[Path]]:
+    """One folder with sequence.yaml -> one store at ``out``; a folder of such folders
+    -> ``out/<name>.zarr`` each."""
+    from fringecal.fringe.importer import SEQUENCE_FILE
+
+    if not frames.is_dir():
+        raise UserInputError(f"{frames}: no such folder")
+    if (frames / SEQUENCE_FILE).exists():
+        return [frames], [out]
+    dirs = sorted(d for d in frames.iterdir() if (d / SEQUENCE_FILE).is_file())
+    if not dirs:
+        raise UserInputError(f"{frames}: neither a measurement folder ({SEQUENCE_FILE} and frames) "
+                             f"nor a folder of measurement folders")
+    return dirs, [out / f"{d.name}.zarr" for d in dirs]
+
+
+@guarded
+def decode_command(
+    frames: Path = typer.Option(..., "--frames", "-f",
+                                help="Measurement folder (sequence.yaml + one PNG/TIFF per frame, or frames.npy), "
+                                     "or a folder of measurement folders."),
+    out: Path = typer.Option(..., "--out", "-o",
+                             help="Store to write (M.zarr); a folder of <name>.zarr stores for several measurements."),
+    min_modulation: float = typer.Option(0.02, help="Valid pixels: modulation >= this fraction of full scale."),
+    max_phase_error: float = typer.Option(0.3, help="Valid pixels: RMS residual of the tau fit <= this (rad)."),
+    store_frames: bool = typer.Option(False, "--store-frames", help="Also keep the raw frames in the store."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+):
+    """Decode fringe image stacks into zarr stores (tau_x, tau_y, modulation, phase error, texture, valid)."""
+    from fringecal.fringe.decode import DecodeSettings
+    from fringecal.fringe.importer import read_stack_spec
+    from fringecal.store import open_store
+
+    try:
+        settings = DecodeSettings(min_modulation=min_modulation, max_phase_error=max_phase_error)
+    except ValidationError as err:
+        raise UserInputError("; ".join(f"--{e['loc'][0].replace('_', '-')}: {e['msg']}" for e in err.errors()))
+    dirs, outs = _measurements(frames, out)
+    for d in dirs:  # names, sequence.yaml and the schedule are checked before Prefect starts
+        read_stack_spec(d)
+    from flows.decode_flow import decode_flow
+
+    refs = decode_flow([str(d) for d in dirs], [str(o) for o in outs], settings.model_dump(), store_frames)
+    rows = []
+    for d, ref in zip(dirs, refs):
+        attrs = open_store(ref.path).attrs
+        rows.append({"frames": str(d), "store": ref.path, "digest": ref.digest,
+                     "scanner": attrs.get("scanner"), "measurement": attrs.get("measurement"), **attrs["summary"]})
+    if as_json:
+        print(json.dumps({"stores": rows}, indent=2))
+        return
+    from rich.table import Table
+
+    t = Table(title=f"decoded -> {out}")
+    for col in ("frames", "store", "valid %", "median phase error x / y (mrad)"):
+        t.add_column(col)
+    for r in rows:
+        errs = [r.get(f"median_phase_error_{o}_rad") for o in "xy"]
+        t.add_row(r["frames"], r["store"], f"{100 * r['valid_fraction']:.1f}",
+                  " / ".join("-" if e is None else f"{1000 * e:.1f}" for e in errs))
+    console.print(t)

@@ -1,0 +1,241 @@
+"""Measurement stores: one zarr v3 store per measurement, written atomically.
+
+A store is written under a hidden temporary sibling name (``.M.zarr.tmp-<id>``),
+then finalised -- a manifest of every variable's chunk files (count and bytes) and
+the completion marker ``fringecal_complete = true`` go into the root attributes,
+written last together with the consolidated metadata -- and only then renamed to
+its final name. A crash leaves at most a hidden temporary folder; a folder at the
+final name without the marker, or whose files disagree with the manifest, is
+refused by :func:`open_store` with a message naming the store.
+
+Stores open with plain ``xarray.open_zarr(path)``; :func:`open_store` adds the
+checks. Maps are float32 (or bool) of shape (H, W) on dims ``("v", "u")`` (camera
+row, column), chunked 512 x 512 and compressed with Blosc/zstd.
+
+:func:`add_variables` adds or replaces variables (later: ``x``, ``y``, ``z``,
+``eps1``) without rewriting the rest: it builds the updated store in a temporary
+sibling whose existing chunk files are hard links (zarr replaces files on write and
+never edits them in place, so the original cannot change), writes the new variables,
+finalises it and swaps it in by rename. Readers see the old or the new store, never
+a mix; reopen a store after updating it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+import warnings
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import xarray as xr
+import zarr
+from zarr.codecs import BloscCodec
+
+__all__ = ["StoreError", "write_store", "open_store", "is_complete", "add_variables", "store_encoding",
+           "COMPLETE_ATTR", "MANIFEST_ATTR"]
+
+COMPLETE_ATTR = "fringecal_complete"
+MANIFEST_ATTR = "fringecal_manifest"
+MAP_CHUNK = 512
+FRAME_CHUNK = 256
+
+
+class StoreError(ValueError):
+    """A store that is missing, incomplete or corrupt; the message names it."""
+
+
+def store_encoding(ds: xr.Dataset) -> dict:
+    """Chunks and compression per variable: (512, 512) tiles for maps, (all frames,
+    256, 256) blocks for frame stacks (a block decodes on its own), Blosc/zstd with
+    byte shuffle."""
+    enc = {}
+    for name, var in ds.data_vars.items():
+        if var.ndim == 2:
+            chunks = tuple(min(MAP_CHUNK, n) for n in var.shape)
+        elif var.ndim == 3:
+            chunks = (var.shape[0],) + tuple(min(FRAME_CHUNK, n) for n in var.shape[1:])
+        else:
+            chunks = var.shape
+        shuffle = "bitshuffle" if var.dtype == bool else "shuffle"
+        enc[name] = {"chunks": chunks,
+                     "compressors": (BloscCodec(cname="zstd", clevel=3, shuffle=shuffle),)}
+    return enc
+
+
+def write_store(path, ds: xr.Dataset, overwrite: bool = True) -> Path:
+    """Write ``ds`` as a complete zarr v3 store at ``path`` (atomically).
+
+    Attributes must be JSON-native (checked). An existing store at ``path`` is
+    replaced only once the new one is complete.
+    """
+    path = Path(path)
+    _check_json(ds.attrs, path)
+    if path.exists() and not overwrite:
+        raise StoreError(f"{path}: exists (pass overwrite=True to replace it)")
+    tmp = _tmp_sibling(path, "tmp")
+    try:
+        ds.to_zarr(tmp, mode="w-", zarr_format=3, consolidated=False, encoding=store_encoding(ds))
+        _finalise(tmp)
+        _swap_in(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def is_complete(path) -> bool:
+    """True if ``path`` is a finished store whose files match its manifest."""
+    try:
+        _check_complete(Path(path))
+    except StoreError:
+        return False
+    return True
+
+
+def open_store(path, verify: bool = False) -> xr.Dataset:
+    """Open a complete store lazily; refuse incomplete or corrupt ones.
+
+    ``verify=True`` also reads every chunk (catches damaged chunk contents).
+    """
+    path = Path(path)
+    _check_complete(path)
+    try:
+        ds = xr.open_zarr(path, consolidated=True)
+    except Exception as err:
+        raise StoreError(f"{path}: corrupt store ({type(err).__name__}: {err})") from None
+    if verify:
+        for name, var in ds.variables.items():
+            try:
+                var.values
+            except Exception as err:
+                raise StoreError(f"{path}: variable {name!r} is corrupt ({type(err).__name__}: {err})") from None
+    return ds
+
+
+def add_variables(path, variables: Mapping[str, xr.DataArray], attrs: Mapping | None = None) -> Path:
+    """Add (or replace) variables of a complete store, and merge ``attrs`` into its
+    attributes, atomically (see the module notes).
+
+    ``variables`` maps names to DataArrays on the store's dims (e.g. ``("v", "u")``)
+    with matching sizes; their coordinates are not written.
+    """
+    path = Path(path)
+    _check_complete(path)
+    with xr.open_zarr(path, consolidated=True) as old:
+        sizes = dict(old.sizes)
+        merged = {k: v for k, v in old.attrs.items() if k not in (COMPLETE_ATTR, MANIFEST_ATTR)}
+    merged.update(attrs or {})
+    _check_json(merged, path)
+    new = {}
+    for name, da in variables.items():
+        da = da if isinstance(da, xr.DataArray) else xr.DataArray(np.asarray(da), dims=("v", "u"))
+        for dim, n in da.sizes.items():
+            if dim in sizes and sizes[dim] != n:
+                raise StoreError(f"{path}: variable {name!r} has {dim} = {n}, the store has {sizes[dim]}")
+        new[name] = da.drop_vars(list(da.coords))
+    ds = xr.Dataset(new, attrs=merged)
+    tmp = _tmp_sibling(path, "tmp")
+    try:
+        _link_copy(path, tmp, skip=set(new))
+        ds.to_zarr(tmp, mode="a", zarr_format=3, consolidated=False, encoding=store_encoding(ds))
+        _finalise(tmp)
+        _swap_in(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def _tmp_sibling(path: Path, tag: str) -> Path:
+    return path.parent / f".{path.name}.{tag}-{uuid.uuid4().hex[:12]}"
+
+
+def _check_json(attrs: Mapping, path: Path) -> None:
+    try:
+        text = json.dumps(attrs, allow_nan=False)
+    except (TypeError, ValueError) as err:
+        raise StoreError(f"{path}: attributes must be JSON-native ({err})") from None
+    if json.loads(text) != dict(attrs):
+        raise StoreError(f"{path}: attributes do not survive a JSON round trip (tuples or non-string keys?)")
+
+
+def _manifest(path: Path) -> dict[str, list[int]]:
+    """Number of files and bytes under every array folder (excluding its metadata)."""
+    out = {}
+    for entry in sorted(path.iterdir()):
+        if entry.is_dir() and (entry / "zarr.json").exists():
+            n = size = 0
+            for root, _, files in os.walk(entry):
+                for f in files:
+                    if root == str(entry) and f == "zarr.json":
+                        continue
+                    n += 1
+                    size += os.path.getsize(os.path.join(root, f))
+            out[entry.name] = [n, size]
+    return out
+
+
+def _finalise(tmp: Path) -> None:
+    group = zarr.open_group(tmp, mode="r+", zarr_format=3)
+    group.attrs.update({MANIFEST_ATTR: _manifest(tmp), COMPLETE_ATTR: True})
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+        zarr.consolidate_metadata(tmp)
+
+
+def _swap_in(tmp: Path, path: Path) -> None:
+    if path.exists():
+        old = _tmp_sibling(path, "old")
+        os.rename(path, old)
+        os.rename(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(tmp, path)
+
+
+def _link_copy(src: Path, dst: Path, skip: set[str]) -> None:
+    """Copy a store: metadata files copied, chunk files hard-linked; skip folders in ``skip``."""
+    def copy(s, d):
+        if os.path.basename(s) == "zarr.json":
+            return shutil.copy2(s, d)
+        try:
+            return os.link(s, d)
+        except OSError:
+            return shutil.copy2(s, d)
+
+    shutil.copytree(src, dst, copy_function=copy,
+                    ignore=lambda d, names: [n for n in names if Path(d) == src and n in skip])
+    root = json.loads((dst / "zarr.json").read_text())
+    root.pop("consolidated_metadata", None)
+    for key in (COMPLETE_ATTR, MANIFEST_ATTR):
+        root.get("attributes", {}).pop(key, None)
+    (dst / "zarr.json").write_text(json.dumps(root, indent=2))
+
+
+def _check_complete(path: Path) -> None:
+    meta = path / "zarr.json"
+    if not path.is_dir():
+        raise StoreError(f"{path}: no such store")
+    try:
+        doc = json.loads(meta.read_text())
+    except FileNotFoundError:
+        raise StoreError(f"{path}: not a zarr store (no zarr.json)") from None
+    except (ValueError, UnicodeDecodeError) as err:
+        raise StoreError(f"{path}: corrupt store metadata ({err})") from None
+    attrs = doc.get("attributes", {}) if isinstance(doc, dict) else {}
+    if attrs.get(COMPLETE_ATTR) is not True:
+        raise StoreError(f"{path}: incomplete store (no completion marker; its writing was interrupted or it was "
+                         "not written by fringecal); delete it and write it again")
+    expected = attrs.get(MANIFEST_ATTR, {})
+    actual = _manifest(path)
+    for name in sorted(set(expected) | set(actual)):
+        if name not in actual:
+            raise StoreError(f"{path}: corrupt store: variable {name!r} is missing")
+        if name not in expected:
+            raise StoreError(f"{path}: corrupt store: variable {name!r} is not in the manifest")
+        if actual[name] != expected[name]:
+            (n0, b0), (n1, b1) = expected[name], actual[name]
+            raise StoreError(f"{path}: corrupt store: variable {name!r} has {n1} chunk files / {b1} bytes, "
+                             f"the manifest says {n0} / {b0}")
