@@ -14,37 +14,11 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
+
+from .common import UserInputError, console, err_console, fail, guarded  # noqa: F401  (re-exported)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Calibrate fringe-projection scanners into one global frame.")
-console = Console()
-err_console = Console(stderr=True)
-
-
-class UserInputError(Exception):
-    """Bad input the user can fix; printed without a traceback."""
-
-
-def fail(message: str, code: int = 2):
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False)
-    raise typer.Exit(code)
-
-
-def guarded(fn):
-    """Turn input errors into one clear message and exit status 2."""
-    import functools
-
-    from schemas import TableError
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except (TableError, UserInputError, FileNotFoundError) as err:
-            fail(str(err))
-
-    return wrapper
 
 
 @app.command()

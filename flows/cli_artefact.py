@@ -17,7 +17,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from .cli import UserInputError, console, guarded
+from .common import UserInputError, console, guarded
 
 app = typer.Typer(no_args_is_help=True, help="Artefact engineering: truss, rigidity, sag, thermal, moisture, consistency.")
 

@@ -1,43 +1,14 @@
-"""``fringecal decode``: fringe frame folders -> measurement stores.
-
-This module does not import ``flows.cli``: under ``python -m flows.cli`` that module
-runs as ``__main__`` and importing it again here would load a second copy (and a
-circular import). Bad input therefore ends here, in the same format as
-``flows.cli.fail``: one message on stderr and exit status 2.
-"""
+"""``fringecal decode``: fringe frame folders -> measurement stores."""
 
 from __future__ import annotations
 
-import functools
 import json
 from pathlib import Path
 
 import typer
 from pydantic import ValidationError
-from rich.console import Console
 
-console = Console()
-err_console = Console(stderr=True)
-
-
-class UserInputError(Exception):
-    """Bad input the user can fix; printed without a traceback."""
-
-
-def guarded(fn):
-    """Turn input errors (frame folders, stores, settings) into one message and exit status 2."""
-    from fringecal.fringe.importer import FrameStackError
-    from fringecal.store import StoreError
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except (UserInputError, FrameStackError, StoreError, FileNotFoundError) as err:
-            err_console.print(f"[bold red]error:[/] {err}", highlight=False, soft_wrap=True)
-            raise typer.Exit(2) from None
-
-    return wrapper
+from .common import UserInputError, console, guarded
 
 
 def _measurements(frames: Path, out: Path) -> tuple[list[Path], list[Path]]:

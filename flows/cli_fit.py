@@ -2,33 +2,18 @@
 
 from __future__ import annotations
 
-import functools
 import json
 from pathlib import Path
 from typing import Optional
 
 import typer
 
+from .common import UserInputError, console, guarded
+
 fit_app = typer.Typer(add_completion=False, no_args_is_help=True,
                       help="Fit a sphere or a plane to exported points (columns x_mm, y_mm, z_mm).")
 
-def guarded(fn):
-    """flows.cli.guarded, looked up at call time: flows.cli imports this module, and
-    under ``python -m flows.cli`` it runs as __main__, so importing it here at load
-    time would be circular."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        from flows.cli import guarded as cli_guarded
-
-        return cli_guarded(fn)(*args, **kwargs)
-
-    return wrapper
-
-
 def _input_error(message: str) -> Exception:
-    from flows.cli import UserInputError
-
     return UserInputError(message)
 
 
@@ -47,7 +32,6 @@ def _print(result: dict, title: str, as_json: bool):
         return
     from rich.table import Table
 
-    from flows.cli import console
 
     t = Table(title=title, show_header=False)
     for k, v in result.items():

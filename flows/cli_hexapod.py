@@ -13,6 +13,8 @@ from typing import Optional
 import numpy as np
 import typer
 
+from .common import UserInputError, console, err_console, fail, guarded
+
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Stewart-platform hexapod (thesis ch. 4): kinematics, workspace, plan, move, drift.")
 
@@ -21,27 +23,21 @@ CONFIG_HELP = "Hexapod YAML (default: configs/hexapod/thesis_platform.yaml)."
 
 def _guarded(fn):
     """Bad input or a refused target: one message, status 2. A controller fault: status 1."""
+    from fringecal.hexapod import ForwardKinematicsError, HexapodFault, TargetRejected
+
+    inner = guarded(fn, extra=(TargetRejected, ForwardKinematicsError, ValueError))
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        from fringecal.config import ConfigError
-        from fringecal.hexapod import ForwardKinematicsError, HexapodFault, TargetRejected
-        from flows.cli import UserInputError, fail
-        from schemas import TableError
-
         try:
-            return fn(*args, **kwargs)
+            return inner(*args, **kwargs)
         except HexapodFault as err:
             fail(f"hexapod fault ({err.kind}): {err}", code=1)
-        except (ConfigError, TableError, UserInputError, FileNotFoundError, TargetRejected,
-                ForwardKinematicsError, ValueError) as err:
-            fail(str(err))
 
     return wrapper
 
 
 def _numbers(text: str, n: int, what: str) -> np.ndarray:
-    from flows.cli import UserInputError
 
     try:
         v = np.array([float(x) for x in text.replace(" ", "").split(",")])
@@ -94,7 +90,6 @@ def _legs_report(config, pose) -> dict:
 def _print_legs(report: dict, title: str):
     from rich.table import Table
 
-    from flows.cli import console, err_console
 
     t = Table(title=title)
     for c in ("leg", "length mm", "stroke mm", "counts", "base joint deg", "top joint deg"):
@@ -139,7 +134,6 @@ def fk(
     as_json: bool = typer.Option(False, "--json", help="Print JSON."),
 ):
     """Forward kinematics: the platform pose for six leg lengths or encoder counts."""
-    from flows.cli import UserInputError
     from fringecal.hexapod import forward_kinematics
     from fringecal.hexapod.planning import lengths_from_counts
 
@@ -154,7 +148,6 @@ def fk(
     if as_json:
         _dump(rep)
     else:
-        from flows.cli import console
 
         console.print(f"pose: {_pose_text(sol.poses)}  ({sol.iterations} iterations, "
                       f"residual {sol.residual_mm:.1e} mm)", highlight=False)
@@ -190,7 +183,6 @@ def workspace(
         return
     from rich.table import Table
 
-    from flows.cli import console
 
     t = Table(title=f"reach from the home pose (target +-{limit_mm:g} mm, +-{limit_deg:g} deg)")
     for c in ("axis", "lower", "upper", "limited below by", "limited above by"):
@@ -226,7 +218,6 @@ def plan(
     from fringecal.config import thesis_dir
     from fringecal.hexapod import HexapodRig
     from fringecal.hexapod.driver import write_command_file
-    from flows.cli import UserInputError
     from fringecal.hexapod.planning import COUNT_COLUMNS, frames_from_table, plan_with_stations, thesis_grid
     from schemas import HexapodPlanTable, PosePlanTable, read_table, write_table
 
@@ -253,7 +244,6 @@ def plan(
         return
     from rich.table import Table
 
-    from flows.cli import console
 
     t = Table(title=f"plan for {source}{' (nominal grid)' if grid else ''}: "
                     f"{len(ok)} of {len(result)} poses reachable")
@@ -284,7 +274,6 @@ def drift(
     if as_json:
         _dump({**rep.summary(), "per_sphere": rep.per_sphere.to_dict("records"), "pairs": rep.pairs.to_dict("records")})
         return
-    from flows.cli import console
 
     for r in rep.per_sphere.itertuples(index=False):
         console.print(f"sphere {r.sphere_id}: mean displacement {r.mean_displacement_um:.1f} um "
@@ -305,7 +294,6 @@ def move(
     as_json: bool = typer.Option(False, "--json", help="Print JSON."),
 ):
     """Move the platform (all six legs together), verify the encoders and report the pose reached."""
-    from flows.cli import UserInputError
     from fringecal.hexapod import HexapodDriver
     from fringecal.hexapod.planning import counts_from_lengths
     from fringecal.hexapod.kinematics import inverse_kinematics
@@ -332,7 +320,6 @@ def move(
     if as_json:
         _dump(rep)
         return
-    from flows.cli import console
 
     console.print(f"target counts {target.tolist()}\nread counts   {read.tolist()}\n"
                   f"reached: {_pose_text(reached)}", highlight=False)
@@ -351,7 +338,6 @@ def run_file(
     cfg = _config(config)
     with HexapodDriver.open(port, cfg) as drv:
         results = drv.run_command_file(commands)
-    from flows.cli import console
 
     for i, c in enumerate(results, 1):
         console.print(f"move {i}: encoders {c.tolist()}", highlight=False)

@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from .cli import console, guarded
+from .common import console, guarded
 
 app = typer.Typer(no_args_is_help=True, help="Verification per VDI/VDE 2634 (parts 2 and 3).")
 

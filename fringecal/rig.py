@@ -15,7 +15,7 @@ import pandas as pd
 
 from schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
 
-from .sensor import PARAM_COLUMNS, PARAM_NAMES, Sensor, SensorFormat
+from .sensor import PARAM_COLUMNS, Sensor, SensorFormat
 
 __all__ = ["Scanner", "Rig", "load_rig"]
 

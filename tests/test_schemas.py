@@ -2,7 +2,7 @@
 
 import pytest
 
-from fringecal.artefact import Artefact, check_rods, load_artefact, load_rods
+from fringecal.artefact import Artefact, load_artefact, load_rods
 from fringecal.rig import load_rig
 from schemas import (ArtefactTable, PosesTable, SensorParametersTable, SphereCentresTable, TableError,
                      ThermalLogTable, read_table)
