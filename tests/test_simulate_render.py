@@ -133,6 +133,13 @@ def test_shadowed_pixels_carry_only_ambient(ideal, scanner1, thesis_scene):
     dist = np.linalg.norm(to_prj, axis=1)
     first = thesis_scene.cast(scanner1.projector.pinhole, -to_prj / dist[:, None])
     assert np.all(first.t < dist - 1e-6)
+    # and every lit point is the first thing the projector's ray meets (brute force, no culling)
+    lit = truth.light == LIGHT_LIT
+    p = truth.point[lit]
+    to_prj = scanner1.projector.pinhole - p
+    dist = np.linalg.norm(to_prj, axis=1)
+    first = thesis_scene.cast(scanner1.projector.pinhole, -to_prj / dist[:, None])
+    np.testing.assert_allclose(first.t, dist, rtol=1e-9)
 
 
 def test_end_caps_and_rods_get_their_ids_and_caps_hide_spheres(ideal, thesis_artefact, rods, pose1, thesis_scene,

@@ -251,15 +251,18 @@ def nearest_hit(prims, kinds, cand, n_cand, ox, oy, oz, dx, dy, dz, tmin):
 
 
 @njit(cache=True)
-def cone_candidates(prims, ox, oy, oz, ax, ay, az, cos_half, out):
+def cone_candidates(prims, ox, oy, oz, ax, ay, az, cos_half, max_dist, out):
     """Primitives whose bounding sphere meets the cone (apex o, unit axis a, half-angle
-    acos(cos_half)); writes their indices to ``out`` and returns how many."""
+    acos(cos_half)) within ``max_dist`` of the apex; writes their indices to ``out``
+    and returns how many."""
     half = math.acos(min(1.0, max(-1.0, cos_half)))
     n = 0
     for j in range(prims.shape[0]):
         rb = prims[j, BOUND_R]
         vx, vy, vz = prims[j, BOUND] - ox, prims[j, BOUND + 1] - oy, prims[j, BOUND + 2] - oz
         dist = math.sqrt(vx * vx + vy * vy + vz * vz)
+        if dist - rb > max_dist:
+            continue
         if not rb < np.inf or dist <= rb * (1 + 1e-9) + 1e-9:
             out[n] = j
             n += 1
