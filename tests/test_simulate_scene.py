@@ -6,9 +6,11 @@ import pytest
 
 from fringecal.artefact import Artefact
 from fringecal.frames import Frame
-from fringecal.simulate import (ArtefactHardware, Box, Cylinder, Plane, Scene, SceneObject, Sphere,
-                                artefact_scene, sphere_plate_pose, sphere_plate_scene, SPHERE_PLATE_SEPARATION_MM)
-from fringecal.simulate.resolution import scaled_scanner
+from fringecal.fringe.sequence import FringeSequence
+from fringecal.simulate import (SPHERE_PLATE_SEPARATION_MM, ArtefactHardware, Box, Cylinder, Plane, RenderConfig,
+                                Scene, SceneObject, Sphere, artefact_scene, render_measurement, scaled_rig,
+                                scaled_scanner, sphere_plate_pose, sphere_plate_scene)
+from fringecal.simulate.visibility import pixel_centre_rays
 
 
 def random_rays_towards(rng, target, spread, n, origin_distance=500.0):
@@ -168,9 +170,25 @@ def test_sphere_plate_pose_and_geometry(thesis_rig):
         assert np.dot(centre - front, n) == pytest.approx(SPHERE_PLATE_SEPARATION_MM, abs=1e-12)
     # the camera sees sphere, plate and stalk at tilt 0
     small = scaled_scanner(scanner, 96)
-    from fringecal.simulate.visibility import pixel_centre_rays
-
     o, d = pixel_centre_rays(small)
     T = sphere_plate_pose(scanner, centre, 0.0, np.radians(20))
     seen = np.unique(sphere_plate_scene(T).cast(o, d).object_index, return_counts=True)
     assert dict(zip(*seen)).keys() == {-1, 0, 1, 2}
+
+
+def test_scaled_cameras_keep_the_field_of_view(thesis_rig):
+    rig = scaled_rig(thesis_rig, 256)
+    for big, small in zip(thesis_rig.scanners, rig.scanners):
+        assert small.camera.format.shape == (256, 256) and small.projector == big.projector
+        np.testing.assert_array_equal(small.camera.params, big.camera.params)
+        for corner_small, corner_big in (((0, 0), (0, 0)), ((255, 255), (2047, 2047)), ((127.5, 0), (1023.5, 0))):
+            np.testing.assert_allclose(small.camera.image_mm(np.array(corner_small, float)),
+                                       big.camera.image_mm(np.array(corner_big, float)), atol=1e-12)
+    assert rig.reference == thesis_rig.reference
+
+
+def test_an_empty_scene_renders_black(thesis_rig):
+    m = render_measurement(scaled_scanner(thesis_rig.scanner("scanner2"), 32), Scene(()), RenderConfig().noise_free(),
+                           np.random.default_rng(0), FringeSequence(fringe_counts=(8, 7), n_steps=3))
+    assert m.frames.shape == (12, 32, 32) and not m.frames.any()
+    assert (m.truth.object_index == -1).all() and np.isnan(m.truth.point).all()

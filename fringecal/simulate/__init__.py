@@ -16,6 +16,7 @@ from .resolution import scaled_format, scaled_rig, scaled_scanner
 from .scene import Box, Cylinder, Hits, Plane, Scene, SceneObject, Sphere
 from .scenes import (SPHERE_PLATE_SEPARATION_MM, ArtefactHardware, artefact_scene, backdrop, sphere_plate_pose,
                      sphere_plate_scene)
+from .visibility import pixel_centre_rays, sphere_visibility
 
 __all__ = [
     "Material", "RenderConfig", "DEFAULT_MATERIALS", "surface_levels", "phase_noise", "excess_noise_for_tau_noise",
@@ -24,5 +25,5 @@ __all__ = [
     "scaled_format", "scaled_scanner", "scaled_rig",
     "Sphere", "Cylinder", "Box", "Plane", "SceneObject", "Scene", "Hits",
     "ArtefactHardware", "artefact_scene", "backdrop", "sphere_plate_scene", "sphere_plate_pose",
-    "SPHERE_PLATE_SEPARATION_MM",
+    "SPHERE_PLATE_SEPARATION_MM", "pixel_centre_rays", "sphere_visibility",
 ]

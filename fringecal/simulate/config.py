@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from ..config import StrictModel
 from ..fringe.sequence import FringeSequence
@@ -79,7 +79,12 @@ DEFAULT_MATERIALS: dict[str, Material] = {
 
 
 class RenderConfig(StrictModel):
-    """Optics and noise of one virtual scanner (all intensities: fractions of full scale)."""
+    """Optics and noise of one virtual scanner (all intensities: fractions of full scale).
+
+    ``materials`` maps the material names of scene objects to :class:`Material`;
+    entries given override :data:`DEFAULT_MATERIALS`, the others stay. Loads from YAML
+    with :func:`fringecal.config.load_yaml_model`.
+    """
 
     offset: float = Field(default=0.4, ge=0, description="A: projector mean level")
     amplitude: float = Field(default=0.35, ge=0, description="B: projector fringe amplitude")
@@ -101,6 +106,13 @@ class RenderConfig(StrictModel):
     @classmethod
     def _complete(cls, v):
         return {**DEFAULT_MATERIALS, **v}
+
+    @model_validator(mode="after")
+    def _projector_light_is_not_negative(self):
+        if self.amplitude > self.offset:
+            raise ValueError(f"amplitude B = {self.amplitude} exceeds offset A = {self.offset}: "
+                             "the projector would emit negative light")
+        return self
 
     @property
     def max_dn(self) -> int:

@@ -81,6 +81,7 @@ def record(mean_e, state, shot, sigma_e, inv_gain, max_dn):
     else its normal limit), Gaussian noise of ``sigma_e`` electrons (read plus
     excess), gain ``1 / inv_gain`` e-/DN, rounding, clipping to [0, max_dn].
     """
+    mean_e = max(mean_e, 0.0)
     if shot and mean_e < POISSON_EXACT_BELOW:
         limit = math.exp(-mean_e)
         k = 0

@@ -38,6 +38,8 @@ def _unit(v) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Sphere:
+    """Solid sphere: ``centre`` (3,) mm and ``radius`` mm."""
+
     centre: np.ndarray
     radius: float
 
