@@ -1,0 +1,275 @@
+"""Compiled geometry for the virtual scanner: ray/primitive intersection and the
+14-parameter sensor model, one point at a time (numba).
+
+Primitives are packed into a float array ``prims`` of shape (n, N_PRIM_COLS) with
+a parallel int array ``kinds``:
+
+==========  =========================================================================
+kind        columns used
+==========  =========================================================================
+SPHERE      P = centre, RADIUS
+CYLINDER    P = start of the axis, A = unit axis, RADIUS, LENGTH (closed, flat ends)
+BOX         P = centre, A, B, C = unit local axes, HALF = half sizes along them
+PLANE       P = a point, A = unit normal (two-sided, infinite)
+==========  =========================================================================
+
+plus a bounding sphere (``BOUND`` centre, ``BOUND_R`` radius; infinite for planes)
+used to cull primitives per image tile. Normals are outward (for planes: facing the
+ray). The sensor model mirrors :mod:`fringecal.sensor` exactly (distortion of ideal
+coordinates, Newton inversion), packed as ``sensor_pack``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..sensor import Sensor
+
+SPHERE, CYLINDER, BOX, PLANE = 0, 1, 2, 3
+P, A, B, C = 0, 3, 6, 9
+RADIUS, LENGTH, HALF, BOUND, BOUND_R = 12, 13, 14, 17, 20
+N_PRIM_COLS = 21
+
+NO_HIT = np.inf
+
+
+def sensor_pack(sensor: Sensor) -> np.ndarray:
+    """(20,) float: pinhole (3), R row-major (9), xi_h, eta_h, c, k1, k2, k3, p1, p2."""
+    p = sensor.params
+    return np.concatenate([p[0:3], sensor.R.ravel(), p[6:14]])
+
+
+@njit(cache=True)
+def undistort_point(mx, my, s, gx, gy):
+    """Distorted (relative to the principal point) -> ideal image mm, by Newton from
+    the guess (gx, gy).
+
+    Same iteration and tolerance as :func:`fringecal.sensor.undistort`; returns
+    (x, y, converged).
+    """
+    k1, k2, k3, p1, p2 = s[15], s[16], s[17], s[18], s[19]
+    x, y = gx, gy
+    if k1 == 0.0 and k2 == 0.0 and k3 == 0.0 and p1 == 0.0 and p2 == 0.0:
+        return mx, my, True
+    ok = False
+    for _ in range(30):
+        r2 = x * x + y * y
+        q = r2 * (k1 + r2 * (k2 + r2 * k3))
+        fx = x + x * q + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y - mx
+        fy = y + y * q + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y - my
+        g = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        j11 = 1 + q + 2 * x * x * g + 6 * p1 * x + 2 * p2 * y
+        j22 = 1 + q + 2 * y * y * g + 6 * p2 * y + 2 * p1 * x
+        j12 = 2 * x * y * g + 2 * p1 * y + 2 * p2 * x
+        det = j11 * j22 - j12 * j12
+        sx = (j22 * fx - j12 * fy) / det
+        sy = (j11 * fy - j12 * fx) / det
+        x -= sx
+        y -= sy
+        if abs(sx) + abs(sy) <= 1e-13 * (1 + abs(x) + abs(y)):
+            ok = det > 0 and j11 + j22 > 0
+            break
+    return x, y, ok
+
+
+@njit(cache=True)
+def image_ray(xi, eta, s, shift_x, shift_y):
+    """Image-plane mm -> (dx, dy, dz, ok, ideal - distorted x, y): the unit world
+    direction from the pinhole; Newton starts from the distorted point plus the
+    (ideal - distorted) shift of a nearby point, so neighbours converge in 1-2 steps."""
+    mx, my = xi - s[12], eta - s[13]
+    x, y, ok = undistort_point(mx, my, s, mx + shift_x, my + shift_y)
+    lx, ly, lz = -x, -y, s[14]
+    # world = R^T local (R row-major at s[3:12])
+    dx = s[3] * lx + s[6] * ly + s[9] * lz
+    dy = s[4] * lx + s[7] * ly + s[10] * lz
+    dz = s[5] * lx + s[8] * ly + s[11] * lz
+    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return dx / n, dy / n, dz / n, ok, x - mx, y - my
+
+
+@njit(cache=True)
+def project_point(X, Y, Z, s):
+    """World point -> (xi, eta, z') on the image plane (mm, distorted); z' <= 0 is behind."""
+    vx, vy, vz = X - s[0], Y - s[1], Z - s[2]
+    xs = s[3] * vx + s[4] * vy + s[5] * vz
+    ys = s[6] * vx + s[7] * vy + s[8] * vz
+    zs = s[9] * vx + s[10] * vy + s[11] * vz
+    if zs <= 0:
+        return np.nan, np.nan, zs
+    x = -s[14] * xs / zs
+    y = -s[14] * ys / zs
+    k1, k2, k3, p1, p2 = s[15], s[16], s[17], s[18], s[19]
+    r2 = x * x + y * y
+    q = r2 * (k1 + r2 * (k2 + r2 * k3))
+    xi = s[12] + x + x * q + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
+    eta = s[13] + y + y * q + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
+    return xi, eta, zs
+
+
+@njit(cache=True)
+def _sphere(pr, ox, oy, oz, dx, dy, dz, tmin):
+    cx, cy, cz, r = pr[P], pr[P + 1], pr[P + 2], pr[RADIUS]
+    ocx, ocy, ocz = ox - cx, oy - cy, oz - cz
+    b = ocx * dx + ocy * dy + ocz * dz
+    # distance of the centre from the ray, computed without cancellation
+    qx, qy, qz = ocx - b * dx, ocy - b * dy, ocz - b * dz
+    disc = r * r - (qx * qx + qy * qy + qz * qz)
+    if disc < 0:
+        return NO_HIT, 0.0, 0.0, 0.0
+    h = math.sqrt(disc)
+    t = -b - h
+    if t <= tmin:
+        t = -b + h
+        if t <= tmin:
+            return NO_HIT, 0.0, 0.0, 0.0
+    nx, ny, nz = (ox + t * dx - cx) / r, (oy + t * dy - cy) / r, (oz + t * dz - cz) / r
+    return t, nx, ny, nz
+
+
+@njit(cache=True)
+def _cylinder(pr, ox, oy, oz, dx, dy, dz, tmin):
+    px, py, pz = pr[P], pr[P + 1], pr[P + 2]
+    ax, ay, az = pr[A], pr[A + 1], pr[A + 2]
+    r, L = pr[RADIUS], pr[LENGTH]
+    ocx, ocy, ocz = ox - px, oy - py, oz - pz
+    oa = ocx * ax + ocy * ay + ocz * az
+    da = dx * ax + dy * ay + dz * az
+    # components perpendicular to the axis
+    wx, wy, wz = ocx - oa * ax, ocy - oa * ay, ocz - oa * az
+    ex, ey, ez = dx - da * ax, dy - da * ay, dz - da * az
+    best = NO_HIT
+    nx = ny = nz = 0.0
+    qa = ex * ex + ey * ey + ez * ez
+    if qa > 1e-300:
+        qb = wx * ex + wy * ey + wz * ez
+        # w + t e closest to the axis at t0 = -qb/qa; stable form of the discriminant
+        t0 = -qb / qa
+        mx, my, mz = wx + t0 * ex, wy + t0 * ey, wz + t0 * ez
+        disc = (r * r - (mx * mx + my * my + mz * mz)) / qa
+        if disc >= 0:
+            h = math.sqrt(disc)
+            for t in (t0 - h, t0 + h):
+                if t > tmin and t < best:
+                    ha = oa + t * da
+                    if 0.0 <= ha <= L:
+                        best = t
+                        nx = (wx + t * ex) / r
+                        ny = (wy + t * ey) / r
+                        nz = (wz + t * ez) / r
+    if abs(da) > 1e-300:
+        for end in range(2):
+            ha = 0.0 if end == 0 else L
+            t = (ha - oa) / da
+            if t > tmin and t < best:
+                rx, ry, rz = wx + t * ex, wy + t * ey, wz + t * ez
+                if rx * rx + ry * ry + rz * rz <= r * r:
+                    best = t
+                    sgn = -1.0 if end == 0 else 1.0
+                    nx, ny, nz = sgn * ax, sgn * ay, sgn * az
+    return best, nx, ny, nz
+
+
+@njit(cache=True)
+def _box(pr, ox, oy, oz, dx, dy, dz, tmin):
+    vx, vy, vz = ox - pr[P], oy - pr[P + 1], oz - pr[P + 2]
+    tnear, tfar = -np.inf, np.inf
+    near_axis, near_sign = -1, 1.0
+    far_axis, far_sign = -1, 1.0
+    for i in range(3):
+        base = A + 3 * i
+        ux, uy, uz = pr[base], pr[base + 1], pr[base + 2]
+        o = vx * ux + vy * uy + vz * uz
+        d = dx * ux + dy * uy + dz * uz
+        h = pr[HALF + i]
+        if abs(d) < 1e-300:
+            if abs(o) > h:
+                return NO_HIT, 0.0, 0.0, 0.0
+            continue
+        t1 = (-h - o) / d
+        t2 = (h - o) / d
+        s1 = -1.0
+        if t1 > t2:
+            t1, t2 = t2, t1
+            s1 = 1.0
+        if t1 > tnear:
+            tnear, near_axis, near_sign = t1, i, s1
+        if t2 < tfar:
+            tfar, far_axis, far_sign = t2, i, -s1
+    if tnear > tfar or tfar <= tmin:
+        return NO_HIT, 0.0, 0.0, 0.0
+    if tnear > tmin:
+        t, axis, sgn = tnear, near_axis, near_sign
+    else:
+        t, axis, sgn = tfar, far_axis, far_sign
+    base = A + 3 * axis
+    return t, sgn * pr[base], sgn * pr[base + 1], sgn * pr[base + 2]
+
+
+@njit(cache=True)
+def _plane(pr, ox, oy, oz, dx, dy, dz, tmin):
+    nx, ny, nz = pr[A], pr[A + 1], pr[A + 2]
+    den = dx * nx + dy * ny + dz * nz
+    if abs(den) < 1e-300:
+        return NO_HIT, 0.0, 0.0, 0.0
+    t = ((pr[P] - ox) * nx + (pr[P + 1] - oy) * ny + (pr[P + 2] - oz) * nz) / den
+    if t <= tmin:
+        return NO_HIT, 0.0, 0.0, 0.0
+    if den > 0:
+        return t, -nx, -ny, -nz
+    return t, nx, ny, nz
+
+
+@njit(cache=True)
+def intersect(prims, kinds, j, ox, oy, oz, dx, dy, dz, tmin):
+    """First hit (t, nx, ny, nz) of the ray o + t d (t > tmin) with primitive j."""
+    k = kinds[j]
+    pr = prims[j]
+    if k == SPHERE:
+        return _sphere(pr, ox, oy, oz, dx, dy, dz, tmin)
+    if k == CYLINDER:
+        return _cylinder(pr, ox, oy, oz, dx, dy, dz, tmin)
+    if k == BOX:
+        return _box(pr, ox, oy, oz, dx, dy, dz, tmin)
+    return _plane(pr, ox, oy, oz, dx, dy, dz, tmin)
+
+
+@njit(cache=True)
+def nearest_hit(prims, kinds, cand, n_cand, ox, oy, oz, dx, dy, dz, tmin):
+    """Nearest hit among primitives ``cand[:n_cand]``: (t, primitive or -1, nx, ny, nz)."""
+    best, jbest = NO_HIT, -1
+    bnx = bny = bnz = 0.0
+    for c in range(n_cand):
+        j = cand[c]
+        t, nx, ny, nz = intersect(prims, kinds, j, ox, oy, oz, dx, dy, dz, tmin)
+        if t < best:
+            best, jbest, bnx, bny, bnz = t, j, nx, ny, nz
+    return best, jbest, bnx, bny, bnz
+
+
+@njit(cache=True)
+def cone_candidates(prims, ox, oy, oz, ax, ay, az, cos_half, max_dist, out):
+    """Primitives whose bounding sphere meets the cone (apex o, unit axis a, half-angle
+    acos(cos_half)) within ``max_dist`` of the apex; writes their indices to ``out``
+    and returns how many."""
+    half = math.acos(min(1.0, max(-1.0, cos_half)))
+    n = 0
+    for j in range(prims.shape[0]):
+        rb = prims[j, BOUND_R]
+        vx, vy, vz = prims[j, BOUND] - ox, prims[j, BOUND + 1] - oy, prims[j, BOUND + 2] - oz
+        dist = math.sqrt(vx * vx + vy * vy + vz * vz)
+        if dist - rb > max_dist:
+            continue
+        if not rb < np.inf or dist <= rb * (1 + 1e-9) + 1e-9:
+            out[n] = j
+            n += 1
+            continue
+        cb = (vx * ax + vy * ay + vz * az) / dist
+        beta = math.acos(min(1.0, max(-1.0, cb)))
+        if beta <= half + math.asin(rb / dist) + 1e-9:
+            out[n] = j
+            n += 1
+    return n
