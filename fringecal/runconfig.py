@@ -1,0 +1,204 @@
+"""The run configuration of ``fringecal run`` (pydantic + YAML).
+
+One YAML file describes a whole run: the rig data set (``configs/thesis/rig.yaml``
+by default), how measurements are acquired (simulated here), decoded, turned into
+sphere fits, control points and a calibration, and how the result is verified.
+Unknown keys anywhere are errors naming the file and the key path; relative paths
+resolve against the YAML file's folder.
+
+Step settings that live as dataclasses in fringecal (sphere candidates, robust
+fitting, labelling) are given as mappings and checked by constructing them, so a
+misspelt key fails before any work starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Literal, Optional
+
+from pydantic import Field, field_validator
+
+from .config import ConfigError, RigConfig, StrictModel, load_yaml_model, package_root, thesis_dir
+from .fringe.decode import DecodeSettings
+from .fringe.sequence import FringeSequence
+from .simulate.config import RenderConfig
+
+__all__ = ["RunConfig", "load_run_config", "default_run_config_path", "SequenceConfig", "AcquisitionConfig",
+           "PriorCalibrationConfig", "ExtractionConfig", "ControlPointConfig", "BundleConfig",
+           "VerificationConfig", "RunnerConfig", "HexapodStepConfig"]
+
+
+def default_run_config_path() -> Path:
+    return package_root() / "configs" / "run_thesis.yaml"
+
+
+class SequenceConfig(StrictModel):
+    """The projected fringe sequence (thesis: 7 counts x 7 steps x 2 orientations)."""
+
+    fringe_counts: list[int] = Field(default_factory=lambda: [64, 63, 62, 60, 56, 48, 32])
+    n_steps: int = 7
+    orientations: list[str] = Field(default_factory=lambda: ["x", "y"])
+
+    def build(self) -> FringeSequence:
+        return FringeSequence(tuple(self.fringe_counts), self.n_steps, tuple(self.orientations))
+
+
+class HexapodStepConfig(StrictModel):
+    """Move the (simulated) hexapod before each pose; the reached pose is what is rendered."""
+
+    enabled: bool = True
+    config: Optional[Path] = None  # default: configs/hexapod/thesis_platform.yaml
+    url: str = "hexsim://acquisition"
+
+
+class AcquisitionConfig(StrictModel):
+    """Simulated acquisition of every (pose, scanner) measurement."""
+
+    camera_width_px: int = Field(512, ge=16)
+    render: RenderConfig = Field(default_factory=RenderConfig)
+    sequence: SequenceConfig = Field(default_factory=SequenceConfig)
+    seed: int = 2026
+    backdrop_mm: Optional[float] = None
+    hexapod: HexapodStepConfig = Field(default_factory=HexapodStepConfig)
+    store_frames: bool = False
+
+
+class PriorCalibrationConfig(StrictModel):
+    """Each simulated scanner's own (prior) calibration, as the thesis had from a planar
+    artefact: parameters in the scanner's own frame, with errors, without distortion.
+
+    The reference scanner's frame is the world; another scanner's frame is the world
+    moved by ``frame_offset_mm`` along x and turned by ``frame_rotation_rad`` about y.
+    """
+
+    seed: int = 7
+    frame_offset_mm: float = 1500.0
+    frame_rotation_rad: float = 0.02
+    position_error_mm: float = 2.0
+    angle_error_rad: float = 0.002
+    principal_distance_error_mm: float = 0.1
+    principal_point_error_mm: float = 0.05
+    keep_distortion: bool = False
+
+
+def _check_dataclass(cls, value: dict, name: str) -> dict:
+    try:
+        cls(**value)
+    except TypeError as err:
+        fields = sorted(f.name for f in dataclasses.fields(cls))
+        raise ValueError(f"{name}: {err}; known keys: {fields}") from None
+    return value
+
+
+class ExtractionConfig(StrictModel):
+    """Sphere candidates, robust fitting and labelling (mappings of their settings)."""
+
+    candidates: dict = Field(default_factory=dict)
+    rejection: dict = Field(default_factory=dict)
+    labelling: dict = Field(default_factory=dict)
+    use_planned_poses: bool = True
+    second_pass_rod_cones: bool = True
+
+    @field_validator("candidates")
+    @classmethod
+    def _cand(cls, v):
+        from .spheres.candidates import CandidateConfig
+
+        return _check_dataclass(CandidateConfig, v, "candidates")
+
+    @field_validator("rejection")
+    @classmethod
+    def _rej(cls, v):
+        from .spheres.robust import RejectionConfig
+
+        return _check_dataclass(RejectionConfig, v, "rejection")
+
+    @field_validator("labelling")
+    @classmethod
+    def _lab(cls, v):
+        from .spheres.labelling import LabellingConfig
+
+        return _check_dataclass(LabellingConfig, v, "labelling")
+
+    def candidate_config(self):
+        from .spheres.candidates import CandidateConfig
+
+        return CandidateConfig(**self.candidates)
+
+    def rejection_config(self):
+        from .spheres.robust import RejectionConfig
+
+        return RejectionConfig(**self.rejection)
+
+    def labelling_config(self):
+        from .spheres.labelling import LabellingConfig
+
+        return LabellingConfig(**self.labelling)
+
+
+class ControlPointConfig(StrictModel):
+    """Control-point selection on each fitted sphere (thesis 6.4: 10 px at 2048 px)."""
+
+    spacing_px: int = Field(3, ge=1)
+    rim_px: int = Field(1, ge=0)
+
+
+class BundleConfig(StrictModel):
+    """Weights and solver settings of the bundle adjustment (eq. 2-24)."""
+
+    gamma1: float = Field(1.0, gt=0)
+    gamma2: float = Field(1.0, gt=0)
+    robust_loss: Literal["none", "huber", "cauchy"] = "none"
+    robust_scale_mm: float = Field(0.1, gt=0)
+    max_iterations: int = Field(100, ge=1)
+
+
+class VerificationConfig(StrictModel):
+    """Ball-bar verification (thesis 6.9.3; VDI/VDE 2634)."""
+
+    ballbar: Optional[Path] = None  # default: configs/thesis/ballbar.csv
+    scheme: Literal["thesis9", "vdi7"] = "thesis9"
+    mpe_mm: float = Field(0.1, gt=0)
+    certificate_u_mm: float = Field(0.0004, ge=0)
+    certificate_k: float = Field(2.0, gt=0)
+    coverage_factor: float = Field(1.96, gt=0)
+    seed: int = 99
+
+
+class RunnerConfig(StrictModel):
+    """Where tasks run: bounded threads here, or a Dask cluster through prefect-dask."""
+
+    kind: Literal["threads", "dask"] = "threads"
+    max_workers: int = Field(2, ge=1)
+    dask_address: Optional[str] = None
+    dask_workers: int = Field(2, ge=1)
+
+
+class RunConfig(StrictModel):
+    """Everything ``fringecal run`` does."""
+
+    name: str = "thesis"
+    rig: Path = Field(default_factory=lambda: thesis_dir() / "rig.yaml")
+    acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
+    prior: PriorCalibrationConfig = Field(default_factory=PriorCalibrationConfig)
+    decode: DecodeSettings = Field(default_factory=DecodeSettings)
+    extraction: ExtractionConfig = Field(default_factory=ExtractionConfig)
+    control_points: ControlPointConfig = Field(default_factory=ControlPointConfig)
+    bundle: BundleConfig = Field(default_factory=BundleConfig)
+    verification: VerificationConfig = Field(default_factory=VerificationConfig)
+    runner: RunnerConfig = Field(default_factory=RunnerConfig)
+
+    def rig_config(self) -> RigConfig:
+        return load_yaml_model(self.rig, RigConfig)
+
+
+def load_run_config(path: Path | None = None, overrides: dict | None = None) -> RunConfig:
+    """Load a run config (default ``configs/run_thesis.yaml``); ``overrides`` are merged in."""
+    path = Path(path) if path is not None else default_run_config_path()
+    cfg = load_yaml_model(path, RunConfig, overrides)
+    try:
+        cfg.rig_config()
+    except ConfigError as err:
+        raise ConfigError(f"{path}: rig {cfg.rig}: {err}") from None
+    return cfg
