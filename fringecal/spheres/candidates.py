@@ -43,7 +43,11 @@ class CandidateConfig:
         Votes within this distance of a peak count for it.
     shell_mm : float
         Pixels whose point lies within this distance of the candidate's sphere surface
-        belong to its region (the robust fit removes what does not fit).
+        belong to its region (the robust fit removes what does not fit) ...
+    region_vote_mm : float
+        ... if their own vote lands within this distance of the candidate's centre.
+        End-cap points next to a sphere lie on its surface where the cap meets it, but
+        their normals are square to the rod, so their votes land ~27 mm away.
     min_votes : int
         Fewest votes for a candidate.
     min_vote_fraction : float
@@ -60,6 +64,7 @@ class CandidateConfig:
     cell_mm: float = 4.0
     vote_radius_mm: float = 4.0
     shell_mm: float = 4.0
+    region_vote_mm: float = 8.0
     min_votes: int = 20
     min_vote_fraction: float = 0.08
     min_separation_factor: float = 1.5
@@ -176,11 +181,15 @@ def find_sphere_candidates(maps: PointMaps, radius_mm: float, viewpoint,
         strengths.append(k)
         best = max(best, k)
     keep = [i for i, k in enumerate(strengths) if k >= cfg.min_vote_fraction * best]
+    vote_map = np.full(P.shape, np.nan)
+    vote_map[rows, cols] = votes
     out = []
     for i in keep:
         c = centres[i]
         d = np.linalg.norm(P - c, axis=-1)
-        shell = maps.valid & (np.abs(d - radius_mm) <= cfg.shell_mm)
+        with np.errstate(invalid="ignore"):
+            near_vote = np.linalg.norm(vote_map - c, axis=-1) <= cfg.region_vote_mm
+            shell = maps.valid & (np.abs(d - radius_mm) <= cfg.shell_mm) & near_vote
         out.append(SphereCandidate(c, strengths[i], shell))
     # A pixel in two shells (spheres touching in the image) goes to the nearer surface.
     if len(out) > 1:
