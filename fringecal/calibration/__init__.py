@@ -1,0 +1,1 @@
+"""Calibration: DLT start values, control points and the object-space bundle adjustment."""
