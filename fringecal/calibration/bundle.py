@@ -1,0 +1,360 @@
+"""Object-space bundle adjustment of any number of scanners (thesis sections 2.3.5-2.3.6, 6.5).
+
+Minimises F = gamma1 sum alpha1^2 + gamma2 sum alpha2^2 (eq. 2-24; alpha1 the signed
+closest-approach distance of camera and projector rays at a control point, alpha2 =
+|S - S_t| - r with S the midpoint and S_t the CMM sphere centre moved by the pose of that
+measurement, eq. 6-15) over the free parameters of every sensor and one pose per
+measurement, shared by all scanners that saw it. See :mod:`.kernels` for the residuals
+and derivatives, :mod:`.solver` for the Levenberg-Marquardt iteration and its
+convergence criteria, :mod:`.uncertainty` for the covariances and :mod:`.diagnostics`
+for degenerate set-ups.
+
+Optional robust loss (Huber or Cauchy, by iteratively reweighted least squares): F uses
+rho(alpha) instead of alpha^2 with a scale per term; unless given, the scale is
+``ROBUST_K`` times 1.4826 MAD of that term's residuals, re-estimated after each pass of
+the adjustment (at most ``robust_passes``), and each pass is a monotone LM run with its
+scale fixed.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from ..rig import Rig
+from .diagnostics import DegenerateCalibrationError, Diagnosis, check_rank, check_structure
+from .model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
+from .solver import LMOptions, LMReport, levenberg_marquardt
+from .uncertainty import Uncertainty, estimate_uncertainty
+
+__all__ = ["BundleOptions", "BundleResult", "ResidualStatistics", "StartValueError", "bundle_adjust",
+           "systematic_residuals"]
+
+#: robust-loss scale in units of the residuals' robust standard deviation
+ROBUST_K = {"huber": 1.345, "cauchy": 2.385}
+
+
+class StartValueError(ValueError):
+    """The start values cannot be evaluated (rays cannot be formed at some control points)."""
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    """Options of :func:`bundle_adjust` (see :mod:`.solver` for the tolerances)."""
+
+    max_iterations: int = 100
+    ftol: float = 1e-10
+    xtol: float = 1e-10
+    gtol: float = 1e-10
+    loss: str = "none"
+    loss_scale_mm: tuple | float | None = None
+    robust_passes: int = 3
+    chunk_size: int = 2048
+    start: str = "best"
+
+
+@dataclass(frozen=True)
+class ResidualStatistics:
+    """RMS values as the thesis reports them (section 6.9.2): the square root of the mean
+    over control points of gamma1 alpha1^2 + gamma2 alpha2^2 (F), alpha1^2 (epsilon-1) and
+    alpha2^2 (epsilon-2)."""
+
+    n_points: int
+    rms_f_mm: float
+    rms_eps1_mm: float
+    rms_eps2_mm: float
+
+    @classmethod
+    def of(cls, res: np.ndarray, gamma=(1.0, 1.0)) -> "ResidualStatistics":
+        ms = np.mean(res**2, axis=0)
+        return cls(len(res), float(np.sqrt(gamma[0] * ms[0] + gamma[1] * ms[1])),
+                   float(np.sqrt(ms[0])), float(np.sqrt(ms[1])))
+
+    def one_part_in(self, diagonal_mm: float, k: float = 1.96) -> float:
+        """Volume diagonal / (k * RMS epsilon-2): the thesis's 'one part in N' (k = 1.96)."""
+        return float(diagonal_mm / (k * self.rms_eps2_mm))
+
+    def to_dict(self) -> dict:
+        return {"n_points": self.n_points, "rms_f_mm": self.rms_f_mm, "rms_eps1_mm": self.rms_eps1_mm,
+                "rms_eps2_mm": self.rms_eps2_mm}
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """Everything an adjustment produced. Arrays of control points are in problem order
+    (``problem.row`` maps them to rows of the input table)."""
+
+    problem: BundleProblem
+    options: BundleOptions
+    layout: ParameterLayout
+    x_start: np.ndarray
+    x: np.ndarray
+    rig: Rig
+    poses: np.ndarray
+    pose_std: np.ndarray
+    residuals_start: np.ndarray
+    residuals: np.ndarray
+    before: ResidualStatistics
+    after: ResidualStatistics
+    uncertainty: Uncertainty
+    report: LMReport
+    robust_scales: tuple
+    diagnostics: tuple
+    elapsed_s: float
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def converged(self) -> bool:
+        return self.report.converged
+
+    @property
+    def iterations(self) -> int:
+        return self.report.iterations
+
+    def sensors_frame(self) -> pd.DataFrame:
+        """SensorParametersTable rows with ``u_<column>`` standard uncertainties (0 = fixed)."""
+        return self.rig.to_frame()
+
+    def poses_frame(self) -> pd.DataFrame:
+        """T_world_artefact per measurement with ``u_<column>`` standard uncertainties."""
+        df = self.problem.poses_frame(self.poses)
+        for j, c in enumerate(POSE_COLUMNS):
+            df[f"u_{c}"] = self.pose_std[:, j]
+        return df
+
+    def parameter_table(self) -> pd.DataFrame:
+        """One row per free parameter: name, start, value, standard uncertainty."""
+        return pd.DataFrame({"parameter": list(self.layout.names), "start": self.x_start, "value": self.x,
+                             "u": self.uncertainty.std})
+
+    def errors(self) -> list[Diagnosis]:
+        return [d for d in self.diagnostics if d.severity == "error"]
+
+    def warnings(self) -> list[Diagnosis]:
+        return [d for d in self.diagnostics if d.severity == "warning"]
+
+
+def _check_start(ev, problem: BundleProblem, evaluation):
+    if evaluation.ok.all() and np.isfinite(evaluation.cost):
+        return
+    bad = ~evaluation.ok
+    parts = []
+    for si, sc in enumerate(problem.rig.scanners):
+        k = int(np.sum(bad & (problem.scanner_idx == si)))
+        if k:
+            parts.append(f"{k} of scanner {sc.name}")
+    raise StartValueError("the start values cannot form rays at " + ", ".join(parts) + " control points "
+                          "(distortion folds over, or camera and projector rays are parallel); check the "
+                          "start parameters' distortion and the control points' phases")
+
+
+def _robust_scales(res, loss):
+    mad = np.median(np.abs(res - np.median(res, axis=0)), axis=0) * 1.4826
+    return tuple(float(max(s, 1e-9) * ROBUST_K[loss]) for s in mad)
+
+
+def _post_diagnostics(problem, layout, unc: Uncertainty, rig: Rig, found: list[Diagnosis]) -> list[Diagnosis]:
+    """Attach numbers to structural warnings: c vs distance correlation, weakest parameters."""
+    names = list(layout.names)
+    index = {n: i for i, n in enumerate(names)}
+    out = []
+    for d in found:
+        if d.kind == "single_standoff":
+            corrs = []
+            for si, sc in enumerate(problem.rig.scanners):
+                if sc.name != d.subject:
+                    continue
+                for sensor in sc.sensors:
+                    r = _c_distance_correlation(sensor, index, unc, rig)
+                    if r is not None:
+                        corrs.append(f"corr(c, distance) of {sensor.name} = {r:+.4f}")
+            if corrs:
+                d = Diagnosis(d.kind, d.severity, d.subject, d.message + " (" + "; ".join(corrs) + ")", d.parameters)
+        elif d.kind == "single_pose":
+            own = [i for i, n in enumerate(names) if n in d.parameters]
+            worst = sorted(own, key=lambda i: -max(abs(unc.correlation[i, j]) for j in range(len(names)) if j != i))
+            pairs = [p for p in unc.high_correlations(0.99) if p[0] in d.parameters or p[1] in d.parameters][:6]
+            text = "; ".join(f"corr({a}, {b}) = {c:+.3f}" for a, b, c in pairs)
+            if text:
+                d = Diagnosis(d.kind, d.severity, d.subject, d.message + f" (strongest correlations: {text})",
+                              tuple(names[i] for i in worst[:8]))
+        out.append(d)
+    return out
+
+
+def _c_distance_correlation(sensor, index, unc: Uncertainty, rig: Rig):
+    keys = [f"{sensor.name}.{n}" for n in ("x0", "y0", "z0", "c")]
+    if not all(k in index for k in keys):
+        return None
+    idx = [index[k] for k in keys]
+    C = unc.covariance[np.ix_(idx, idx)]
+    axis = rig.sensors[[s.name for s in rig.sensors].index(sensor.name)].R[2]
+    var_a = axis @ C[:3, :3] @ axis
+    cov_ac = axis @ C[:3, 3]
+    if var_a <= 0 or C[3, 3] <= 0:
+        return None
+    return float(cov_ac / np.sqrt(var_a * C[3, 3]))
+
+
+def systematic_residuals(problem: BundleProblem, res: np.ndarray, z: float = 4.0) -> tuple[float, int]:
+    """Fraction of sphere images whose mean epsilon-2 differs from 0 by more than ``z``
+    standard errors, and their number. Near 0 at a good minimum; near 1 when the
+    adjustment stopped in a separate minimum (or the artefact data are wrong)."""
+    n_sph = len(problem.artefact)
+    n_m = len(problem.measurements)
+    key = (problem.scanner_idx * n_m + problem.meas_idx) * n_sph + problem.sphere_idx
+    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    a2 = res[:, 1]
+    s1 = np.bincount(inv, a2)
+    s2 = np.bincount(inv, a2 * a2)
+    mean = s1 / cnt
+    var = np.maximum(s2 / cnt - mean**2, 1e-30)
+    big = cnt >= 5
+    if not big.any():
+        return 0.0, 0
+    flagged = np.abs(mean[big]) > z * np.sqrt(var[big] / cnt[big]) + 1e-9
+    return float(flagged.mean()), int(big.sum())
+
+
+#: fraction of sphere images with systematic epsilon-2 above which a warning is given
+SUSPICIOUS_FRACTION = 0.5
+
+
+def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions()) -> BundleResult:
+    """Adjust sensors and poses of ``problem``; raises :class:`DegenerateCalibrationError`
+    for degenerate set-ups and :class:`StartValueError` for unusable start values.
+
+    ``options.start``: ``"given"`` adjusts from the problem's start values only;
+    ``"data"`` from start values computed from the control points
+    (:func:`.start.reinitialise`: poses by resection in the reference camera, the other
+    sensors by DLT); ``"best"`` (default) from both, keeping the lower minimum of F
+    (sphere residuals have separate minima a few mm above the noise floor, which a start
+    off by 0.02 rad can fall into). The result's ``extra["start"]`` says which start won;
+    ``before`` always describes the given start values.
+    """
+    t0 = time.perf_counter()
+    found = check_structure(problem)
+    if any(d.severity == "error" for d in found):
+        raise DegenerateCalibrationError(found)
+    if options.start not in ("given", "data", "best"):
+        raise ValueError(f"unknown start {options.start!r}; choose given, data or best")
+    runs = []
+    if options.start != "data":
+        runs.append(("given", _adjust(problem, options, found)))
+    if options.start in ("data", "best"):
+        from .start import reinitialise
+
+        data_problem, report = reinitialise(problem)
+        try:
+            runs.append(("control points", _adjust(data_problem, options, found)))
+        except (DegenerateCalibrationError, StartValueError) as err:
+            if not runs:
+                raise
+            runs[0][1].extra["data_start_failed"] = str(err)
+    # the data start wins only if clearly lower (not by rounding at the same minimum)
+    label, best = runs[0]
+    for lab, r in runs[1:]:
+        if r.extra["cost"] < best.extra["cost"] * (1 - 1e-9):
+            label, best = lab, r
+    best.extra["start"] = label
+    best.extra["alternatives"] = {lab: {"rms_f_mm": r.after.rms_f_mm, "iterations": r.iterations}
+                                  for lab, r in runs}
+    if label != "given":
+        ev = Evaluator(problem, chunk_size=options.chunk_size)
+        res0 = ev.evaluate(ev.layout.pack(problem.rig.params, problem.poses), False).res
+        best = _replace_start(best, problem, res0)
+    frac, count = systematic_residuals(best.problem, best.residuals)
+    best.extra["systematic_fraction"] = frac
+    diags = list(best.diagnostics)
+    if frac > SUSPICIOUS_FRACTION:
+        diags.append(Diagnosis("systematic_residuals", "warning", "all",
+                               f"{100 * frac:.0f} % of {count} sphere images have a mean epsilon-2 more than 4 "
+                               "standard errors from zero: the adjustment may have stopped in a separate "
+                               "minimum (try other start values) or the artefact definition does not fit "
+                               "the spheres measured"))
+    from dataclasses import replace as _dc_replace
+
+    return _dc_replace(best, diagnostics=tuple(diags), elapsed_s=time.perf_counter() - t0)
+
+
+def _replace_start(result: "BundleResult", problem: BundleProblem, res0: np.ndarray) -> "BundleResult":
+    from dataclasses import replace as _dc_replace
+
+    layout = result.layout
+    return _dc_replace(result, x_start=layout.pack(problem.rig.params, problem.poses), residuals_start=res0,
+                       before=ResidualStatistics.of(res0, (problem.gamma1, problem.gamma2)))
+
+
+def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> BundleResult:
+    """One Levenberg-Marquardt adjustment from the problem's start values."""
+    t0 = time.perf_counter()
+    gamma = (problem.gamma1, problem.gamma2)
+    ev = Evaluator(problem, chunk_size=options.chunk_size)
+    layout = ev.layout
+    x0 = layout.pack(problem.rig.params, problem.poses)
+    e0 = ev.evaluate(x0, True)
+    _check_start(ev, problem, e0)
+    rank = check_rank(e0.normal(*gamma), layout, problem, "start values")
+    if any(d.severity == "error" for d in rank):
+        raise DegenerateCalibrationError(found + rank)
+    lm = LMOptions(options.max_iterations, options.ftol, options.xtol, options.gtol)
+    scales = (1.0, 1.0)
+    x = x0
+    if options.loss in ("none", "linear"):
+        report = levenberg_marquardt(ev.evaluate, x, gamma, lm)
+        x = report.x
+    else:
+        if options.loss not in ROBUST_K:
+            raise ValueError(f"unknown robust loss {options.loss!r}; choose none, huber or cauchy")
+        fixed = options.loss_scale_mm
+        res = e0.res
+        total_it = total_ev = total_jac = 0
+        history = []
+        for _ in range(max(1, options.robust_passes)):
+            new = (fixed, fixed) if np.isscalar(fixed) else (tuple(fixed) if fixed else _robust_scales(res, options.loss))
+            if scales != (1.0, 1.0) and all(abs(a - b) <= 0.05 * b for a, b in zip(new, scales)):
+                break
+            scales = new
+            rob = Evaluator(problem, layout, options.chunk_size, options.loss, scales)
+            report = levenberg_marquardt(rob.evaluate, x, gamma, lm)
+            x = report.x
+            total_it += report.iterations
+            total_ev += report.evaluations
+            total_jac += report.jacobians
+            history += report.history
+            res = ev.evaluate(x, False).res
+            if fixed is not None:
+                break
+        report = LMReport(x, report.cost, total_it, total_ev, total_jac, report.converged, report.message, history)
+    final = (Evaluator(problem, layout, options.chunk_size, options.loss, scales)
+             if options.loss not in ("none", "linear") else ev)
+    e1 = final.evaluate(x, True)
+    plain = ev.evaluate(x, False) if final is not ev else e1
+    weights = _irls_weights(plain.res, options.loss, scales)
+    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names)
+    sp, po = layout.unpack(x, problem.rig.params, problem.poses)
+    std_s = np.zeros_like(sp)
+    m = layout.sensor_index >= 0
+    std_s[m] = unc.std[layout.sensor_index[m]]
+    std_p = np.zeros_like(po)
+    m = layout.pose_index >= 0
+    std_p[m] = unc.std[layout.pose_index[m]]
+    rig = problem.rig.with_params(sp, uncertainty=std_s)
+    rank_end = check_rank(e1.normal(*gamma), layout, problem, "solution")
+    diags = _post_diagnostics(problem, layout, unc, rig, found) + rank_end
+    return BundleResult(problem, options, layout, x0, x, rig, po, std_p, e0.res, plain.res,
+                        ResidualStatistics.of(e0.res, gamma), ResidualStatistics.of(plain.res, gamma), unc,
+                        report, scales, tuple(diags), time.perf_counter() - t0,
+                        {"cost": float(gamma[0] * np.sum(plain.res[:, 0] ** 2) + gamma[1] * np.sum(plain.res[:, 1] ** 2))})
+
+
+def _irls_weights(res, loss, scales):
+    if loss in ("none", "linear"):
+        return np.ones_like(res)
+    a = np.abs(res) / np.asarray(scales)[None, :]
+    if loss == "huber":
+        return np.where(a <= 1, 1.0, 1.0 / np.maximum(a, 1e-300))
+    return 1.0 / (1.0 + a**2)
