@@ -104,6 +104,11 @@ def pose(
         err_console.print(f"[yellow]skipped[/] measurement {s['measurement']}, scanner {s['scanner']}: {s['reason']}")
 
 
+from flows.cli_calibrate import calibrate  # noqa: E402
+
+app.command("calibrate")(guarded(calibrate))
+
+
 def main():  # pragma: no cover - console entry point
     app()
 
