@@ -117,10 +117,10 @@ def check_structure(problem: BundleProblem) -> list[Diagnosis]:
                 "internal parameters", tuple(internal)))
         elif len(meas) > 1 and ("c" in {f.split(".")[1] for f in internal}):
             cam = sc.camera
+            seen = np.unique(problem.sphere_idx[sel])  # the same spheres in every pose
             depth = []
             for m in meas:
-                sph = np.unique(problem.sphere_idx[sel & (problem.meas_idx == m)])
-                w = Frame.from_params(problem.poses[m]).to_world(problem.artefact.centres[sph])
+                w = Frame.from_params(problem.poses[m]).to_world(problem.artefact.centres[seen])
                 depth.append(float(np.mean(cam.to_sensor(w)[:, 2])))
             depth = np.asarray(depth)
             spread = (depth.max() - depth.min()) / depth.mean()
@@ -130,8 +130,9 @@ def check_structure(problem: BundleProblem) -> list[Diagnosis]:
                     "single_standoff", "warning", sc.name,
                     f"scanner {sc.name}: all {len(meas)} measurements at one stand-off "
                     f"({depth.mean():.0f} mm, spread {100 * spread:.1f} % < {100 * STANDOFF_SPREAD:.0f} %): "
-                    "the principal distances are nearly interchangeable with the sensors' distances "
-                    "along the viewing direction; move the artefact through the depth of the volume",
+                    "only the artefact's own depth tells the principal distances from the sensors' "
+                    "distances along the viewing direction (image scale c/z), so they are correlated "
+                    "and less certain; move the artefact through the depth of the volume",
                     tuple(cs)))
     for mi, m in enumerate(problem.measurements):
         sel = problem.meas_idx == mi
@@ -148,24 +149,32 @@ def check_structure(problem: BundleProblem) -> list[Diagnosis]:
     return out
 
 
-def check_rank(N: np.ndarray, layout: ParameterLayout, problem: BundleProblem, where: str) -> list[Diagnosis]:
-    """Null space (error) and near-singular directions (warning) of the normal matrix N."""
+def check_rank(N: np.ndarray, layout: ParameterLayout, problem: BundleProblem, where: str,
+               uncertainty=None) -> list[Diagnosis]:
+    """Null space (error) and near-singular directions (warning) of the normal matrix N
+    (taken from ``uncertainty.weak`` when given: the same N, already decomposed)."""
     out = []
-    weak, cond = weak_directions(N, layout.names, threshold=NEAR_SINGULAR)
+    if uncertainty is not None:
+        weak = list(uncertainty.weak)
+    else:
+        weak, _ = weak_directions(N, layout.names, threshold=NEAR_SINGULAR)
     ref_cam = problem.rig.scanner(problem.rig.reference).camera.name
     ref_row = [s.name for s in problem.rig.sensors].index(ref_cam)
     gauge_free = bool(problem.rig.free[ref_row, :6].any())
+    null = [w for w in weak if w.ratio < UNOBSERVABLE]
+    if null:
+        hint = ""
+        if gauge_free:
+            hint = (f" The world frame is not fixed: the reference camera {ref_cam} has free external "
+                    "parameters, so every sensor and pose can move together; fix its x0, y0, z0, omega, "
+                    "phi, kappa.")
+        names = tuple(dict.fromkeys(n for w in null for n in w.parameters))
+        text = "; ".join(f"({w.describe()})" for w in null)
+        out.append(Diagnosis("unobservable", "error", where,
+                             f"{len(null)} combination(s) of free parameters that no control point determines: "
+                             f"{text}.{hint}", names))
     for w in weak:
-        if w.ratio < UNOBSERVABLE:
-            hint = ""
-            if gauge_free:
-                hint = (f" The world frame is not fixed: the reference camera {ref_cam} has free external "
-                        "parameters, so every sensor and pose can move together; fix its x0, y0, z0, omega, "
-                        "phi, kappa.")
-            out.append(Diagnosis("unobservable", "error", where,
-                                 f"free parameters that no control point determines ({w.describe()}).{hint}",
-                                 w.parameters))
-        else:
+        if w.ratio >= UNOBSERVABLE:
             out.append(Diagnosis("near_singular", "warning", where,
                                  f"weakly determined combination at the {where} ({w.describe()})", w.parameters))
     return out

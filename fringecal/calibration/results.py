@@ -146,7 +146,7 @@ def summary(result: BundleResult, diagonal_mm: float | None = None) -> dict:
         "condition_number": unc.condition,
         "weak_directions": [w.describe() for w in unc.weak],
         "high_correlations": [{"a": a, "b": b, "r": r} for a, b, r in unc.high_correlations(0.99)[:50]],
-        "systematic_fraction": result.extra.get("systematic_fraction"),
+        "shape_ratio": result.extra.get("shape_ratio"),
         "diagnostics": [d.to_dict() for d in result.diagnostics],
         "dropped_measurements": [{"measurement": m, "reason": r} for m, r in pr.dropped],
         "parameters": [{"name": n, "start": float(s), "value": float(v), "u": float(u), "u_classical": float(c)}

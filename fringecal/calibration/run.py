@@ -42,7 +42,7 @@ class CalibrateConfig(StrictModel):
     robust_scale_mm: Optional[float] = Field(None, gt=0, description="robust-loss scale; default from the residuals")
     reference_scanner: Optional[str] = None
     max_iterations: int = Field(100, ge=1)
-    start: Literal["given", "data", "best"] = "best"
+    start: Literal["given", "data", "auto", "best"] = "auto"
     volume_diagonal_mm: Optional[float] = Field(None, gt=0, description="for the one-part-in-N figure")
 
     def options(self) -> BundleOptions:

@@ -58,6 +58,7 @@ class LMReport:
     converged: bool
     message: str
     history: list = field(default_factory=list)
+    evaluation: object = None  # the evaluate() result at x, with normal equations
 
 
 def _solve(Ns, bs, mu):
@@ -74,18 +75,21 @@ def _mu_critical(Ns):
     return max(float(lam), 1e-12)
 
 
-def levenberg_marquardt(evaluate, x0, gamma, options: LMOptions = LMOptions()) -> LMReport:
+def levenberg_marquardt(evaluate, x0, gamma, options: LMOptions = LMOptions(), start=None) -> LMReport:
     """Minimise F(x) = gamma1 sum rho(alpha1) + gamma2 sum rho(alpha2).
 
     ``evaluate(x, want_jac)`` returns an object with ``cost`` and, with ``want_jac``,
-    ``normal(gamma1, gamma2)`` (N, (p, p)) and ``b`` (p,). ``gamma`` = (gamma1, gamma2).
+    ``normal(gamma1, gamma2)`` (N, (p, p)) and ``b`` (p,). ``gamma`` = (gamma1, gamma2);
+    ``start``: evaluate(x0, True) if already at hand. Trial points are evaluated with the
+    normal equations (most steps are accepted, and then they are needed at once); the
+    step-length search evaluates F alone.
     """
     x = np.asarray(x0, float).copy()
-    ev = evaluate(x, True)
-    n_eval, n_jac = 1, 1
+    ev = start if start is not None else evaluate(x, True)
+    n_eval, n_jac = (0, 0) if start is not None else (1, 1)
     F = ev.cost
     if not np.isfinite(F):
-        return LMReport(x, F, 0, n_eval, n_jac, False, "the start point gives no finite objective")
+        return LMReport(x, F, 0, n_eval, n_jac, False, "the start point gives no finite objective", [], ev)
     history = [dict(iteration=0, cost=F, mu=0.0, alpha=1.0, accepted=True)]
     mu, alpha = float(options.mu0), 1.0
     N, b = ev.normal(*gamma), ev.b
@@ -109,9 +113,12 @@ def levenberg_marquardt(evaluate, x0, gamma, options: LMOptions = LMOptions()) -
         dNd = d @ N @ d
         a_used = alpha
         x_new = x + alpha * d
-        F_new = evaluate(x_new, False).cost
+        ev_new = evaluate(x_new, True)
+        F_new = ev_new.cost
         n_eval += 1
+        n_jac += 1
         if not (F_new < F):
+            ev_new = None
             # step-length search (eq. 2-31): minimiser of the quadratic through F(0), F'(0), F(alpha)
             if np.isfinite(F_new):
                 curv = F_new - F - gd * alpha
@@ -150,9 +157,11 @@ def levenberg_marquardt(evaluate, x0, gamma, options: LMOptions = LMOptions()) -
             continue
         dF = F - F_new
         x, F = x_new, F_new
-        ev = evaluate(x, True)
-        n_eval += 1
-        n_jac += 1
+        if ev_new is None:  # accepted after the step-length search
+            ev_new = evaluate(x, True)
+            n_eval += 1
+            n_jac += 1
+        ev = ev_new
         N, b = ev.normal(*gamma), ev.b
         if dF <= options.ftol * F and pred <= options.ftol * F:
             converged, message = True, "ftol: relative decrease of F below ftol"
@@ -160,4 +169,4 @@ def levenberg_marquardt(evaluate, x0, gamma, options: LMOptions = LMOptions()) -
         if np.linalg.norm(a_used * ds) <= options.xtol * (np.linalg.norm(D * x) + options.xtol):
             converged, message = True, "xtol: scaled step below xtol"
             break
-    return LMReport(x, F, it, n_eval, n_jac, converged, message, history)
+    return LMReport(x, F, it, n_eval, n_jac, converged, message, history, ev)

@@ -86,11 +86,13 @@ class Uncertainty:
 
 
 def weak_directions(N: np.ndarray, names, threshold: float = NEAR_SINGULAR, top: int = 8,
-                    min_component: float = 0.15) -> tuple[list[WeakDirection], float]:
+                    min_component: float = 0.15, eig=None) -> tuple[list[WeakDirection], float]:
     """Eigen-directions of the scaled normal matrix with eigenvalue ratio below ``threshold``.
 
     Returns the directions (smallest first) and the condition number. Parameters with no
     influence at all (zero diagonal) come out as ratio 0 directions of their own.
+    ``eig``: the eigen-decomposition of the scaled matrix, if already computed (only
+    used when no parameter has a zero diagonal).
     """
     d = np.sqrt(np.diag(N))
     out = []
@@ -100,8 +102,11 @@ def weak_directions(N: np.ndarray, names, threshold: float = NEAR_SINGULAR, top:
     live = np.flatnonzero(d > 0)
     if not len(live):
         return out, np.inf
-    Ns = N[np.ix_(live, live)] / np.outer(d[live], d[live])
-    lam, V = scipy.linalg.eigh(Ns, check_finite=False)
+    if eig is not None and not len(dead):
+        lam, V = eig
+    else:
+        Ns = N[np.ix_(live, live)] / np.outer(d[live], d[live])
+        lam, V = scipy.linalg.eigh(Ns, check_finite=False)
     lam_max = lam[-1]
     cond = float(lam_max / max(lam[0], 1e-300)) if not len(dead) else np.inf
     for k in np.flatnonzero(lam < threshold * lam_max):
@@ -125,12 +130,12 @@ def estimate_uncertainty(N1, N2, res, weights, gamma, names) -> Uncertainty:
     N = g1 * N1 + g2 * N2
     p = len(N)
     n = len(res)
-    weak, cond = weak_directions(N, names)
     d = np.sqrt(np.diag(N))
     d[d == 0] = 1.0
     Ns = N / np.outer(d, d)
     # pseudo-inverse in scaled variables: unobservable directions get no variance
     lam, V = scipy.linalg.eigh(Ns, check_finite=False)
+    weak, cond = weak_directions(N, names, eig=(lam, V))
     keep = lam > UNOBSERVABLE * lam[-1]
     Ninv_s = (V[:, keep] / lam[keep]) @ V[:, keep].T
     Ninv = Ninv_s / np.outer(d, d)
