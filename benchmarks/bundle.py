@@ -148,7 +148,8 @@ def run_case(case: str, repeat: int, cap_s: float, with_scipy: bool) -> dict:
     lm_s = r.report  # iterations etc. of the last run
     out["fringecal"] = {"median_s": float(np.median(times)), "all_s": times, "iterations": lm_s.iterations,
                         "evaluations": lm_s.evaluations, "jacobians": lm_s.jacobians, "converged": lm_s.converged,
-                        "message": lm_s.message, "before": r.before.to_dict(), "after": r.after.to_dict()}
+                        "message": lm_s.message, "coarse_stage": r.extra.get("coarse"),
+                        "before": r.before.to_dict(), "after": r.after.to_dict()}
     t = time.perf_counter()
     rb = bundle_adjust(problem)  # the default start="auto"
     out["fringecal_default_start_auto"] = {"s": time.perf_counter() - t, "start": rb.extra["start"],

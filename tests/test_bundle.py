@@ -70,6 +70,9 @@ def test_thesis_rig_from_dlt_estimates(thesis):
     assert all(b <= a for a, b in zip(costs, costs[1:]))  # F never increases
     assert result.after.rms_f_mm <= truth.rms_f_mm * 1.0001  # a minimum, at or below the truth's F
     assert not result.errors()
+    table = result.parameter_table()
+    assert len(table) == 122 == 4 * 14 - 6 + 12 * 6 and (table["u"] > 0).all()
+    assert table.loc[table["parameter"] == "P2.c", "value"].item() == pytest.approx(39.013, abs=0.05)
 
 
 def test_thesis_rig_from_a_start_perturbed_by_5_mm_and_20_mrad(thesis):
@@ -124,3 +127,18 @@ def test_robust_loss_resists_outliers(thesis):
     assert np.median(err_robust) < 0.5 * np.median(err_plain)
     assert np.all(err_robust < 3.0)
     assert robust.robust_scales[0] == pytest.approx(2.385 * 0.045, rel=0.15)
+
+
+def test_large_problems_start_on_a_subsample_and_end_at_the_same_minimum(thesis):
+    rig, art, poses, sim, truth_poses = thesis
+    start_rig, start_poses = dlt_start(sim, rng=2)
+    problem = BundleProblem.from_tables(start_rig, art, sim.control_points, start_poses)
+    whole = bundle_adjust(problem, BundleOptions(start="given", coarse_points=0))
+    staged = bundle_adjust(problem, BundleOptions(start="given", coarse_points=3000))
+    assert whole.extra["coarse"] is None
+    assert staged.extra["coarse"]["every"] == int(np.ceil(problem.n_points / 3000))
+    assert staged.iterations < whole.iterations
+    assert staged.after.rms_f_mm == pytest.approx(whole.after.rms_f_mm, rel=1e-9)
+    assert np.all(np.abs(staged.x - whole.x) <= 1e-3 * whole.uncertainty.std)  # same point, to 0.001 sigma
+    thin = problem.thinned(7)
+    assert len(thin.measurements) == 12 and set(thin.sphere_idx) == set(problem.sphere_idx)

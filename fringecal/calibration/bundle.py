@@ -9,6 +9,11 @@ and derivatives, :mod:`.solver` for the Levenberg-Marquardt iteration and its
 convergence criteria, :mod:`.uncertainty` for the covariances and :mod:`.diagnostics`
 for degenerate set-ups.
 
+Large problems (more than twice ``BundleOptions.coarse_points`` control points) are first
+adjusted on every k-th control point of each sphere image (about ``coarse_points`` in
+all); the adjustment on all points starts from there if that lowered F, and only has a
+few iterations left to do. Each stage is a monotone LM run on its own F.
+
 Optional robust loss (Huber or Cauchy, by iteratively reweighted least squares): F uses
 rho(alpha) instead of alpha^2 with a scale per term; unless given, the scale is
 ``ROBUST_K`` times 1.4826 MAD of that term's residuals, re-estimated after each pass of
@@ -54,6 +59,7 @@ class BundleOptions:
     robust_passes: int = 3
     chunk_size: int = 2048
     start: str = "auto"
+    coarse_points: int = 150_000
 
 
 @dataclass(frozen=True)
@@ -326,8 +332,25 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     lm = LMOptions(options.max_iterations, options.ftol, options.xtol, options.gtol)
     scales = (1.0, 1.0)
     x = x0
+    coarse = None
+    if options.coarse_points and problem.n_points > 2 * options.coarse_points:
+        # converge on a uniform subsample of every sphere image first; the adjustment on
+        # all points then only has the last few iterations to do
+        every = int(np.ceil(problem.n_points / options.coarse_points))
+        coarse = levenberg_marquardt(Evaluator(problem.thinned(every), layout, options.chunk_size).evaluate,
+                                     x, gamma, LMOptions(options.max_iterations, max(options.ftol, 1e-8),
+                                                         options.xtol, options.gtol))
+        e_c = ev.evaluate(coarse.x, True)
+        if e_c.cost < e0.cost:
+            x, e0_lm = coarse.x, e_c
+        else:
+            e0_lm = e0
+        coarse = {"every": every, "iterations": coarse.iterations, "evaluations": coarse.evaluations,
+                  "message": coarse.message}
+    else:
+        e0_lm = e0
     if options.loss in ("none", "linear"):
-        report = levenberg_marquardt(ev.evaluate, x, gamma, lm, start=e0)
+        report = levenberg_marquardt(ev.evaluate, x, gamma, lm, start=e0_lm)
         x = report.x
     else:
         if options.loss not in ROBUST_K:
@@ -370,7 +393,8 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     return BundleResult(problem, options, layout, x0, x, rig, po, std_p, e0.res, plain.res,
                         ResidualStatistics.of(e0.res, gamma), ResidualStatistics.of(plain.res, gamma), unc,
                         report, scales, tuple(diags), time.perf_counter() - t0,
-                        {"cost": float(gamma[0] * np.sum(plain.res[:, 0] ** 2) + gamma[1] * np.sum(plain.res[:, 1] ** 2))})
+                        {"cost": float(gamma[0] * np.sum(plain.res[:, 0] ** 2) + gamma[1] * np.sum(plain.res[:, 1] ** 2)),
+                         "coarse": coarse})
 
 
 def _irls_weights(res, loss, scales):

@@ -65,6 +65,11 @@ def _sensor_ray(p, R, dR, mx, my, want_jac, D, dD):
     y = uy
     distorted = (k1 != 0.0) or (k2 != 0.0) or (k3 != 0.0) or (p1 != 0.0) or (p2 != 0.0)
     if distorted:
+        # start from the first-order inverse u = m - d(m): one Newton step saved
+        r2 = x * x + y * y
+        q = r2 * (k1 + r2 * (k2 + r2 * k3))
+        x = ux - (ux * q + p1 * (r2 + 2 * ux * ux) + 2 * p2 * ux * uy)
+        y = uy - (uy * q + p2 * (r2 + 2 * uy * uy) + 2 * p1 * ux * uy)
         last = np.inf
         for _ in range(30):
             r2 = x * x + y * y
@@ -150,7 +155,7 @@ def _sensor_ray(p, R, dR, mx, my, want_jac, D, dD):
 
 
 @njit(cache=True, nogil=True)
-def _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centre, radius,
+def _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radius,
                    mcx, mcy, mpx, mpy, want_jac, Dc, dDc, Dp, dDp, j1, j2, out):
     """Residuals of one control point into out[0:2]; Jacobian rows into j1 (28,), j2 (34,).
 
@@ -200,9 +205,12 @@ def _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centre, radiu
     wz = -w0z
     alpha1 = wx * nx + wy * ny + wz * nz
     # sphere centre in the world: S_t = Rpose^T s + t
-    Ctx = tpose[0] + Rpose[0, 0] * centre[0] + Rpose[1, 0] * centre[1] + Rpose[2, 0] * centre[2]
-    Cty = tpose[1] + Rpose[0, 1] * centre[0] + Rpose[1, 1] * centre[1] + Rpose[2, 1] * centre[2]
-    Ctz = tpose[2] + Rpose[0, 2] * centre[0] + Rpose[1, 2] * centre[1] + Rpose[2, 2] * centre[2]
+    c0 = centres[si, 0]
+    c1 = centres[si, 1]
+    c2 = centres[si, 2]
+    Ctx = tpose[0] + Rpose[0, 0] * c0 + Rpose[1, 0] * c1 + Rpose[2, 0] * c2
+    Cty = tpose[1] + Rpose[0, 1] * c0 + Rpose[1, 1] * c1 + Rpose[2, 1] * c2
+    Ctz = tpose[2] + Rpose[0, 2] * c0 + Rpose[1, 2] * c1 + Rpose[2, 2] * c2
     qx = Sx - Ctx
     qy = Sy - Cty
     qz = Sz - Ctz
@@ -273,9 +281,9 @@ def _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centre, radiu
     j2[29] = -qy
     j2[30] = -qz
     for k in range(3):
-        vx = dRpose[k, 0, 0] * centre[0] + dRpose[k, 1, 0] * centre[1] + dRpose[k, 2, 0] * centre[2]
-        vy = dRpose[k, 0, 1] * centre[0] + dRpose[k, 1, 1] * centre[1] + dRpose[k, 2, 1] * centre[2]
-        vz = dRpose[k, 0, 2] * centre[0] + dRpose[k, 1, 2] * centre[1] + dRpose[k, 2, 2] * centre[2]
+        vx = dRpose[k, 0, 0] * c0 + dRpose[k, 1, 0] * c1 + dRpose[k, 2, 0] * c2
+        vy = dRpose[k, 0, 1] * c0 + dRpose[k, 1, 1] * c1 + dRpose[k, 2, 1] * c2
+        vz = dRpose[k, 0, 2] * c0 + dRpose[k, 1, 2] * c1 + dRpose[k, 2, 2] * c2
         j2[31 + k] = -(qx * vx + qy * vy + qz * vz)
     return True
 
@@ -317,6 +325,10 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
         ic = group_cam[g]
         ip = group_prj[g]
         im = group_meas[g]
+        # views made once per chunk, not per control point
+        pc, Rc, dRc = sens_p[ic], sens_R[ic], sens_dR[ic]
+        pp, Rp, dRp = sens_p[ip], sens_R[ip], sens_dR[ip]
+        tpose, Rpose, dRpose = pose_t[im], pose_R[im], pose_dR[im]
         Dc = np.empty(3)
         Dp = np.empty(3)
         dDc = np.zeros((3, 11))
@@ -335,8 +347,7 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
                     A1[ch, i, j] = 0.0
         for k in range(chunk_start[ch], chunk_stop[ch]):
             si = sphere_idx[k]
-            good = _control_point(sens_p[ic], sens_R[ic], sens_dR[ic], sens_p[ip], sens_R[ip], sens_dR[ip],
-                                  pose_t[im], pose_R[im], pose_dR[im], centres[si], radii[si],
+            good = _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
                                   cam_mm[k, 0], cam_mm[k, 1], prj_mm[k, 0], prj_mm[k, 1], want_jac,
                                   Dc, dDc, Dp, dDp, j1, j2, out)
             ok[k] = good
@@ -413,6 +424,10 @@ def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, gr
         ic = group_cam[g]
         ip = group_prj[g]
         im = group_meas[g]
+        # views made once per chunk, not per control point
+        pc, Rc, dRc = sens_p[ic], sens_R[ic], sens_dR[ic]
+        pp, Rp, dRp = sens_p[ip], sens_R[ip], sens_dR[ip]
+        tpose, Rpose, dRpose = pose_t[im], pose_R[im], pose_dR[im]
         Dc = np.empty(3)
         Dp = np.empty(3)
         dDc = np.zeros((3, 11))
@@ -422,8 +437,7 @@ def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, gr
         out = np.empty(2)
         for k in range(chunk_start[ch], chunk_stop[ch]):
             si = sphere_idx[k]
-            good = _control_point(sens_p[ic], sens_R[ic], sens_dR[ic], sens_p[ip], sens_R[ip], sens_dR[ip],
-                                  pose_t[im], pose_R[im], pose_dR[im], centres[si], radii[si],
+            good = _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
                                   cam_mm[k, 0], cam_mm[k, 1], prj_mm[k, 0], prj_mm[k, 1], True,
                                   Dc, dDc, Dp, dDp, j1, j2, out)
             ok[k] = good

@@ -168,6 +168,17 @@ class BundleProblem:
         return replace(self, rig=self.rig if rig is None else rig,
                        poses=self.poses if poses is None else np.asarray(poses, float))
 
+    def thinned(self, every: int) -> "BundleProblem":
+        """Every ``every``-th control point of each (scanner, measurement) group (at least
+        one per group): a uniform subsample with the same measurements and spheres."""
+        from dataclasses import replace
+
+        start, stop, _, _ = self.groups()
+        keep = np.concatenate([np.arange(a, b, max(int(every), 1)) for a, b in zip(start, stop)])
+        return replace(self, scanner_idx=self.scanner_idx[keep], meas_idx=self.meas_idx[keep],
+                       sphere_idx=self.sphere_idx[keep], cam_mm=self.cam_mm[keep], prj_mm=self.prj_mm[keep],
+                       row=self.row[keep])
+
     def groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Contiguous (scanner, measurement) groups: (start, stop, scanner, measurement)."""
         n = self.n_points
@@ -213,14 +224,6 @@ class ParameterLayout:
     def n(self) -> int:
         return len(self.names)
 
-    @property
-    def is_angle(self) -> np.ndarray:
-        """True for each x entry that is an angle (rad)."""
-        out = np.zeros(self.n, bool)
-        out[self.sensor_index[:, 3:6][self.sensor_index[:, 3:6] >= 0]] = True
-        out[self.pose_index[:, 3:6][self.pose_index[:, 3:6] >= 0]] = True
-        return out
-
     def pack(self, sensor_params: np.ndarray, poses: np.ndarray) -> np.ndarray:
         x = np.empty(self.n)
         m = self.sensor_index >= 0
@@ -238,11 +241,6 @@ class ParameterLayout:
         m = self.pose_index >= 0
         po[m] = x[self.pose_index[m]]
         return sp, po
-
-    def sensor_of(self, k: int) -> tuple[int, int] | None:
-        """(sensor, parameter) of x entry k, or None for a pose parameter."""
-        hit = np.argwhere(self.sensor_index == k)
-        return (int(hit[0, 0]), int(hit[0, 1])) if len(hit) else None
 
 
 @dataclass

@@ -21,7 +21,8 @@ mm^-6 ...). The trial point is x + alpha d (eq. 2-31).
   mu = 0, mu <- mu_c and nu <- nu / 2; mu <- nu mu. Gauss-Newton (mu = 0) is used
   whenever it works, so convergence near the solution is quadratic-like.
 * Convergence (any of):
-  ``ftol``: actual and predicted relative decrease of F both <= ftol;
+  ``ftol``: actual and predicted relative decrease of F both <= ftol, or a rejected step
+  whose predicted relative decrease was already <= ftol (F at its rounding level);
   ``xtol``: |d_s| <= xtol (|D x| + xtol);
   ``gtol``: max_i |b_i| / sqrt(N_ii F) <= gtol (the residual vector is orthogonal to every
   Jacobian column to within gtol);
@@ -151,6 +152,11 @@ def levenberg_marquardt(evaluate, x0, gamma, options: LMOptions = LMOptions(), s
         history.append(dict(iteration=it, cost=F_new if accepted else F, mu=mu, alpha=a_used, accepted=accepted,
                             ratio=float(R)))
         if not accepted:
+            if pred <= options.ftol * F:
+                # the model promises less than ftol and even that is not realised: F is at
+                # the level of its own rounding
+                converged, message = True, "ftol: predicted decrease below ftol and not achieved"
+                break
             if mu > 1e16:
                 message = "stalled: no decrease of F possible (mu > 1e16)"
                 break

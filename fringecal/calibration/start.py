@@ -96,7 +96,8 @@ def reinitialise(problem: BundleProblem) -> tuple[BundleProblem, dict]:
             sph, cam, _ = cents[(ref, m)]
             p = resect_pose(ref_cam, cmm[sph], cam, poses[m])
             if p is not None:
-                poses[m], _ = p, known.add(m)
+                poses[m] = p
+                known.add(m)
     params = rig.params.copy()
     done = {2 * ref}
     report = {"poses": sorted(problem.measurements[m] for m in known), "sensors": [], "failed": {}}
