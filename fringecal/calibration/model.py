@@ -11,6 +11,7 @@ compiled kernels.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +29,26 @@ __all__ = ["BundleProblem", "ParameterLayout", "Evaluator", "Evaluation", "POSE_
 
 POSE_NAMES = ("tx", "ty", "tz", "omega", "phi", "kappa")
 POSE_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
+
+
+#: below this many control points the kernels run on one thread: a parallel region then
+#: saves a few milliseconds but, on a loaded machine, waits for a descheduled thread
+PARALLEL_MIN_POINTS = 50_000
+
+
+@contextmanager
+def _threads_for(n_points: int):
+    import numba
+
+    if n_points >= PARALLEL_MIN_POINTS:
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 @dataclass(frozen=True)
@@ -320,6 +341,10 @@ class Evaluator:
 
     def evaluate(self, x, want_jac: bool = True) -> Evaluation:
         """Residuals, cost and (with ``want_jac``) the normal equations at x."""
+        with _threads_for(self.problem.n_points):
+            return self._evaluate(x, want_jac)
+
+    def _evaluate(self, x, want_jac: bool) -> Evaluation:
         pr, a = self.problem, self._arrays
         n, nc, p = pr.n_points, self.n_chunks, self.layout.n
         res = np.empty((n, 2))
