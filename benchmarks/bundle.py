@@ -15,7 +15,9 @@ separate one, timed once), iterations, evaluations, and the same
 problem solved by scipy.optimize.least_squares (trf, exact dense Jacobian for the thesis
 case; for the large case a sparse Jacobian with lsmr and a wall-time cap, ``--scipy-cap``,
 after which the best cost reached is reported). Numba compilation is excluded (a warm-up
-run first) and reported separately.
+run first) and reported separately. Memory: the process's peak RSS after fringecal's runs
+(simulated tables included), the peak of numpy allocations during one adjustment
+(tracemalloc), and the peak RSS after scipy.
 
 Usage: PYTHONPATH=. python benchmarks/bundle.py [--cases thesis,large] [--repeat 5]
 """
@@ -154,7 +156,13 @@ def run_case(case: str, repeat: int, cap_s: float, with_scipy: bool) -> dict:
     rb = bundle_adjust(problem)  # the default start="auto"
     out["fringecal_default_start_auto"] = {"s": time.perf_counter() - t, "start": rb.extra["start"],
                                            "alternatives": rb.extra["alternatives"], "after": rb.after.to_dict()}
-    out["fringecal_peak_rss_mb"] = _rss_mb()
+    out["fringecal_peak_rss_mb"] = _rss_mb()  # process high-water mark, simulated data included
+    import tracemalloc
+
+    tracemalloc.start()
+    bundle_adjust(problem, BundleOptions(start="given"))
+    out["fringecal_adjustment_peak_traced_mb"] = tracemalloc.get_traced_memory()[1] / 2**20
+    tracemalloc.stop()
     if with_scipy:
         out["scipy"] = _scipy(problem, cap_s, sparse=(case != "thesis"))
         out["scipy"]["cap_s"] = cap_s

@@ -50,16 +50,16 @@ class StartValueError(ValueError):
 class BundleOptions:
     """Options of :func:`bundle_adjust` (see :mod:`.solver` for the tolerances)."""
 
-    max_iterations: int = 100
+    max_iterations: int = 100  # per LM run
     ftol: float = 1e-10
     xtol: float = 1e-10
     gtol: float = 1e-10
-    loss: str = "none"
-    loss_scale_mm: tuple | float | None = None
+    loss: str = "none"  # none, huber, cauchy
+    loss_scale_mm: tuple | float | None = None  # (alpha1, alpha2) or one value; None: from the residuals
     robust_passes: int = 3
-    chunk_size: int = 2048
-    start: str = "auto"
-    coarse_points: int = 150_000
+    chunk_size: int = 2048  # control points per parallel work item
+    start: str = "auto"  # given, data, auto, best (see bundle_adjust)
+    coarse_points: int = 150_000  # subsample size of the first stage of large problems; 0: off
 
 
 @dataclass(frozen=True)
@@ -143,7 +143,7 @@ class BundleResult:
         return [d for d in self.diagnostics if d.severity == "warning"]
 
 
-def _check_start(ev, problem: BundleProblem, evaluation):
+def _check_start(problem: BundleProblem, evaluation):
     if evaluation.ok.all() and np.isfinite(evaluation.cost):
         return
     bad = ~evaluation.ok
@@ -325,7 +325,7 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     layout = ev.layout
     x0 = layout.pack(problem.rig.params, problem.poses)
     e0 = ev.evaluate(x0, True)
-    _check_start(ev, problem, e0)
+    _check_start(problem, e0)
     rank = check_rank(e0.normal(*gamma), layout, problem, "start values")
     if any(d.severity == "error" for d in rank):
         raise DegenerateCalibrationError(found + rank)

@@ -19,9 +19,9 @@ Structural checks (before solving, from the control points alone):
   seen where those spheres happen to image. The message names the scanner's parameters
   in the weakest directions of the normal matrix.
 * ``single_standoff`` (warning): the artefact's distance from a scanner's camera varies by
-  less than ``STANDOFF_SPREAD`` of the mean over its measurements: the principal distance
-  is then nearly interchangeable with the camera's distance (image scale c / z), reported
-  with their correlation after the adjustment.
+  less than ``STANDOFF_SPREAD`` of the mean over its measurements: only the artefact's own
+  depth then separates the principal distance from the sensor's distance (image scale
+  c / z); reported with their correlation after the adjustment.
 
 Numerical check (at the start values and again at the solution): the rank of the scaled
 normal matrix of the free parameters. Eigenvalues below ``UNOBSERVABLE`` times the

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..rig import Rig
 from .dlt import DLTError, DLTEstimate
 
