@@ -44,6 +44,10 @@ __all__ = [
     "ScannerLinksTable",
     "PointsTable",
     "REJECTION_REASONS",
+    "CalibratedSensorsTable",
+    "CalibratedPosesTable",
+    "SphereResidualsTable",
+    "MeasurementResidualsTable",
     "read_table",
     "read_csv_text",
     "validate_table",
@@ -313,6 +317,76 @@ class ControlPointsTable(_Base):
     tau_y_rad: Series[float] = pa.Field(ge=-np.pi - 1e-9, le=np.pi + 1e-9)
 
     _id_columns = ("measurement", "scanner", "sphere_id")
+
+
+class CalibratedSensorsTable(SensorParametersTable):
+    """Sensor parameters after the bundle adjustment with their standard uncertainties
+    ``u_<column>`` (same unit as the column; 0 for fixed parameters)."""
+
+    u_x0_mm: Series[float] = pa.Field(ge=0)
+    u_y0_mm: Series[float] = pa.Field(ge=0)
+    u_z0_mm: Series[float] = pa.Field(ge=0)
+    u_omega_rad: Series[float] = pa.Field(ge=0)
+    u_phi_rad: Series[float] = pa.Field(ge=0)
+    u_kappa_rad: Series[float] = pa.Field(ge=0)
+    u_xi_h_mm: Series[float] = pa.Field(ge=0)
+    u_eta_h_mm: Series[float] = pa.Field(ge=0)
+    u_c_mm: Series[float] = pa.Field(ge=0)
+    u_k1_per_mm2: Series[float] = pa.Field(ge=0)
+    u_k2_per_mm4: Series[float] = pa.Field(ge=0)
+    u_k3_per_mm6: Series[float] = pa.Field(ge=0)
+    u_p1_per_mm: Series[float] = pa.Field(ge=0)
+    u_p2_per_mm: Series[float] = pa.Field(ge=0)
+
+    _id_columns = ("sensor", "scanner", "role")
+
+
+class CalibratedPosesTable(PosePlanTable):
+    """Adjusted artefact poses T_world_artefact per measurement with standard uncertainties."""
+
+    u_tx_mm: Series[float] = pa.Field(ge=0)
+    u_ty_mm: Series[float] = pa.Field(ge=0)
+    u_tz_mm: Series[float] = pa.Field(ge=0)
+    u_omega_rad: Series[float] = pa.Field(ge=0)
+    u_phi_rad: Series[float] = pa.Field(ge=0)
+    u_kappa_rad: Series[float] = pa.Field(ge=0)
+
+    _id_columns = ("measurement",)
+
+
+class SphereResidualsTable(_Base):
+    """Bundle-adjustment residuals per sphere image (measurement, scanner, sphere):
+    RMS of epsilon-1 and epsilon-2 after (and at the start of) the adjustment."""
+
+    measurement: Series[str] = pa.Field()
+    scanner: Series[str] = pa.Field()
+    sphere_id: Series[str] = pa.Field()
+    n_points: Series[int] = pa.Field(ge=1)
+    rms_eps1_mm: Series[float] = pa.Field(ge=0)
+    rms_eps2_mm: Series[float] = pa.Field(ge=0)
+    mean_eps2_mm: Series[float] = pa.Field()
+    max_abs_eps2_mm: Series[float] = pa.Field(ge=0)
+    rms_eps1_start_mm: Series[float] = pa.Field(ge=0)
+    rms_eps2_start_mm: Series[float] = pa.Field(ge=0)
+
+    _id_columns = ("measurement", "scanner", "sphere_id")
+    _unique_together = (("measurement", "scanner", "sphere_id"),)
+
+
+class MeasurementResidualsTable(_Base):
+    """Bundle-adjustment residuals per measurement (all scanners that saw it)."""
+
+    measurement: Series[str] = pa.Field(unique=True)
+    scanners: Series[str] = pa.Field()
+    n_points: Series[int] = pa.Field(ge=1)
+    n_spheres: Series[int] = pa.Field(ge=1)
+    rms_eps1_mm: Series[float] = pa.Field(ge=0)
+    rms_eps2_mm: Series[float] = pa.Field(ge=0)
+    mean_eps2_mm: Series[float] = pa.Field()
+    rms_eps1_start_mm: Series[float] = pa.Field(ge=0)
+    rms_eps2_start_mm: Series[float] = pa.Field(ge=0)
+
+    _id_columns = ("measurement", "scanners")
 
 
 class ThermalLogTable(_Base):

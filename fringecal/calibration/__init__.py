@@ -1,0 +1,18 @@
+"""Calibration: DLT start values, control points and the object-space bundle adjustment
+(thesis sections 2.2.3, 2.3.2-2.3.7, 6.3-6.5, 6.9). See README, "Calibration (bundle adjustment)"."""
+
+from .bundle import BundleOptions, BundleResult, ResidualStatistics, StartValueError, bundle_adjust
+from .controlpoints import incidence_map, select_control_points
+from .diagnostics import DegenerateCalibrationError, Diagnosis
+from .dlt import DLTError, DLTEstimate, dlt
+from .initial import initial_rig_from_dlt
+from .model import BundleProblem
+from .results import residual_tables, summary, write_outputs
+from .run import CalibrateConfig, calibrate_run, load_problem
+
+__all__ = [
+    "BundleOptions", "BundleProblem", "BundleResult", "CalibrateConfig", "DLTError", "DLTEstimate",
+    "DegenerateCalibrationError", "Diagnosis", "ResidualStatistics", "StartValueError", "bundle_adjust",
+    "calibrate_run", "dlt", "incidence_map", "initial_rig_from_dlt", "load_problem", "residual_tables",
+    "select_control_points", "summary", "write_outputs",
+]

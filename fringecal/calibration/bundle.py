@@ -1,0 +1,406 @@
+"""Object-space bundle adjustment of any number of scanners (thesis sections 2.3.5-2.3.6, 6.5).
+
+Minimises F = gamma1 sum alpha1^2 + gamma2 sum alpha2^2 (eq. 2-24; alpha1 the signed
+closest-approach distance of camera and projector rays at a control point, alpha2 =
+|S - S_t| - r with S the midpoint and S_t the CMM sphere centre moved by the pose of that
+measurement, eq. 6-15) over the free parameters of every sensor and one pose per
+measurement, shared by all scanners that saw it. See :mod:`.kernels` for the residuals
+and derivatives, :mod:`.solver` for the Levenberg-Marquardt iteration and its
+convergence criteria, :mod:`.uncertainty` for the covariances and :mod:`.diagnostics`
+for degenerate set-ups.
+
+Large problems (more than twice ``BundleOptions.coarse_points`` control points) are first
+adjusted on every k-th control point of each sphere image (about ``coarse_points`` in
+all); the adjustment on all points starts from there if that lowered F, and only has a
+few iterations left to do. Each stage is a monotone LM run on its own F.
+
+Optional robust loss (Huber or Cauchy, by iteratively reweighted least squares): F uses
+rho(alpha) instead of alpha^2 with a scale per term; unless given, the scale is
+``ROBUST_K`` times 1.4826 MAD of that term's residuals, re-estimated after each pass of
+the adjustment (at most ``robust_passes``), and each pass is a monotone LM run with its
+scale fixed.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from ..rig import Rig
+from .diagnostics import DegenerateCalibrationError, Diagnosis, check_rank, check_structure
+from .model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
+from .solver import LMOptions, LMReport, levenberg_marquardt
+from .uncertainty import Uncertainty, estimate_uncertainty
+
+__all__ = ["BundleOptions", "BundleResult", "ResidualStatistics", "StartValueError", "bundle_adjust",
+           "local_sphere_rms", "SEPARATE_MINIMUM_RATIO"]
+
+#: robust-loss scale in units of the residuals' robust standard deviation
+ROBUST_K = {"huber": 1.345, "cauchy": 2.385}
+
+
+class StartValueError(ValueError):
+    """The start values cannot be evaluated (rays cannot be formed at some control points)."""
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    """Options of :func:`bundle_adjust` (see :mod:`.solver` for the tolerances)."""
+
+    max_iterations: int = 100  # per LM run
+    ftol: float = 1e-10
+    xtol: float = 1e-10
+    gtol: float = 1e-10
+    loss: str = "none"  # none, huber, cauchy
+    loss_scale_mm: tuple | float | None = None  # (alpha1, alpha2) or one value; None: from the residuals
+    robust_passes: int = 3
+    chunk_size: int = 2048  # control points per parallel work item
+    start: str = "auto"  # given, data, auto, best (see bundle_adjust)
+    coarse_points: int = 150_000  # subsample size of the first stage of large problems; 0: off
+
+
+@dataclass(frozen=True)
+class ResidualStatistics:
+    """RMS values as the thesis reports them (section 6.9.2): the square root of the mean
+    over control points of gamma1 alpha1^2 + gamma2 alpha2^2 (F), alpha1^2 (epsilon-1) and
+    alpha2^2 (epsilon-2)."""
+
+    n_points: int
+    rms_f_mm: float
+    rms_eps1_mm: float
+    rms_eps2_mm: float
+
+    @classmethod
+    def of(cls, res: np.ndarray, gamma=(1.0, 1.0)) -> "ResidualStatistics":
+        ms = np.mean(res**2, axis=0)
+        return cls(len(res), float(np.sqrt(gamma[0] * ms[0] + gamma[1] * ms[1])),
+                   float(np.sqrt(ms[0])), float(np.sqrt(ms[1])))
+
+    def one_part_in(self, diagonal_mm: float, k: float = 1.96) -> float:
+        """Volume diagonal / (k * RMS epsilon-2): the thesis's 'one part in N' (k = 1.96)."""
+        return float(diagonal_mm / (k * self.rms_eps2_mm))
+
+    def to_dict(self) -> dict:
+        return {"n_points": self.n_points, "rms_f_mm": self.rms_f_mm, "rms_eps1_mm": self.rms_eps1_mm,
+                "rms_eps2_mm": self.rms_eps2_mm}
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """Everything an adjustment produced. Arrays of control points are in problem order
+    (``problem.row`` maps them to rows of the input table)."""
+
+    problem: BundleProblem
+    options: BundleOptions
+    layout: ParameterLayout
+    x_start: np.ndarray
+    x: np.ndarray
+    rig: Rig
+    poses: np.ndarray
+    pose_std: np.ndarray
+    residuals_start: np.ndarray
+    residuals: np.ndarray
+    before: ResidualStatistics
+    after: ResidualStatistics
+    uncertainty: Uncertainty
+    report: LMReport
+    robust_scales: tuple
+    diagnostics: tuple
+    elapsed_s: float
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def converged(self) -> bool:
+        return self.report.converged
+
+    @property
+    def iterations(self) -> int:
+        return self.report.iterations
+
+    def sensors_frame(self) -> pd.DataFrame:
+        """SensorParametersTable rows with ``u_<column>`` standard uncertainties (0 = fixed)."""
+        return self.rig.to_frame()
+
+    def poses_frame(self) -> pd.DataFrame:
+        """T_world_artefact per measurement with ``u_<column>`` standard uncertainties."""
+        df = self.problem.poses_frame(self.poses)
+        for j, c in enumerate(POSE_COLUMNS):
+            df[f"u_{c}"] = self.pose_std[:, j]
+        return df
+
+    def parameter_table(self) -> pd.DataFrame:
+        """One row per free parameter: name, start, value, standard uncertainty."""
+        return pd.DataFrame({"parameter": list(self.layout.names), "start": self.x_start, "value": self.x,
+                             "u": self.uncertainty.std})
+
+    def errors(self) -> list[Diagnosis]:
+        return [d for d in self.diagnostics if d.severity == "error"]
+
+    def warnings(self) -> list[Diagnosis]:
+        return [d for d in self.diagnostics if d.severity == "warning"]
+
+
+def _check_start(problem: BundleProblem, evaluation):
+    if evaluation.ok.all() and np.isfinite(evaluation.cost):
+        return
+    bad = ~evaluation.ok
+    parts = []
+    for si, sc in enumerate(problem.rig.scanners):
+        k = int(np.sum(bad & (problem.scanner_idx == si)))
+        if k:
+            parts.append(f"{k} of scanner {sc.name}")
+    raise StartValueError("the start values cannot form rays at " + ", ".join(parts) + " control points "
+                          "(distortion folds over, or camera and projector rays are parallel); check the "
+                          "start parameters' distortion and the control points' phases")
+
+
+def _robust_scales(res, loss):
+    mad = np.median(np.abs(res - np.median(res, axis=0)), axis=0) * 1.4826
+    return tuple(float(max(s, 1e-9) * ROBUST_K[loss]) for s in mad)
+
+
+def _post_diagnostics(problem, layout, unc: Uncertainty, rig: Rig, found: list[Diagnosis]) -> list[Diagnosis]:
+    """Attach numbers to structural warnings: c vs distance correlation, weakest parameters."""
+    names = list(layout.names)
+    index = {n: i for i, n in enumerate(names)}
+    out = []
+    for d in found:
+        if d.kind == "single_standoff":
+            corrs = []
+            for si, sc in enumerate(problem.rig.scanners):
+                if sc.name != d.subject:
+                    continue
+                for sensor in sc.sensors:
+                    r = _c_distance_correlation(sensor, index, unc, rig)
+                    if r is not None:
+                        corrs.append(f"corr(c, distance) of {sensor.name} = {r:+.4f}")
+            if corrs:
+                d = Diagnosis(d.kind, d.severity, d.subject, d.message + " (" + "; ".join(corrs) + ")", d.parameters)
+        elif d.kind == "single_pose":
+            own = [i for i, n in enumerate(names) if n in d.parameters]
+            worst = sorted(own, key=lambda i: -max(abs(unc.correlation[i, j]) for j in range(len(names)) if j != i))
+            pairs = [p for p in unc.high_correlations(0.99) if p[0] in d.parameters or p[1] in d.parameters][:6]
+            text = "; ".join(f"corr({a}, {b}) = {c:+.3f}" for a, b, c in pairs)
+            if text:
+                d = Diagnosis(d.kind, d.severity, d.subject, d.message + f" (strongest correlations: {text})",
+                              tuple(names[i] for i in worst[:8]))
+        out.append(d)
+    return out
+
+
+def _c_distance_correlation(sensor, index, unc: Uncertainty, rig: Rig):
+    keys = [f"{sensor.name}.{n}" for n in ("x0", "y0", "z0", "c")]
+    if not all(k in index for k in keys):
+        return None
+    idx = [index[k] for k in keys]
+    C = unc.covariance[np.ix_(idx, idx)]
+    axis = rig.sensors[[s.name for s in rig.sensors].index(sensor.name)].R[2]
+    var_a = axis @ C[:3, :3] @ axis
+    cov_ac = axis @ C[:3, 3]
+    if var_a <= 0 or C[3, 3] <= 0:
+        return None
+    return float(cov_ac / np.sqrt(var_a * C[3, 3]))
+
+
+def local_sphere_rms(problem: BundleProblem, rig: Rig) -> float:
+    """RMS distance of the triangulated control points to a sphere of free centre and
+    radius fitted to each sphere image (algebraic fit, vectorised over all images)."""
+    from .results import triangulated_points
+
+    S = triangulated_points(problem, rig)
+    n_sph, n_m = len(problem.artefact), len(problem.measurements)
+    key = (problem.scanner_idx * n_m + problem.meas_idx) * n_sph + problem.sphere_idx
+    _, g, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    G = len(cnt)
+    good = np.all(np.isfinite(S), axis=1)
+    w = good.astype(float)
+    S = np.where(good[:, None], S, 0.0)
+    cnt_ok = np.bincount(g, w, G)
+    mean = np.stack([np.bincount(g, w * S[:, k], G) for k in range(3)], 1) / np.maximum(cnt_ok, 1)[:, None]
+    P = S - mean[g]
+    q = np.sum(P * P, axis=1)
+    A = np.concatenate([2 * P, np.ones((len(P), 1))], axis=1)  # |p|^2 = 2 c.p + k
+    AtA = np.zeros((G, 4, 4))
+    Atq = np.zeros((G, 4))
+    for a in range(4):
+        Atq[:, a] = np.bincount(g, w * A[:, a] * q, G)
+        for b in range(a, 4):
+            AtA[:, a, b] = AtA[:, b, a] = np.bincount(g, w * A[:, a] * A[:, b], G)
+    ok = cnt_ok >= 8
+    sol = np.zeros((G, 4))
+    sol[ok] = np.linalg.solve(AtA[ok], Atq[ok][..., None])[..., 0]
+    c = sol[:, :3]
+    r = np.sqrt(np.maximum(sol[:, 3] + np.sum(c * c, axis=1), 0.0))
+    d = np.linalg.norm(P - c[g], axis=1) - r[g]
+    keep = ok[g] & good
+    return float(np.sqrt(np.mean(d[keep] ** 2))) if keep.any() else float("nan")
+
+
+#: epsilon-2 RMS over the RMS of free sphere fits to each sphere image above which the
+#: minimum is taken to be a separate one: the caps are measured with the right shape but
+#: sit millimetres off the spheres the poses put there (about 1.0 at the right minimum of
+#: the simulated thesis rig, 15 to 40 at the separate minima a 0.02 rad start can reach)
+SEPARATE_MINIMUM_RATIO = 2.0
+
+
+def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions()) -> BundleResult:
+    """Adjust sensors and poses of ``problem``; raises :class:`DegenerateCalibrationError`
+    for degenerate set-ups and :class:`StartValueError` for unusable start values.
+
+    ``options.start``: ``"given"`` adjusts from the problem's start values only;
+    ``"data"`` from start values computed from the control points
+    (:func:`.start.reinitialise`: poses by resection in the reference camera, the other
+    sensors by DLT); ``"auto"`` (default) from the given ones and, if that minimum looks
+    like a separate one (epsilon-2 RMS more than ``SEPARATE_MINIMUM_RATIO`` times the RMS
+    of free sphere fits to the sphere images), also from the data ones; ``"best"`` always
+    from both. The lower minimum of F is kept; ``extra["start"]`` says which start won,
+    ``before`` always describes the given start values.
+    """
+    t0 = time.perf_counter()
+    found = check_structure(problem)
+    if any(d.severity == "error" for d in found):
+        raise DegenerateCalibrationError(found)
+    if options.start not in ("given", "data", "auto", "best"):
+        raise ValueError(f"unknown start {options.start!r}; choose given, data, auto or best")
+    runs = []
+    if options.start != "data":
+        first = _adjust(problem, options, found)
+        first.extra["shape_ratio"] = first.after.rms_eps2_mm / local_sphere_rms(problem, first.rig)
+        runs.append(("given", first))
+    if options.start in ("data", "best") or (options.start == "auto"
+                                             and not runs[0][1].extra["shape_ratio"] <= SEPARATE_MINIMUM_RATIO):
+        from .start import reinitialise
+
+        data_problem, report = reinitialise(problem)
+        try:
+            second = _adjust(data_problem, options, found)
+            second.extra["shape_ratio"] = second.after.rms_eps2_mm / local_sphere_rms(data_problem, second.rig)
+            runs.append(("control points", second))
+        except (DegenerateCalibrationError, StartValueError) as err:
+            if not runs:
+                raise
+            runs[0][1].extra["data_start_failed"] = str(err)
+    # the data start wins only if clearly lower (not by rounding at the same minimum)
+    label, best = runs[0]
+    for lab, r in runs[1:]:
+        if r.extra["cost"] < best.extra["cost"] * (1 - 1e-9):
+            label, best = lab, r
+    best.extra["start"] = label
+    best.extra["alternatives"] = {lab: {"rms_f_mm": r.after.rms_f_mm, "iterations": r.iterations,
+                                        "shape_ratio": r.extra["shape_ratio"]} for lab, r in runs}
+    if label != "given":
+        ev = Evaluator(problem, chunk_size=options.chunk_size)
+        res0 = ev.evaluate(ev.layout.pack(problem.rig.params, problem.poses), False).res
+        best = _replace_start(best, problem, res0)
+    diags = list(best.diagnostics)
+    ratio = best.extra["shape_ratio"]
+    if not ratio <= SEPARATE_MINIMUM_RATIO:
+        diags.append(Diagnosis("separate_minimum", "warning", "all",
+                               f"epsilon-2 RMS is {ratio:.1f} times the RMS of spheres fitted freely to each "
+                               "sphere image: the measured caps have the right shape but do not sit on the "
+                               "spheres the adjusted poses put there. The adjustment has probably stopped in a "
+                               "separate minimum (try other start values), or the artefact definition does not "
+                               "fit the spheres measured"))
+    from dataclasses import replace as _dc_replace
+
+    return _dc_replace(best, diagnostics=tuple(diags), elapsed_s=time.perf_counter() - t0)
+
+
+def _replace_start(result: "BundleResult", problem: BundleProblem, res0: np.ndarray) -> "BundleResult":
+    from dataclasses import replace as _dc_replace
+
+    layout = result.layout
+    return _dc_replace(result, x_start=layout.pack(problem.rig.params, problem.poses), residuals_start=res0,
+                       before=ResidualStatistics.of(res0, (problem.gamma1, problem.gamma2)))
+
+
+def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> BundleResult:
+    """One Levenberg-Marquardt adjustment from the problem's start values."""
+    t0 = time.perf_counter()
+    gamma = (problem.gamma1, problem.gamma2)
+    ev = Evaluator(problem, chunk_size=options.chunk_size)
+    layout = ev.layout
+    x0 = layout.pack(problem.rig.params, problem.poses)
+    e0 = ev.evaluate(x0, True)
+    _check_start(problem, e0)
+    rank = check_rank(e0.normal(*gamma), layout, problem, "start values")
+    if any(d.severity == "error" for d in rank):
+        raise DegenerateCalibrationError(found + rank)
+    lm = LMOptions(options.max_iterations, options.ftol, options.xtol, options.gtol)
+    scales = (1.0, 1.0)
+    x = x0
+    coarse = None
+    if options.coarse_points and problem.n_points > 2 * options.coarse_points:
+        # converge on a uniform subsample of every sphere image first; the adjustment on
+        # all points then only has the last few iterations to do
+        every = int(np.ceil(problem.n_points / options.coarse_points))
+        coarse = levenberg_marquardt(Evaluator(problem.thinned(every), layout, options.chunk_size).evaluate,
+                                     x, gamma, LMOptions(options.max_iterations, max(options.ftol, 1e-8),
+                                                         options.xtol, options.gtol))
+        e_c = ev.evaluate(coarse.x, True)
+        if e_c.cost < e0.cost:
+            x, e0_lm = coarse.x, e_c
+        else:
+            e0_lm = e0
+        coarse = {"every": every, "iterations": coarse.iterations, "evaluations": coarse.evaluations,
+                  "message": coarse.message}
+    else:
+        e0_lm = e0
+    if options.loss in ("none", "linear"):
+        report = levenberg_marquardt(ev.evaluate, x, gamma, lm, start=e0_lm)
+        x = report.x
+    else:
+        if options.loss not in ROBUST_K:
+            raise ValueError(f"unknown robust loss {options.loss!r}; choose none, huber or cauchy")
+        fixed = options.loss_scale_mm
+        res = e0.res
+        total_it = total_ev = total_jac = 0
+        history = []
+        for _ in range(max(1, options.robust_passes)):
+            new = (fixed, fixed) if np.isscalar(fixed) else (tuple(fixed) if fixed else _robust_scales(res, options.loss))
+            if scales != (1.0, 1.0) and all(abs(a - b) <= 0.05 * b for a, b in zip(new, scales)):
+                break
+            scales = new
+            rob = Evaluator(problem, layout, options.chunk_size, options.loss, scales)
+            report = levenberg_marquardt(rob.evaluate, x, gamma, lm)
+            x = report.x
+            total_it += report.iterations
+            total_ev += report.evaluations
+            total_jac += report.jacobians
+            history += report.history
+            res = ev.evaluate(x, False).res
+            if fixed is not None:
+                break
+        report = LMReport(x, report.cost, total_it, total_ev, total_jac, report.converged, report.message, history,
+                          report.evaluation)
+    e1 = report.evaluation  # at x, with the (robust) normal equations
+    plain = ev.evaluate(x, False) if options.loss not in ("none", "linear") else e1
+    weights = _irls_weights(plain.res, options.loss, scales)
+    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names)
+    sp, po = layout.unpack(x, problem.rig.params, problem.poses)
+    std_s = np.zeros_like(sp)
+    m = layout.sensor_index >= 0
+    std_s[m] = unc.std[layout.sensor_index[m]]
+    std_p = np.zeros_like(po)
+    m = layout.pose_index >= 0
+    std_p[m] = unc.std[layout.pose_index[m]]
+    rig = problem.rig.with_params(sp, uncertainty=std_s)
+    rank_end = check_rank(e1.normal(*gamma), layout, problem, "solution", unc)
+    diags = _post_diagnostics(problem, layout, unc, rig, found) + rank_end
+    return BundleResult(problem, options, layout, x0, x, rig, po, std_p, e0.res, plain.res,
+                        ResidualStatistics.of(e0.res, gamma), ResidualStatistics.of(plain.res, gamma), unc,
+                        report, scales, tuple(diags), time.perf_counter() - t0,
+                        {"cost": float(gamma[0] * np.sum(plain.res[:, 0] ** 2) + gamma[1] * np.sum(plain.res[:, 1] ** 2)),
+                         "coarse": coarse})
+
+
+def _irls_weights(res, loss, scales):
+    if loss in ("none", "linear"):
+        return np.ones_like(res)
+    a = np.abs(res) / np.asarray(scales)[None, :]
+    if loss == "huber":
+        return np.where(a <= 1, 1.0, 1.0 / np.maximum(a, 1e-300))
+    return 1.0 / (1.0 + a**2)

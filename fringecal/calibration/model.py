@@ -1,0 +1,393 @@
+"""The bundle-adjustment problem: control points, parameters and their evaluation.
+
+A :class:`BundleProblem` holds everything the adjustment needs as arrays: the rig (start
+values, free flags, formats), the artefact, one pose ``T_world_artefact`` per measurement
+(shared by every scanner that saw it: this is what links scanners whose volumes do not
+overlap) and the control points, sorted by (scanner, measurement) so that each group's
+points are contiguous. :class:`ParameterLayout` maps the free sensor and pose parameters
+to one vector; :class:`Evaluator` evaluates residuals and normal equations through the
+compiled kernels.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from schemas import ControlPointsTable, PosePlanTable, TableError, validate_table
+
+from ..artefact import Artefact
+from ..rig import Rig
+from ..rotation import rotation_derivatives, rotation_matrix
+from ..sensor import PARAM_NAMES
+from . import kernels
+
+__all__ = ["BundleProblem", "ParameterLayout", "Evaluator", "Evaluation", "POSE_NAMES", "POSE_COLUMNS"]
+
+POSE_NAMES = ("tx", "ty", "tz", "omega", "phi", "kappa")
+POSE_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
+
+
+#: below this many control points the kernels run on one thread: a parallel region then
+#: saves a few milliseconds but, on a loaded machine, waits for a descheduled thread
+PARALLEL_MIN_POINTS = 50_000
+
+
+@contextmanager
+def _threads_for(n_points: int):
+    import numba
+
+    if n_points >= PARALLEL_MIN_POINTS:
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
+@dataclass(frozen=True)
+class BundleProblem:
+    """Control points and start values of an object-space bundle adjustment.
+
+    Attributes
+    ----------
+    rig : Rig
+        Start parameters, free flags (``rig.free``, shape (n_sensors, 14)), formats and
+        the reference scanner.
+    artefact : Artefact
+    measurements : tuple of str, length n_meas
+    poses : ndarray, shape (n_meas, 6)
+        Start values of T_world_artefact per measurement (tx, ty, tz, omega, phi, kappa).
+    scanner_idx, meas_idx, sphere_idx : ndarray of int, shape (n,)
+        Per control point: index into ``rig.scanners``, ``measurements``, ``artefact.ids``.
+    cam_mm, prj_mm : ndarray, shape (n, 2)
+        Camera pixel and projector phases of each control point as image-plane mm.
+    row : ndarray of int, shape (n,)
+        Row of each control point in the table it came from (the arrays are sorted by
+        scanner, then measurement).
+    pose_free : ndarray of bool, shape (n_meas, 6)
+    gamma1, gamma2 : float
+        Weights of the alpha1 and alpha2 terms of F (thesis eq. 2-24).
+    dropped : tuple of (measurement, reason)
+        Measurements of the pose table that were left out (no control points).
+    """
+
+    rig: Rig
+    artefact: Artefact
+    measurements: tuple
+    poses: np.ndarray
+    scanner_idx: np.ndarray
+    meas_idx: np.ndarray
+    sphere_idx: np.ndarray
+    cam_mm: np.ndarray
+    prj_mm: np.ndarray
+    row: np.ndarray
+    pose_free: np.ndarray = None
+    gamma1: float = 1.0
+    gamma2: float = 1.0
+    dropped: tuple = ()
+
+    def __post_init__(self):
+        n_m = len(self.measurements)
+        object.__setattr__(self, "measurements", tuple(str(m) for m in self.measurements))
+        object.__setattr__(self, "poses", np.asarray(self.poses, float).reshape(n_m, 6))
+        for name in ("scanner_idx", "meas_idx", "sphere_idx", "row"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), np.int64))
+        for name in ("cam_mm", "prj_mm"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), float).reshape(-1, 2))
+        pf = np.ones((n_m, 6), bool) if self.pose_free is None else np.asarray(self.pose_free, bool)
+        object.__setattr__(self, "pose_free", pf.reshape(n_m, 6))
+        key = self.scanner_idx * max(n_m, 1) + self.meas_idx
+        if np.any(np.diff(key) < 0):
+            order = np.argsort(key, kind="stable")
+            for name in ("scanner_idx", "meas_idx", "sphere_idx", "row", "cam_mm", "prj_mm"):
+                object.__setattr__(self, name, getattr(self, name)[order])
+        if not (self.gamma1 > 0 and self.gamma2 > 0):
+            raise ValueError(f"gamma1 and gamma2 must be > 0, got {self.gamma1}, {self.gamma2}")
+
+    # -- construction ----------------------------------------------------
+    @classmethod
+    def from_tables(cls, rig: Rig, artefact: Artefact, control_points: pd.DataFrame,
+                    poses: pd.DataFrame, gamma1: float = 1.0, gamma2: float = 1.0,
+                    source: str = "control_points.csv", poses_source: str = "poses_initial.csv"
+                    ) -> "BundleProblem":
+        """Build a problem from a ControlPointsTable and a PosePlanTable (one pose per measurement).
+
+        Every control point must name a scanner of the rig, a sphere of the artefact and a
+        measurement of the pose table, and lie on the camera's pixel grid; violations raise
+        one :class:`TableError` naming the lines. Measurements of the pose table without
+        control points are dropped and recorded in ``dropped``.
+        """
+        cp = validate_table(control_points, ControlPointsTable, source)
+        poses = validate_table(poses, PosePlanTable, poses_source)
+        scanners = {s.name: i for i, s in enumerate(rig.scanners)}
+        spheres = {s: i for i, s in enumerate(artefact.ids)}
+        pose_ids = list(poses["measurement"])
+        problems = []
+
+        def check(column, known, what):
+            bad = ~cp[column].isin(list(known))
+            for i in np.flatnonzero(bad.to_numpy())[:20]:
+                problems.append((int(i) + 2, column, f"{what} {cp[column].iloc[i]!r} is not one of "
+                                 f"{sorted(known) if len(known) < 20 else str(len(known)) + ' known'}"))
+            if bad.sum() > 20:
+                problems.append((None, column, f"... {int(bad.sum()) - 20} more unknown {what}s"))
+
+        check("scanner", scanners, "scanner")
+        check("sphere_id", spheres, "sphere")
+        check("measurement", set(pose_ids), f"measurement (not in {poses_source})")
+        if problems:
+            raise TableError(source, problems)
+        s_idx = cp["scanner"].map(scanners).to_numpy(np.int64)
+        uv = cp[["u_px", "v_px"]].to_numpy(float)
+        tau = cp[["tau_x_rad", "tau_y_rad"]].to_numpy(float)
+        cam_mm = np.empty_like(uv)
+        prj_mm = np.empty_like(tau)
+        for i, sc in enumerate(rig.scanners):
+            sel = s_idx == i
+            fmt = sc.camera.format
+            outside = sel & ((uv[:, 0] > fmt.width_px - 1) | (uv[:, 1] > fmt.height_px - 1))
+            for k in np.flatnonzero(outside)[:10]:
+                problems.append((int(k) + 2, "u_px, v_px", f"pixel ({uv[k, 0]:g}, {uv[k, 1]:g}) lies outside "
+                                 f"camera {sc.camera.name} ({fmt.width_px} x {fmt.height_px})"))
+            cam_mm[sel] = sc.camera.image_mm(uv[sel])
+            prj_mm[sel] = sc.projector.image_mm(tau[sel])
+        if problems:
+            raise TableError(source, problems)
+        seen = set(cp["measurement"])
+        dropped = tuple((m, "no control points") for m in pose_ids if m not in seen)
+        keep = [m for m in pose_ids if m in seen]
+        meas = {m: i for i, m in enumerate(keep)}
+        pose_rows = poses.set_index("measurement").loc[keep, list(POSE_COLUMNS)].to_numpy(float)
+        return cls(rig, artefact, tuple(keep), pose_rows, s_idx,
+                   cp["measurement"].map(meas).to_numpy(np.int64),
+                   cp["sphere_id"].map(spheres).to_numpy(np.int64), cam_mm, prj_mm,
+                   np.arange(len(cp)), None, float(gamma1), float(gamma2), dropped)
+
+    # -- views -----------------------------------------------------------
+    @property
+    def n_points(self) -> int:
+        return int(self.scanner_idx.shape[0])
+
+    def poses_frame(self, poses: np.ndarray | None = None) -> pd.DataFrame:
+        """Poses (n_meas, 6) as a PosePlanTable frame."""
+        poses = self.poses if poses is None else poses
+        df = pd.DataFrame(poses, columns=list(POSE_COLUMNS))
+        df.insert(0, "measurement", list(self.measurements))
+        return df
+
+    def with_start(self, rig: Rig | None = None, poses: np.ndarray | None = None) -> "BundleProblem":
+        """The same control points from other start values."""
+        from dataclasses import replace
+
+        return replace(self, rig=self.rig if rig is None else rig,
+                       poses=self.poses if poses is None else np.asarray(poses, float))
+
+    def thinned(self, every: int) -> "BundleProblem":
+        """Every ``every``-th control point of each (scanner, measurement) group (at least
+        one per group): a uniform subsample with the same measurements and spheres."""
+        from dataclasses import replace
+
+        start, stop, _, _ = self.groups()
+        keep = np.concatenate([np.arange(a, b, max(int(every), 1)) for a, b in zip(start, stop)])
+        return replace(self, scanner_idx=self.scanner_idx[keep], meas_idx=self.meas_idx[keep],
+                       sphere_idx=self.sphere_idx[keep], cam_mm=self.cam_mm[keep], prj_mm=self.prj_mm[keep],
+                       row=self.row[keep])
+
+    def groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Contiguous (scanner, measurement) groups: (start, stop, scanner, measurement)."""
+        n = self.n_points
+        if n == 0:
+            e = np.zeros(0, np.int64)
+            return e, e, e, e
+        key = self.scanner_idx * len(self.measurements) + self.meas_idx
+        brk = np.flatnonzero(np.diff(key)) + 1
+        start = np.concatenate([[0], brk]).astype(np.int64)
+        stop = np.concatenate([brk, [n]]).astype(np.int64)
+        return start, stop, self.scanner_idx[start], self.meas_idx[start]
+
+
+@dataclass(frozen=True)
+class ParameterLayout:
+    """Where each free sensor and pose parameter sits in the unknown vector x.
+
+    ``sensor_index[i, j]`` is the position of parameter ``PARAM_NAMES[j]`` of sensor i in
+    x, or -1 if fixed; ``pose_index[m, k]`` likewise for pose parameter ``POSE_NAMES[k]``.
+    Sensors come first (in rig order), then poses.
+    """
+
+    sensor_index: np.ndarray
+    pose_index: np.ndarray
+    names: tuple
+    sensor_names: tuple
+    measurements: tuple
+
+    @classmethod
+    def of(cls, problem: BundleProblem) -> "ParameterLayout":
+        free = problem.rig.free
+        si = np.full(free.shape, -1, np.int64)
+        si[free] = np.arange(int(free.sum()))
+        pf = problem.pose_free
+        pi = np.full(pf.shape, -1, np.int64)
+        pi[pf] = int(free.sum()) + np.arange(int(pf.sum()))
+        sensors = tuple(s.name for s in problem.rig.sensors)
+        names = [f"{sensors[i]}.{PARAM_NAMES[j]}" for i, j in zip(*np.nonzero(free))]
+        names += [f"pose[{problem.measurements[m]}].{POSE_NAMES[k]}" for m, k in zip(*np.nonzero(pf))]
+        return cls(si, pi, tuple(names), sensors, problem.measurements)
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    def pack(self, sensor_params: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        x = np.empty(self.n)
+        m = self.sensor_index >= 0
+        x[self.sensor_index[m]] = sensor_params[m]
+        m = self.pose_index >= 0
+        x[self.pose_index[m]] = poses[m]
+        return x
+
+    def unpack(self, x: np.ndarray, sensor_params: np.ndarray, poses: np.ndarray):
+        """Full (n_sensors, 14) and (n_meas, 6) arrays with the free entries taken from x."""
+        sp = np.array(sensor_params, float, copy=True)
+        po = np.array(poses, float, copy=True)
+        m = self.sensor_index >= 0
+        sp[m] = x[self.sensor_index[m]]
+        m = self.pose_index >= 0
+        po[m] = x[self.pose_index[m]]
+        return sp, po
+
+
+@dataclass
+class Evaluation:
+    """Residuals and (optionally) normal equations at one parameter vector.
+
+    cost : F = gamma1 sum rho(alpha1) + gamma2 sum rho(alpha2) (rho(a) = a^2 without robust loss)
+    res : (n, 2) alpha1, alpha2 per control point (problem order)
+    ok : (n,) False where a ray could not be formed
+    N1, N2 : (p, p) sum w j1 j1^T and sum w j2 j2^T (no gamma), or None
+    b : (p,) sum gamma w alpha j over both terms (half the gradient of F), or None
+    """
+
+    cost: float
+    res: np.ndarray
+    ok: np.ndarray
+    N1: np.ndarray | None = None
+    N2: np.ndarray | None = None
+    b: np.ndarray | None = None
+
+    def normal(self, gamma1: float, gamma2: float) -> np.ndarray:
+        """gamma1 N1 + gamma2 N2 (half the Gauss-Newton Hessian of F)."""
+        return gamma1 * self.N1 + gamma2 * self.N2
+
+
+@dataclass
+class Evaluator:
+    """Evaluates a :class:`BundleProblem` at parameter vectors through the compiled kernels."""
+
+    problem: BundleProblem
+    layout: ParameterLayout = None
+    chunk_size: int = 2048
+    loss: str = "none"
+    scales: tuple = (1.0, 1.0)
+    _arrays: dict = field(default=None, repr=False)
+
+    def __post_init__(self):
+        pr = self.problem
+        if self.layout is None:
+            self.layout = ParameterLayout.of(pr)
+        if self.loss not in kernels.LOSS_CODES:
+            raise ValueError(f"unknown robust loss {self.loss!r}; choose one of none, huber, cauchy")
+        start, stop, g_scan, g_meas = pr.groups()
+        c_start, c_stop, c_group = [], [], []
+        for g, (a, b) in enumerate(zip(start, stop)):
+            edges = np.arange(a, b, self.chunk_size)
+            c_start += list(edges)
+            c_stop += list(np.minimum(edges + self.chunk_size, b))
+            c_group += [g] * len(edges)
+        lay = self.layout
+        gmap = np.full((len(start), kernels.N_LOCAL), -1, np.int64)
+        for g, (s, m) in enumerate(zip(g_scan, g_meas)):
+            gmap[g, :14] = lay.sensor_index[2 * s]
+            gmap[g, 14:28] = lay.sensor_index[2 * s + 1]
+            gmap[g, 28:] = lay.pose_index[m]
+        self._arrays = dict(
+            chunk_start=np.asarray(c_start, np.int64), chunk_stop=np.asarray(c_stop, np.int64),
+            chunk_group=np.asarray(c_group, np.int64), group_cam=(2 * g_scan).astype(np.int64),
+            group_prj=(2 * g_scan + 1).astype(np.int64), group_meas=g_meas.astype(np.int64), gmap=gmap,
+            centres=np.ascontiguousarray(pr.artefact.centres), radii=np.ascontiguousarray(pr.artefact.radii),
+        )
+
+    @property
+    def n_chunks(self) -> int:
+        return len(self._arrays["chunk_start"])
+
+    def full_params(self, x) -> tuple[np.ndarray, np.ndarray]:
+        return self.layout.unpack(np.asarray(x, float), self.problem.rig.params, self.problem.poses)
+
+    def _geometry(self, x):
+        sp, po = self.full_params(x)
+        sR = rotation_matrix(sp[:, 3], sp[:, 4], sp[:, 5])
+        sdR = np.ascontiguousarray(np.moveaxis(rotation_derivatives(sp[:, 3], sp[:, 4], sp[:, 5]), 0, 1))
+        pR = rotation_matrix(po[:, 3], po[:, 4], po[:, 5])
+        pdR = np.ascontiguousarray(np.moveaxis(rotation_derivatives(po[:, 3], po[:, 4], po[:, 5]), 0, 1))
+        return (np.ascontiguousarray(sp), sR, sdR, np.ascontiguousarray(po[:, :3]), pR, pdR)
+
+    def evaluate(self, x, want_jac: bool = True) -> Evaluation:
+        """Residuals, cost and (with ``want_jac``) the normal equations at x."""
+        with _threads_for(self.problem.n_points):
+            return self._evaluate(x, want_jac)
+
+    def _evaluate(self, x, want_jac: bool) -> Evaluation:
+        pr, a = self.problem, self._arrays
+        n, nc, p = pr.n_points, self.n_chunks, self.layout.n
+        res = np.empty((n, 2))
+        ok = np.empty(n, np.bool_)
+        cost = np.empty(nc)
+        if want_jac:
+            A1 = np.empty((nc, 28, 28))
+            A2 = np.empty((nc, 34, 34))
+            bv = np.empty((nc, 34))
+        else:
+            A1 = np.empty((1, 28, 28))
+            A2 = np.empty((1, 34, 34))
+            bv = np.empty((1, 34))
+        sp, sR, sdR, pt, pR, pdR = self._geometry(x)
+        kernels.assemble(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"], a["group_prj"],
+                         a["group_meas"], sp, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
+                         pr.cam_mm, pr.prj_mm, pr.gamma1, pr.gamma2, kernels.LOSS_CODES[self.loss],
+                         float(self.scales[0]), float(self.scales[1]), want_jac, res, ok, cost, A1, A2, bv)
+        ev = Evaluation(float(cost.sum()), res, ok)
+        if want_jac:
+            N1 = np.zeros((p, p))
+            N2 = np.zeros((p, p))
+            b = np.zeros(p)
+            kernels.scatter(a["chunk_group"], a["gmap"], A1, A2, bv, N1, N2, b)
+            ev.N1, ev.N2, ev.b = N1, N2, b
+        return ev
+
+    def jacobian_rows(self, x) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals (n, 2), local Jacobian rows (n, 2, 34) and ok (n,) at x (memory n*544 bytes)."""
+        pr, a = self.problem, self._arrays
+        n = pr.n_points
+        res = np.empty((n, 2))
+        ok = np.empty(n, np.bool_)
+        J = np.empty((n, 2, kernels.N_LOCAL))
+        sp, sR, sdR, pt, pR, pdR = self._geometry(x)
+        kernels.residual_rows(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"], a["group_prj"],
+                              a["group_meas"], sp, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
+                              pr.cam_mm, pr.prj_mm, res, ok, J)
+        return res, J, ok
+
+    def global_columns(self) -> np.ndarray:
+        """Global parameter index of each local slot of each control point, (n, 34) (-1: fixed)."""
+        a = self._arrays
+        start, stop, _, _ = self.problem.groups()
+        counts = stop - start
+        return np.repeat(a["gmap"], counts, axis=0)
