@@ -13,7 +13,7 @@ from .common import UserInputError, console, fail, guarded
 
 def check_acquisition_config(config: Path | None):
     """Load and check everything the acquisition reads (run config, rig files, poses,
-    hexapod config and reach), before Prefect starts. Returns the RunConfig."""
+    hexapod config and reach) before Prefect starts; returns (RunConfig, plans)."""
     from fringecal.acquisition import AcquisitionInputs, plan_acquisition, planned_poses
     from fringecal.runconfig import load_run_config
 

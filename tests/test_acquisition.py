@@ -83,8 +83,8 @@ def test_noise_free_tau_is_the_true_projector_coordinate(thesis, scanner):
         assert summary[o]["unwrap_errors"] == 0
         # 12-bit rounding alone gives ~1e-6 rad = 3e-4 projector pixel
         assert summary[o]["rms_projector_px"] < 0.01, summary
-    everywhere = pure_mask(truth, None, res.valid)  # end caps and rods too
-    assert tau_error_summary(res.tau, truth, everywhere, THESIS, s.projector)["x"]["unwrap_errors"] == 0
+    everywhere = tau_error_summary(res.tau, truth, pure_mask(truth, None, res.valid), THESIS, s.projector)
+    assert everywhere["x"]["unwrap_errors"] == everywhere["y"]["unwrap_errors"] == 0  # end caps and rods too
 
 
 def test_default_noise_unwrapping_errors_below_one_in_100000(thesis):
@@ -283,6 +283,18 @@ def test_cli_acquire_json(prefect_harness, tmp_path):
     assert [m["measurement"] for m in doc["measurements"]] == ["1-scanner1", "1-scanner2"]
     assert doc["poses"][0]["hexapod"] is False and doc["poses"][0]["translation_error_mm"] == 0
     assert (tmp_path / "run" / "measurements" / "1-scanner2.zarr").is_dir()
+
+
+@pytest.mark.flow
+def test_cli_acquire_controller_fault_exits_1(prefect_harness, tmp_path):
+    cfg = tiny_config(tmp_path, pose_rows=(0,), url="hexsim://?fault=garbled")
+    res = runner.invoke(app, ["acquire", "--config", str(cfg), "--out", str(tmp_path / "run")])
+    assert res.exit_code == 1, res.output
+    assert "hexapod: opening the hexapod at hexsim://?fault=garbled: hexapod stopped: bad reply" in res.output
+    cfg = tiny_config(tmp_path, pose_rows=(0,), url="hexsim://?fault=garbled&after=1")
+    res = runner.invoke(app, ["acquire", "--config", str(cfg), "--out", str(tmp_path / "run")])
+    assert res.exit_code == 1 and "hexapod: artefact pose 1: hexapod stopped: bad reply" in res.output
+    assert not list((tmp_path / "run" / "measurements").glob("*.zarr"))
 
 
 def test_cli_acquire_bad_configs_fail_before_prefect(tmp_path):

@@ -145,7 +145,11 @@ def move_hexapod(planned: dict[str, Frame], run_config) -> list[PoseMove]:
 
     rig = HexapodRig.from_config(load_hexapod_config(hx.config))
     out = []
-    with PlatformMover.open(hx.url, rig) as mover:
+    try:
+        mover = PlatformMover.open(hx.url, rig)
+    except HexapodFault as err:
+        raise HexapodFault(err.kind, f"opening the hexapod at {hx.url}: {err}") from None
+    with mover:
         for pose, T in planned.items():
             try:
                 move = mover.move_artefact_to(T)
