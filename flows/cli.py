@@ -80,7 +80,7 @@ def pose(
 
 def _register_subcommands():
     """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
-    from . import cli_artefact, cli_calibrate, cli_decode, cli_fit, cli_hexapod, cli_verify
+    from . import cli_acquire, cli_artefact, cli_calibrate, cli_decode, cli_fit, cli_hexapod, cli_verify
 
     app.command("decode")(cli_decode.decode_command)
     app.command("calibrate")(guarded(cli_calibrate.calibrate))
@@ -88,6 +88,7 @@ def _register_subcommands():
     app.add_typer(cli_fit.fit_app, name="fit")
     app.add_typer(cli_hexapod.app, name="hexapod")
     app.add_typer(cli_artefact.app, name="artefact")
+    app.command("acquire")(cli_acquire.acquire_command)
 
 
 if __name__ != "__main__":

@@ -1,6 +1,8 @@
 """Table contracts (pandera) shared by fringecal, tasks and flows."""
 
 from .tables import (  # noqa: F401
+    AcquiredPosesTable,
+    AcquisitionTable,
     FREE_COLUMNS,
     REJECTION_REASONS,
     ArtefactTable,

@@ -32,6 +32,8 @@ __all__ = [
     "ThermalLogTable",
     "ControlPointsTable",
     "HexapodPlanTable",
+    "AcquiredPosesTable",
+    "AcquisitionTable",
     "DriftCentresTable",
     "TrussForcesTable",
     "TrussDisplacementsTable",
@@ -442,6 +444,44 @@ class HexapodPlanTable(_Base):
     limits: Series[str] = pa.Field()
 
     _id_columns = ("measurement", "station")
+
+
+class AcquiredPosesTable(PosePlanTable):
+    """Artefact poses of a simulated acquisition, one row per pose (``measurement`` is
+    the pose id). ``tx_mm .. kappa_rad`` is the pose the artefact reached, at which its
+    measurements were rendered (the truth); ``planned_*`` the pose that was asked for;
+    with a hexapod, ``counts_1..6`` are the encoder counts read back after the move."""
+
+    planned_tx_mm: Series[float] = pa.Field()
+    planned_ty_mm: Series[float] = pa.Field()
+    planned_tz_mm: Series[float] = pa.Field()
+    planned_omega_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    planned_phi_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    planned_kappa_rad: Series[float] = pa.Field(ge=-2 * np.pi, le=2 * np.pi)
+    translation_error_mm: Series[float] = pa.Field(ge=0)
+    rotation_error_rad: Series[float] = pa.Field(ge=0)
+    hexapod: Series[bool] = pa.Field()
+    counts_1: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
+    counts_2: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
+    counts_3: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
+    counts_4: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
+    counts_5: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
+    counts_6: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
+
+
+class AcquisitionTable(_Base):
+    """The measurements of an acquisition: id ``<pose>-<scanner>``, its pose and
+    scanner, the store (relative to the run directory), and what the decoder kept."""
+
+    measurement: Series[str] = pa.Field(unique=True)
+    pose: Series[str] = pa.Field()
+    scanner: Series[str] = pa.Field()
+    store: Series[str] = pa.Field(str_length={"min_value": 1})
+    valid_fraction: Series[float] = pa.Field(ge=0, le=1)
+    sphere_pixels: Series[int] = pa.Field(ge=0)
+
+    _id_columns = ("measurement", "pose", "scanner")
+    _unique_together = (("pose", "scanner"),)
 
 
 class DriftCentresTable(_Base):

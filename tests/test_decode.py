@@ -58,6 +58,25 @@ def test_zero_unwrapping_errors_over_the_full_tau_range():
     assert res.valid.all()
 
 
+def test_tau_stays_in_range_when_noise_wraps_the_first_beat():
+    """Near the projector edge, phase noise on count 63 can push the first beat
+    (phi_64 - phi_63 = w) past -pi; the chain then finds the twin w + 2 pi, which
+    fits every integer count equally well. The decoder returns it in [-pi, pi]."""
+    seq = FringeSequence()
+    w = np.array([[-3.10, 3.10, 0.5]])
+    shift = np.array([[0.1, -0.1, 0.1]])  # phase error on count 63 only
+    frames = []
+    for o in seq.orientations:
+        for t in seq.fringe_counts:
+            for k in range(seq.n_steps):
+                frames.append(2000 + 1500 * np.cos(t * w + (shift if t == 63 else 0) + 2 * np.pi * k / 7))
+    res = decode(np.stack(frames), seq)
+    for o in "xy":
+        assert np.all(np.abs(res.tau[o]) <= np.pi)
+        # the one perturbed phase moves the least-squares slope by 63 * 0.1 / sum(t^2) = 2.9e-4 rad
+        np.testing.assert_allclose(res.tau[o], w + 63 * shift / 21973, atol=1e-6)
+
+
 def test_tau_noise_matches_theory_and_the_beat_estimate_is_several_times_noisier():
     rng = np.random.default_rng(7)
     seq = FringeSequence()

@@ -307,7 +307,9 @@ def _decode_rows(frames, counts, cos_k, sin_k, full_scale, min_mod, max_err,
                     work[c] += e * e
             for c in range(w):
                 e = np.sqrt(work[c] * inv_dof)
-                tau[o, r, c] = est[c]
+                # tau and tau + 2 pi give identical frames for integer counts; when noise
+                # wraps the first beat the chain lands on the twin outside [-pi, pi]
+                tau[o, r, c] = est[c] - _TWO_PI * np.floor(est[c] * _INV_TWO_PI + 0.5)
                 err[o, r, c] = e
                 ok[c] &= (e <= max_err) & (mod[o, r, c] >= min_mod)
         for c in range(w):

@@ -1,0 +1,65 @@
+"""Benchmark: one simulated measurement end to end (render + decode + store write with
+the ground truth), as one ``fringecal acquire`` task does it.
+
+Prints JSON: wall and CPU seconds (median of ``--repeats``) at each ``--widths``, split
+into rendering and decoding + writing the store, the store's size on disk, and the
+peak memory of the process. Thesis scanner 1 at pose 1 of table 6-1, default
+configuration (configs/run_thesis.yaml), no hexapod (its moves cost no wall time
+with the simulated box).
+
+    PYTHONPATH=. python benchmarks/acquire.py [--widths 512,2048] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from fringecal.acquisition import AcquisitionInputs, acquire_measurement, plan_acquisition
+from fringecal.runconfig import load_run_config
+
+
+def store_mb(path: Path) -> float:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 1e6
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--widths", default="512,2048")
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    out = {"load_average": os.getloadavg(), "cpus": os.cpu_count(), "widths": {}}
+    tmp = Path(tempfile.mkdtemp(prefix="fringecal-bench-acquire-"))
+    try:
+        for width in map(int, args.widths.split(",")):
+            cfg = load_run_config(None, {"acquisition": {"camera_width_px": width, "hexapod": {"enabled": False}}})
+            inputs = AcquisitionInputs.from_run_config(cfg)
+            plan = plan_acquisition(cfg, inputs)[0]
+            acquire_measurement(plan, plan.T_world_artefact, cfg, tmp / "warm.zarr", inputs)  # compile, caches
+            runs = []
+            for i in range(args.repeats):
+                path = tmp / f"{width}-{i}.zarr"
+                w, c = time.perf_counter(), time.process_time()
+                r = acquire_measurement(plan, plan.T_world_artefact, cfg, path, inputs)
+                runs.append({"wall_s": time.perf_counter() - w, "cpu_s": time.process_time() - c,
+                             "render_s": r.summary["render_s"], "decode_store_s": r.summary["decode_store_s"],
+                             "store_mb": store_mb(path)})
+                shutil.rmtree(path)
+            med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+            out["widths"][width] = {"measurement": plan.measurement, **med, "runs_wall_s": [r["wall_s"] for r in runs]}
+            print(json.dumps({width: out["widths"][width]}), flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
