@@ -1,0 +1,106 @@
+"""Per-measurement point clouds, sphere fits and control points (issues 4 and 5).
+
+:func:`first_pass` triangulates a measurement store with its scanner's current
+parameters, writes ``x, y, z, eps1`` and the candidate regions into the store, and
+fits every candidate. After labelling, :func:`second_pass` refits the labelled
+candidates with rod cones and selects the control points from the clean pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from ..calibration.controlpoints import select_control_points
+from ..extraction import fit_candidates
+from ..frames import Frame
+from ..pointcloud import PointMaps, provenance, triangulate_maps
+from ..rig import Scanner
+from ..spheres.robust import rod_directions
+from ..store import add_variables, open_store
+
+__all__ = ["measurement_maps", "first_pass", "second_pass", "ExtractionResult"]
+
+
+def measurement_maps(store, scanner: Scanner) -> tuple[xr.Dataset, PointMaps, np.ndarray]:
+    """Open a store and triangulate it with ``scanner``'s parameters.
+
+    Returns the dataset, the point maps (scanner's frame) and the validity mask.
+    """
+    ds = open_store(store)
+    valid = ds["valid"].values.astype(bool)
+    maps = triangulate_maps(scanner.camera, scanner.projector, ds["tau_x"].values, ds["tau_y"].values, valid)
+    return ds, maps, valid
+
+
+def first_pass(store, scanner: Scanner, radius_mm: float, extraction_config, measurement: str) -> pd.DataFrame:
+    """Triangulate, write the point maps and candidate regions into the store, fit candidates.
+
+    Returns the sphere-fits rows (``sphere_id`` empty) plus failed candidates as rows
+    with a ``failure`` reason and no centre (dropped before labelling).
+    """
+    ds, maps, valid = measurement_maps(store, scanner)
+    fits = fit_candidates(maps, valid, scanner.camera, scanner.projector, radius_mm, measurement, scanner.name,
+                          candidate_config=extraction_config.candidate_config(),
+                          rejection_config=extraction_config.rejection_config())
+    ds.close()
+    dims = ("v", "u")
+    f32 = lambda a: xr.DataArray(np.where(maps.valid, a, np.nan).astype(np.float32), dims=dims)  # noqa: E731
+    add_variables(store, {"x": f32(maps.x), "y": f32(maps.y), "z": f32(maps.z), "eps1": f32(maps.eps1),
+                          "candidate": xr.DataArray(fits.regions, dims=dims)},
+                  attrs={"points": {**provenance(scanner.camera, scanner.projector),
+                                    "frame": f"scanner {scanner.name}"}})
+    rows = pd.DataFrame(fits.rows)
+    failures = pd.DataFrame(fits.failures, columns=["measurement", "scanner", "candidate", "sphere_id", "reason"])
+    return rows, failures
+
+
+class ExtractionResult:
+    """Final fits and control points of one measurement."""
+
+    def __init__(self, fits: pd.DataFrame, failures: pd.DataFrame, control_points: pd.DataFrame):
+        self.fits = fits
+        self.failures = failures
+        self.control_points = control_points
+
+
+def second_pass(store, scanner: Scanner, artefact, rods: pd.DataFrame | None, labelled: pd.DataFrame,
+                pose: Frame | None, extraction_config, control_point_config, measurement: str) -> ExtractionResult:
+    """Refit the labelled candidates of one measurement and select its control points.
+
+    Parameters
+    ----------
+    labelled : DataFrame
+        This measurement's rows of the labelled sphere-fits table.
+    pose : Frame or None
+        ``T_scanner_artefact`` from the labelling step; with rods, each sphere's rod
+        directions become cones to mask (end caps and tubes).
+    """
+    ds, maps, valid = measurement_maps(store, scanner)
+    regions = ds["candidate"].values.astype(np.int16)
+    tau_x, tau_y = ds["tau_x"].values, ds["tau_y"].values
+    ds.close()
+    labelled = labelled[labelled["sphere_id"].astype(str) != ""]
+    sids = {int(r.candidate): str(r.sphere_id) for r in labelled.itertuples()}
+    use_cones = extraction_config.second_pass_rod_cones and rods is not None and pose is not None
+    axes = {c: rod_directions(artefact, rods, s, pose) for c, s in sids.items()} if use_cones else None
+    radius = {c: float(artefact.radii[artefact.index([s])[0]]) for c, s in sids.items()}
+    keep = np.where(np.isin(regions, list(sids)), regions, -1).astype(np.int16)
+    fits = fit_candidates(maps, valid, scanner.camera, scanner.projector, float(np.median(artefact.radii)),
+                          measurement, scanner.name, regions=keep, rod_axes=axes, sphere_ids=sids,
+                          fixed_radius=radius, rejection_config=extraction_config.rejection_config())
+    fitted = {int(r["candidate"]) for r in fits.rows}
+    labels = np.where(np.isin(fits.kept, list(fitted)), fits.kept, -1)
+    cps = select_control_points(labels, {c: sids[c] for c in fitted}, tau_x, tau_y, valid,
+                                measurement=measurement, scanner=scanner.name,
+                                spacing_px=control_point_config.spacing_px, erode_px=control_point_config.rim_px)
+    dims = ("v", "u")
+    sphere_index = np.full(labels.shape, -1, np.int16)
+    for c in fitted:
+        sphere_index[labels == c] = artefact.index([sids[c]])[0]
+    add_variables(store, {"sphere_label": xr.DataArray(sphere_index, dims=dims)},
+                  attrs={"sphere_label_ids": list(artefact.ids)})
+    rows = pd.DataFrame(fits.rows)
+    failures = pd.DataFrame(fits.failures, columns=["measurement", "scanner", "candidate", "sphere_id", "reason"])
+    return ExtractionResult(rows, failures, cps)
