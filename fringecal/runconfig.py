@@ -149,6 +149,7 @@ class ControlPointConfig(StrictModel):
 
     spacing_px: int = Field(3, ge=1)
     rim_px: int = Field(1, ge=0)
+    max_incidence_deg: Optional[float] = Field(60.0, gt=0, le=90)
 
 
 class BundleConfig(StrictModel):

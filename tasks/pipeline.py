@@ -11,7 +11,6 @@ changed setting reruns exactly the tasks that depend on it.
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -139,12 +138,9 @@ def second_pass_task(store: Ref, sensors: Ref, artefact: Ref, rods: Ref | None, 
 
 
 @task(name="initialise", cache_key_fn=_key("initialise"), persist_result=True)
-def initialise_task(sensors: Ref, labels: dict, control_points: list[Ref], artefact: Ref, bundle: dict,
-                    run_dir: str) -> dict:
+def initialise_task(sensors: Ref, labels: dict, control_points: list[Ref], artefact: Ref, run_dir: str) -> dict:
     """Link the scanners, DLT start values, one start pose per measurement; write the
     bundle adjustment's inputs (the RUN_DIR contract of ``fringecal calibrate``)."""
-    import yaml
-
     from fringecal.pipeline.initialise import initial_calibration
     from fringecal.rundir import RunDir
 
@@ -159,26 +155,28 @@ def initialise_task(sensors: Ref, labels: dict, control_points: list[Ref], artef
     write_table(init.poses, rd.table("poses_initial"), PosePlanTable)
     write_table(init.rig.to_frame(), rd.table("sensors_initial"), SensorParametersTable)
     write_table(init.dlt, rd.table("dlt"))
+    return {"control_points": ref_for(rd.table("control_points"), "table"),
+            "poses_initial": ref_for(rd.table("poses_initial"), "table"),
+            "sensors_initial": ref_for(rd.table("sensors_initial"), "table")}
+
+
+@task(name="bundle-adjustment", cache_key_fn=_key("bundle-adjustment"), persist_result=True)
+def bundle_task(inputs: dict, artefact: Ref, bundle: dict, reference: str, run_dir: str) -> dict:
+    """The object-space bundle adjustment of the run (fringecal.calibration.calibrate_run),
+    with the run's weights and solver settings written to ``calibrate.yaml``."""
+    import time
+
+    import yaml
+
+    from fringecal.calibration import calibrate_run
+
     conf = {"gamma1": bundle["gamma1"], "gamma2": bundle["gamma2"], "robust_loss": bundle["robust_loss"],
-            "max_iterations": bundle["max_iterations"], "reference_scanner": prior.reference}
+            "max_iterations": bundle["max_iterations"], "reference_scanner": reference}
     if bundle["robust_loss"] != "none":
         conf["robust_scale_mm"] = bundle["robust_scale_mm"]
     tmp = Path(run_dir) / ".calibrate.yaml.tmp"
     tmp.write_text(yaml.safe_dump(conf))
     tmp.replace(Path(run_dir) / "calibrate.yaml")
-    return {"control_points": ref_for(rd.table("control_points"), "table"),
-            "poses_initial": ref_for(rd.table("poses_initial"), "table"),
-            "sensors_initial": ref_for(rd.table("sensors_initial"), "table"),
-            "calibrate_yaml": ref_for(Path(run_dir) / "calibrate.yaml", "config")}
-
-
-@task(name="bundle-adjustment", cache_key_fn=_key("bundle-adjustment"), persist_result=True)
-def bundle_task(inputs: dict, artefact: Ref, run_dir: str) -> dict:
-    """The object-space bundle adjustment of the run (fringecal.calibration.calibrate_run)."""
-    import time
-
-    from fringecal.calibration import calibrate_run
-
     t0 = time.perf_counter()
     result, paths = calibrate_run(run_dir)
     seconds = time.perf_counter() - t0
@@ -226,7 +224,15 @@ def truth_task(calibration: Ref, truth_sensors: Ref, reference: str, width_px: i
     return ref_for(out, "json")
 
 
-@task(name="ballbar-measurement", cache_key_fn=_key("ballbar-measurement"), persist_result=True)
+def _ballbar_store_key(context, p) -> str:
+    # the run config acts through the acquisition digest and the verification's own
+    # resolution and seed; other sections (extraction, bundle...) do not change the frames
+    v = p["run_config"]["verification"]
+    return cache_key("ballbar-measurement", {**{k: x for k, x in p.items() if k != "run_config"},
+                                             "width": v["camera_width_px"], "seed": v["seed"]})
+
+
+@task(name="ballbar-measurement", cache_key_fn=_ballbar_store_key, persist_result=True)
 def ballbar_store_task(run_config: dict, config_digest: str, position: str, sphere_id: str, scanner: str,
                        T_world_ballbar: list[float], ballbar: Ref, out: str) -> Ref:
     """Render, decode and store one scanner's view of the ball-bar at one position."""

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from ..calibration.controlpoints import select_control_points
+from ..calibration.controlpoints import incidence_map, select_control_points
 from ..extraction import fit_candidates
 from ..frames import Frame
 from ..pointcloud import PointMaps, provenance, triangulate_maps
@@ -90,11 +90,22 @@ def second_pass(store, scanner: Scanner, artefact, rods: pd.DataFrame | None, la
     fits = fit_candidates(maps, valid, scanner.camera, scanner.projector, float(np.median(artefact.radii)),
                           measurement, scanner.name, regions=keep, rod_axes=axes, sphere_ids=sids,
                           fixed_radius=radius, rejection_config=extraction_config.rejection_config())
-    fitted = {int(r["candidate"]) for r in fits.rows}
-    labels = np.where(np.isin(fits.kept, list(fitted)), fits.kept, -1)
+    fitted = [int(r["candidate"]) for r in fits.rows]
+    labels = np.where(np.isin(fits.kept, fitted), fits.kept, -1)
+    incidence = None
+    if control_point_config.max_incidence_deg is not None and fitted:
+        # pixels seen obliquely integrate a larger, more sloped patch: their phases carry
+        # the pixel-integration bias of thesis chapter 5, so the rim is left out
+        index = np.full(int(labels.max()) + 1, -1)
+        index[fitted] = np.arange(len(fitted))
+        centres = np.array([[r["x_mm"], r["y_mm"], r["z_mm"]] for r in fits.rows])
+        incidence = incidence_map(np.stack([maps.x, maps.y, maps.z], axis=-1),
+                                  np.where(labels >= 0, index[np.maximum(labels, 0)], -1), centres,
+                                  scanner.camera.pinhole)
     cps = select_control_points(labels, {c: sids[c] for c in fitted}, tau_x, tau_y, valid,
                                 measurement=measurement, scanner=scanner.name,
-                                spacing_px=control_point_config.spacing_px, erode_px=control_point_config.rim_px)
+                                spacing_px=control_point_config.spacing_px, erode_px=control_point_config.rim_px,
+                                incidence=incidence, max_incidence_deg=control_point_config.max_incidence_deg)
     dims = ("v", "u")
     sphere_index = np.full(labels.shape, -1, np.int16)
     for c in fitted:

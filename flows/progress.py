@@ -1,0 +1,56 @@
+"""Progress of a run for the terminal (rich), kept out of the flow's parameters.
+
+The CLI installs a :class:`RichProgress`; flows call :func:`step` and :func:`advance`,
+which do nothing when no reporter is installed (tests, deployments, Dask workers).
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+__all__ = ["install", "step", "advance", "RichProgress"]
+
+_reporter = None
+
+
+def install(reporter) -> None:
+    global _reporter
+    _reporter = reporter
+
+
+def step(name: str, total: int = 1) -> None:
+    if _reporter is not None:
+        _reporter.step(name, total)
+
+
+def advance(name: str, n: int = 1) -> None:
+    if _reporter is not None:
+        _reporter.advance(name, n)
+
+
+class RichProgress:
+    """One progress bar per pipeline step."""
+
+    def __init__(self, console):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), console=console, transient=False)
+        self.tasks = {}
+
+    def step(self, name: str, total: int) -> None:
+        if name not in self.tasks:
+            self.tasks[name] = self.progress.add_task(name, total=total)
+
+    def advance(self, name: str, n: int = 1) -> None:
+        if name in self.tasks:
+            self.progress.advance(self.tasks[name], n)
+
+    @contextmanager
+    def running(self):
+        install(self)
+        with self.progress:
+            try:
+                yield self
+            finally:
+                install(None)
