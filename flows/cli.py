@@ -89,6 +89,7 @@ def _register_subcommands():
     app.add_typer(cli_hexapod.app, name="hexapod")
     app.add_typer(cli_artefact.app, name="artefact")
     app.command("acquire")(cli_acquire.acquire_command)
+    app.command("report")(__import__("flows.cli_report", fromlist=["_"]).report_command)
 
 
 if __name__ != "__main__":
