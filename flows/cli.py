@@ -11,31 +11,13 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Optional
 
 import typer
 
-from .common import UserInputError, console, err_console, fail, guarded  # noqa: F401  (re-exported)
+from .common import UserInputError, console, err_console, fail, guarded  # noqa: F401  (re-exported for sub-apps)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Calibrate fringe-projection scanners into one global frame.")
-
-
-@app.command()
-@guarded
-def run(
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML (default: the simulated thesis rig)."),
-    out: Path = typer.Option(Path("runs/latest"), "--out", "-o", help="Run directory."),
-):
-    """Run the whole pipeline: acquire, decode, extract, calibrate, verify, report."""
-    missing = [
-        "acquisition and decoding (issue 3)",
-        "sphere extraction and labelling (issue 4)",
-        "bundle adjustment (issue 5)",
-        "end-to-end run, verification and report (issue 6)",
-    ]
-    fail("the end-to-end demo is not built yet; missing: " + "; ".join(missing)
-         + ". Available now: `fringecal pose`.", code=3)
 
 
 @app.command()
@@ -80,8 +62,12 @@ def pose(
 
 def _register_subcommands():
     """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
-    from . import cli_acquire, cli_artefact, cli_calibrate, cli_decode, cli_fit, cli_hexapod, cli_verify
+    from . import (cli_acquire, cli_artefact, cli_calibrate, cli_decode, cli_fit, cli_hexapod, cli_report,
+                   cli_run, cli_verify)
 
+    app.command("run")(cli_run.run_command)
+    app.command("reproduce")(cli_run.reproduce_command)
+    app.command("serve")(cli_run.serve_command)
     app.command("decode")(cli_decode.decode_command)
     app.command("calibrate")(guarded(cli_calibrate.calibrate))
     app.add_typer(cli_verify.app, name="verify")
@@ -89,7 +75,7 @@ def _register_subcommands():
     app.add_typer(cli_hexapod.app, name="hexapod")
     app.add_typer(cli_artefact.app, name="artefact")
     app.command("acquire")(cli_acquire.acquire_command)
-    app.command("report")(__import__("flows.cli_report", fromlist=["_"]).report_command)
+    app.command("report")(cli_report.report_command)
 
 
 if __name__ != "__main__":

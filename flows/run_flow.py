@@ -28,7 +28,7 @@ from fringecal.acquisition import AcquisitionInputs, measurement_digest, plan_ac
 from fringecal.artefact import load_artefact
 from fringecal.ballbar import thesis_positions, vdi7_positions
 from fringecal.config import thesis_dir
-from fringecal.rundir import RunDir, package_versions, write_json_atomic
+from fringecal.rundir import RunDir, output_record, package_versions, write_json_atomic
 from fringecal.runconfig import RunConfig, load_run_config
 from fringecal.store import StoreError, open_store
 from tasks.acquire import acquire_measurement_task, move_hexapod_task
@@ -139,11 +139,15 @@ def _positions(cfg: RunConfig, ballbar) -> list:
 
 
 @flow(name="fringecal-run")
-def run_flow(config: str | None = None, run_dir: str = "runs/latest", overrides: dict | None = None,
+def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", overrides: dict | None = None,
              command: str = "fringecal run") -> dict:
-    """Run the whole pipeline into ``run_dir``; returns the summary (also summary.json)."""
+    """Run the whole pipeline into ``run_dir``; returns the summary (also summary.json).
+
+    ``config`` is a run-config YAML path (default ``configs/run_thesis.yaml``) or an
+    already resolved config (a manifest's ``config``).
+    """
     t_start = time.perf_counter()
-    cfg = load_run_config(config, overrides)
+    cfg = RunConfig.model_validate(config) if isinstance(config, dict) else load_run_config(config, overrides)
     doc = cfg.model_dump(mode="json")
     rc = cfg.rig_config()
     rd = RunDir(run_dir).create()
@@ -254,13 +258,30 @@ def run_flow(config: str | None = None, run_dir: str = "runs/latest", overrides:
     # -- summary and report --------------------------------------------------------------
     summary = _summary(rd, cfg, plans, bundle, truth, verified, timings, time.perf_counter() - t_start, T)
     progress.step("report", 1)
-    T.call(report_task, {"summary": ref_for(rd.summary), "verification": verified["verification"],
-                         "calibration": bundle["calibration_json"], "truth": truth}, str(rd.root), timings)
+    # summary.json changes every run (timings); the report is current while these are
+    report = T.call(report_task, {"bundle": bundle, "verification": verified["verification"], "truth": truth,
+                                  "labels": labels, "acquisition": moved["table"]}, str(rd.root), timings)
     progress.advance("report")
     summary["total_seconds"] = time.perf_counter() - t_start
     summary["tasks"] = {"ran": T.ran, "cached": T.cached}
+    summary["outputs"] = output_record(rd, _files([report, bundle, verified, truth, labels, init, moved["table"]]),
+                                       [Path(r.path) for r in list(stores.values()) + list(bb_stores.values())])
     write_json_atomic(rd.summary, summary)
     return summary
+
+
+def _files(value, out=None) -> dict:
+    """Path -> digest of every file reference in a nested result."""
+    out = {} if out is None else out
+    if isinstance(value, Ref):
+        out[Path(value.path)] = value.digest
+    elif isinstance(value, dict):
+        for v in value.values():
+            _files(v, out)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            _files(v, out)
+    return out
 
 
 def _summary(rd, cfg, plans, bundle, truth, verified, timings, elapsed, T) -> dict:
@@ -281,7 +302,7 @@ def _summary(rd, cfg, plans, bundle, truth, verified, timings, elapsed, T) -> di
         "one_part_in": b["one_part_in_1p96_sigma"],
         "bundle_seconds": b.get("bundle_seconds", b.get("elapsed_s")),
         "total_seconds": elapsed,
-        "timings_seconds": timings,
+        "timings": timings,
         "verification": {"reference_length_mm": cal["reference_length_mm"], "mean_length_mm": cal["mean_length_mm"],
                          "max_abs_error_mm": cal["max_abs_error_mm"], "volume_diagonal_mm": cal["volume_diagonal_mm"],
                          "one_part_in": cal["one_part_in"], "mpe_mm": cal["mpe_mm"], "pass": cal["pass"],

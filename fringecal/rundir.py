@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
-__all__ = ["RunDir", "measurement_id", "package_versions", "write_json_atomic"]
+__all__ = ["RunDir", "measurement_id", "package_versions", "write_json_atomic", "output_record", "up_to_date"]
 
 _PACKAGES = ("fringecal", "numpy", "scipy", "numba", "zarr", "xarray", "pandas", "pandera",
              "opencv-python-headless", "prefect", "matplotlib", "pydantic")
@@ -122,3 +122,40 @@ class RunDir:
     @staticmethod
     def config_digest(config: dict) -> str:
         return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def output_record(rd: RunDir, files: dict, stores: list) -> dict:
+    """What a later run checks, before any orchestration starts, to know that ``rd`` is
+    up to date: content digests of the files, and each store's acquisition digest
+    (stores gain variables after acquisition, so not their bytes)."""
+    from .store import store_attributes
+
+    return {"files": {str(Path(p).relative_to(rd.root)): d for p, d in files.items()},
+            "stores": {str(Path(p).relative_to(rd.root)): store_attributes(p).get("config_digest") for p in stores}}
+
+
+def up_to_date(run_dir, config_doc: dict) -> dict | None:
+    """The summary of ``run_dir`` if it holds a complete run of exactly this config with
+    every recorded output unchanged since; None otherwise."""
+    from .digests import digest_path
+    from .store import StoreError, store_attributes
+
+    rd = RunDir(run_dir)
+    try:
+        manifest = rd.read_manifest()
+        summary = json.loads(rd.summary.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+    if manifest.get("config_digest") != RunDir.config_digest(config_doc) or "outputs" not in summary:
+        return None
+    for rel, digest in summary["outputs"]["files"].items():
+        p = rd.root / rel
+        if not p.exists() or digest_path(p) != digest:
+            return None
+    for rel, digest in summary["outputs"]["stores"].items():
+        try:
+            if store_attributes(rd.root / rel).get("config_digest") != digest:
+                return None
+        except StoreError:
+            return None
+    return summary

@@ -95,6 +95,16 @@ def is_complete(path) -> bool:
     return True
 
 
+def store_attributes(path) -> dict:
+    """Attributes of a complete store, read from its metadata alone (no arrays opened).
+
+    Raises StoreError if the store is missing, incomplete or corrupt.
+    """
+    path = Path(path)
+    _check_complete(path)
+    return json.loads((path / "zarr.json").read_text())["attributes"]
+
+
 def open_store(path, verify: bool = False) -> xr.Dataset:
     """Open a complete store lazily; refuse incomplete or corrupt ones.
 

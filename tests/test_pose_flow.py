@@ -62,6 +62,3 @@ def test_refs_digest_files_and_directories(tmp_path):
     assert not r.exists_unchanged() and digest_path(tmp_path / "store") != r.digest
 
 
-def test_run_says_what_is_missing():
-    res = runner.invoke(app, ["run"])
-    assert res.exit_code == 3 and "not built yet" in res.output
