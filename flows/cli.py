@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from .common import UserInputError, console, err_console, fail, guarded  # noqa: F401  (re-exported for sub-apps)
+from .common import UserInputError, console, err_console, guarded
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Calibrate fringe-projection scanners into one global frame.")

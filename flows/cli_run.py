@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from .common import UserInputError, console, fail, guarded
+from .common import UserInputError, console, err_console, fail, guarded
 
 __all__ = ["run_command", "reproduce_command", "serve_command", "validate_run_config", "make_task_runner"]
 
@@ -58,8 +58,8 @@ def _current(cfg, out: Path) -> dict | None:
     if summary is not None:
         n = len(summary["tasks"]["ran"]) + len(summary["tasks"]["cached"])
         summary = {**summary, "tasks": {"ran": [], "cached": ["(all %d steps: outputs unchanged)" % n]}}
-        console.print(f"{out} is up to date with this configuration (every output unchanged); --force reruns "
-                      "the flow from its cache")
+        err_console.print(f"{out} is up to date with this configuration (every output unchanged); --force reruns "
+                          "the flow from its cache")
     return summary
 
 
@@ -102,7 +102,7 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
 
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
-             verbose: bool, command: str) -> dict:
+             verbose: bool, command: str, progress_console=None) -> dict:
     _quiet_prefect(verbose)
     from flows.progress import RichProgress
     from flows.run_flow import run_flow
@@ -111,7 +111,7 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
     task_runner = make_task_runner(kind, workers or cfg.runner.max_workers, dask_address or cfg.runner.dask_address,
                                    workers or cfg.runner.dask_workers)
     flow = run_flow.with_options(task_runner=task_runner)
-    with RichProgress(console).running():
+    with RichProgress(progress_console or console).running():
         return flow(cfg.model_dump(mode="json"), str(run_dir), None, command)
 
 
@@ -132,7 +132,8 @@ def run_command(
     cfg = validate_run_config(config)
     summary = None if force else _current(cfg, out)
     if summary is None:
-        summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run")
+        summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run",
+                           err_console if as_json else console)
     if as_json:
         print(json.dumps(summary, indent=2))
     else:

@@ -31,13 +31,13 @@ from fringecal.config import thesis_dir
 from fringecal.rundir import RunDir, output_record, package_versions, write_json_atomic
 from fringecal.runconfig import RunConfig, load_run_config
 from fringecal.store import StoreError, open_store
-from tasks.acquire import acquire_measurement_task, move_hexapod_task
+from tasks.acquire import acquire_measurement_task, acquisition_table_task, move_hexapod_task
 from tasks.pipeline import (ballbar_store_task, bundle_task, first_pass_task, initialise_task, label_task,
                             prior_task, report_task, second_pass_task, truth_task, verify_task)
-from tasks.refs import Ref, digest_path, ref_for
+from tasks.refs import CODE_VERSION, Ref, digest_path, ref_for
 
 from . import progress
-from .acquire_flow import POSES_TABLE, _table_matches, _up_to_date
+from .acquire_flow import MEASUREMENTS_TABLE, POSES_TABLE, _table_matches, _up_to_date
 
 __all__ = ["run_flow", "write_manifest"]
 
@@ -112,7 +112,8 @@ def write_manifest(rd: RunDir, cfg: RunConfig, command: str) -> dict:
         if p is not None:
             inputs[name] = {"path": str(p), "sha256": digest_path(p)}
     inputs["rig"] = {"path": str(cfg.rig), "sha256": digest_path(cfg.rig)}
-    manifest = {"config": doc, "config_digest": RunDir.config_digest(doc), "versions": package_versions(),
+    manifest = {"config": doc, "config_digest": RunDir.config_digest(doc), "code_version": CODE_VERSION,
+                "versions": package_versions(),
                 "inputs": inputs, "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                 "command": command}
     write_json_atomic(rd.manifest, manifest)
@@ -183,6 +184,8 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
     by_id = {p.measurement: p for p in plans}
     stores = T.gather({p.measurement: acquire(p) for p in plans}, lambda m: acquire(by_id[m], True),
                       "acquire measurements")
+    measurements = T.call(acquisition_table_task, list(stores.values()), str(rd.root),
+                          str(rd.table(MEASUREMENTS_TABLE)))
     timings["acquisition"] = time.perf_counter() - t0
 
     # -- prior calibrations and first-pass extraction --------------------------------
@@ -260,7 +263,8 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
     progress.step("report", 1)
     # summary.json changes every run (timings); the report is current while these are
     report = T.call(report_task, {"bundle": bundle, "verification": verified["verification"], "truth": truth,
-                                  "labels": labels, "acquisition": moved["table"]}, str(rd.root), timings)
+                                  "labels": labels, "acquisition": [moved["table"], measurements]}, str(rd.root),
+                    timings)
     progress.advance("report")
     summary["total_seconds"] = time.perf_counter() - t_start
     summary["tasks"] = {"ran": T.ran, "cached": T.cached}

@@ -137,7 +137,8 @@ def output_record(rd: RunDir, files: dict, stores: list) -> dict:
 def up_to_date(run_dir, config_doc: dict) -> dict | None:
     """The summary of ``run_dir`` if it holds a complete run of exactly this config with
     every recorded output unchanged since; None otherwise."""
-    from .digests import digest_path
+    from . import __version__
+    from .digests import CODE_VERSION, digest_path
     from .store import StoreError, store_attributes
 
     rd = RunDir(run_dir)
@@ -146,7 +147,9 @@ def up_to_date(run_dir, config_doc: dict) -> dict | None:
         summary = json.loads(rd.summary.read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return None
-    if manifest.get("config_digest") != RunDir.config_digest(config_doc) or "outputs" not in summary:
+    if (manifest.get("config_digest") != RunDir.config_digest(config_doc) or "outputs" not in summary
+            or manifest.get("code_version") != CODE_VERSION
+            or manifest.get("versions", {}).get("fringecal") != __version__):
         return None
     for rel, digest in summary["outputs"]["files"].items():
         p = rd.root / rel

@@ -67,7 +67,11 @@ def acquire_measurement_task(run_config: dict, plan: dict, reached: list[float],
     return ref_for(out, "store")
 
 
-@task(name="acquisition-table")
+def _table_key(context, p) -> str:
+    return cache_key("acquisition-table", p)
+
+
+@task(name="acquisition-table", cache_key_fn=_table_key, persist_result=True)
 def acquisition_table_task(stores: list[Ref], root: str, out: str) -> Ref:
     """The measurements table (schemas.AcquisitionTable) of the stores, paths relative to ``root``."""
     import pandas as pd

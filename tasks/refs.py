@@ -12,12 +12,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from fringecal.digests import digest_path, digest_value
+from fringecal.digests import CODE_VERSION, digest_path, digest_value
 
 __all__ = ["Ref", "digest_path", "digest_value", "ref_for", "cache_key", "CODE_VERSION"]
-
-#: Bump when a change in fringecal alters results without changing task signatures.
-CODE_VERSION = "1"
 
 
 @dataclass(frozen=True)

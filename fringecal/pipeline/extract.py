@@ -105,7 +105,8 @@ def second_pass(store, scanner: Scanner, artefact, rods: pd.DataFrame | None, la
     cps = select_control_points(labels, {c: sids[c] for c in fitted}, tau_x, tau_y, valid,
                                 measurement=measurement, scanner=scanner.name,
                                 spacing_px=control_point_config.spacing_px, erode_px=control_point_config.rim_px,
-                                incidence=incidence, max_incidence_deg=control_point_config.max_incidence_deg)
+                                incidence=incidence,
+                                max_incidence_deg=None if incidence is None else control_point_config.max_incidence_deg)
     dims = ("v", "u")
     sphere_index = np.full(labels.shape, -1, np.int16)
     for c in fitted:
