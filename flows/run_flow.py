@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import shutil
 import time
 from pathlib import Path
 
@@ -120,12 +119,17 @@ def write_manifest(rd: RunDir, cfg: RunConfig, command: str) -> dict:
     return manifest
 
 
-def _copy_if_changed(src: Path, dst: Path) -> None:
-    if dst.exists() and digest_path(dst) == digest_path(src):
-        return
-    tmp = dst.with_name(f".{dst.name}.tmp")
-    shutil.copyfile(src, tmp)
-    tmp.replace(dst)
+def _write_artefact(cfg: RunConfig, dst: Path) -> None:
+    """The run's artefact (CMM coordinates with the configured corrections) as
+    ``RUN_DIR/artefact.csv``, rewritten only when its content changes (it keys the cache)."""
+    from schemas import ArtefactTable, write_table
+
+    tmp = dst.with_name(f".{dst.name}.new")
+    write_table(cfg.artefact().to_frame(), tmp, ArtefactTable)
+    if dst.exists() and digest_path(dst) == digest_path(tmp):
+        tmp.unlink()
+    else:
+        tmp.replace(dst)
 
 
 def _positions(cfg: RunConfig, ballbar) -> list:
@@ -153,7 +157,7 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
     rc = cfg.rig_config()
     rd = RunDir(run_dir).create()
     write_manifest(rd, cfg, command)
-    _copy_if_changed(rc.artefact, rd.artefact)
+    _write_artefact(cfg, rd.artefact)
     T = _Tasks(rd)
     timings: dict[str, float] = {}
     artefact = ref_for(rd.artefact, "table")

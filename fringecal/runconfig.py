@@ -190,10 +190,18 @@ class RunnerConfig(StrictModel):
 
 
 class RunConfig(StrictModel):
-    """Everything ``fringecal run`` does."""
+    """Everything ``fringecal run`` does.
+
+    ``artefact_corrections`` (gravity sag between the CMM's supports and the use
+    condition, thermal expansion from the CMM's 20 C to ``temperature_c``; see
+    ``fringecal.engineering.corrections``) turn the CMM coordinates into the artefact
+    the run uses everywhere (and, when simulated, renders).
+    """
 
     name: str = "thesis"
     rig: Path = Field(default_factory=lambda: thesis_dir() / "rig.yaml")
+    artefact_corrections: Optional["ArtefactCorrections"] = None
+    temperature_c: Optional[float] = None
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
     prior: PriorCalibrationConfig = Field(default_factory=PriorCalibrationConfig)
     decode: DecodeSettings = Field(default_factory=DecodeSettings)
@@ -205,6 +213,19 @@ class RunConfig(StrictModel):
 
     def rig_config(self) -> RigConfig:
         return load_yaml_model(self.rig, RigConfig)
+
+    def artefact(self):
+        """The artefact of the run: the CMM definition with the configured corrections."""
+        from .artefact import load_artefact
+        from .engineering.corrections import apply_corrections
+
+        return apply_corrections(load_artefact(self.rig_config().artefact), self.artefact_corrections,
+                                 self.temperature_c)
+
+
+from .engineering.corrections import ArtefactCorrections  # noqa: E402  (after RunConfig's forward reference)
+
+RunConfig.model_rebuild()
 
 
 def load_run_config(path: Path | None = None, overrides: dict | None = None) -> RunConfig:

@@ -4,6 +4,7 @@ what reruns when a setting changes, reproduction, Dask, and bad configs stopping
 import json
 import shutil
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -174,3 +175,17 @@ def test_scanner_without_projector_and_bad_artefact_stop_early(small_config, tmp
     res = runner.invoke(app, ["run", "--config", str(tmp_path / "a.yaml"), "--out", str(tmp_path / "run")])
     assert res.exit_code == 2 and "art.csv" in res.output and "line 3, column 'x_mm'" in res.output
     assert not (tmp_path / "run").exists()
+
+
+def test_artefact_corrections_in_the_run_config(thesis_dir):
+    """Thermal expansion from the CMM's 20 C to the measurement temperature (issue 7)."""
+    from fringecal.artefact import load_artefact
+    from fringecal.runconfig import load_run_config
+
+    cmm = load_artefact(thesis_dir / "artefact_cmm2.csv")
+    assert np.array_equal(load_run_config().artefact().centres, cmm.centres)
+    cfg = load_run_config(overrides={"artefact_corrections": {"thermal": {"cte_per_c": 1.9e-6}}, "temperature_c": 25.0})
+    warm = cfg.artefact()
+    d0 = np.linalg.norm(cmm.centres[0] - cmm.centres[14])
+    d1 = np.linalg.norm(warm.centres[0] - warm.centres[14])
+    assert d1 / d0 - 1 == pytest.approx(1.9e-6 * 5, rel=1e-9)

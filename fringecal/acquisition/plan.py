@@ -19,7 +19,7 @@ from typing import Iterable
 import numpy as np
 import pandas as pd
 
-from ..artefact import Artefact, load_artefact, load_rods
+from ..artefact import Artefact, load_rods
 from ..config import ConfigError
 from ..frames import Frame
 from ..rig import Rig, load_rig
@@ -64,7 +64,7 @@ class AcquisitionInputs:
             raise
         except ValueError as err:  # e.g. the reference scanner is not in the sensors file
             raise ConfigError(f"{run_config.rig}: {rc.sensors}: {err}") from None
-        artefact = load_artefact(rc.artefact)
+        artefact = run_config.artefact()
         rods = load_rods(rc.rods, artefact) if rc.rods is not None else None
         try:
             hardware = ArtefactHardware.from_materials(rc.materials)
