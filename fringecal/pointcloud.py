@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from .lens import first_order_inverse, newton_step
 from .sensor import Sensor
 
 __all__ = [
@@ -66,37 +67,6 @@ STATUS_OK, STATUS_INVALID, STATUS_UNDISTORT_FAILED, STATUS_PARALLEL = 0, 1, 2, 3
 _STATUS_RETRY = 4
 
 
-@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _first_order_inverse(mx, my, k1, k2, k3, p1, p2):
-    """m - d(m): the start for Newton, off by about |d'| |d| (~1e-3 mm)."""
-    r2 = mx * mx + my * my
-    q = r2 * (k1 + r2 * (k2 + r2 * k3))
-    return (mx - (mx * q + p1 * (r2 + 2 * mx * mx) + 2 * p2 * mx * my),
-            my - (my * q + p2 * (r2 + 2 * my * my) + 2 * p1 * mx * my))
-
-
-@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _newton_step(x, y, mx, my, k1, k2, k3, p1, p2):
-    """One Newton step for u + d(u) = m (as fringecal.sensor.undistort).
-
-    Returns the new (x, y), the step length |sx| + |sy|, and the Jacobian's
-    determinant and trace at the old point (both positive unless the model folds).
-    """
-    r2 = x * x + y * y
-    q = r2 * (k1 + r2 * (k2 + r2 * k3))
-    fx = x + x * q + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y - mx
-    fy = y + y * q + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y - my
-    g = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    j11 = 1 + q + 2 * x * x * g + 6 * p1 * x + 2 * p2 * y
-    j22 = 1 + q + 2 * y * y * g + 6 * p2 * y + 2 * p1 * x
-    j12 = 2 * x * y * g + 2 * p1 * y + 2 * p2 * x
-    det = j11 * j22 - j12 * j12
-    inv = 1.0 / det
-    sx = (j22 * fx - j12 * fy) * inv
-    sy = (j11 * fy - j12 * fx) * inv
-    return x - sx, y - sy, abs(sx) + abs(sy), det, j11 + j22
-
-
 @nb.njit(cache=True, fastmath=_FASTMATH)
 def _undistort_point(mx, my, k1, k2, k3, p1, p2):
     """Newton for u + d(u) = m to convergence. Returns (x, y, ok).
@@ -106,10 +76,10 @@ def _undistort_point(mx, my, k1, k2, k3, p1, p2):
     ~0.01 mm^-1 for the thesis lenses and < 1 mm^-1 for far worse ones, i.e. below
     1e-14 mm on the image plane. Refuses fold-overs as the reference does.
     """
-    x, y = _first_order_inverse(mx, my, k1, k2, k3, p1, p2)
+    x, y = first_order_inverse(mx, my, k1, k2, k3, p1, p2)
     step, det, tr = np.inf, 1.0, 1.0
     for _ in range(_UNDISTORT_MAX_ITER):
-        x, y, step, det, tr = _newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
+        x, y, step, det, tr = newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
         if step <= _NEWTON_STEP_MM:
             break
     return x, y, step <= _NEWTON_STEP_MM and det > 0 and tr > 0
@@ -198,9 +168,9 @@ def _triangulate_kernel(ideal_x, ideal_y, tau_x, tau_y, valid, Rc, c_cam, o1,
             iy = ideal_y[r, j]
             mx = tx * sx - xi_hp
             my = ty * sy - eta_hp
-            x, y = _first_order_inverse(mx, my, k1, k2, k3, p1, p2)
-            x, y, step, det, tr = _newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
-            x, y, step, det, tr = _newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
+            x, y = first_order_inverse(mx, my, k1, k2, k3, p1, p2)
+            x, y, step, det, tr = newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
+            x, y, step, det, tr = newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
             X, Y, Z, E, rays_ok = _ray_pair(ix, iy, x, y, Rc, c_cam, o1, Rp, c_prj, o2)
             inputs = valid[r, j] and tx == tx and ty == ty and ix == ix
             converged = step <= _NEWTON_STEP_MM and det > 0 and tr > 0

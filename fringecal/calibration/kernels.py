@@ -37,6 +37,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ..lens import first_order_inverse, newton_step
+
 __all__ = ["N_LOCAL", "assemble", "scatter", "residual_rows"]
 
 #: Local parameter slots per control point: camera 14, projector 14, pose 6.
@@ -66,28 +68,12 @@ def _sensor_ray(p, R, dR, mx, my, want_jac, D, dD):
     distorted = (k1 != 0.0) or (k2 != 0.0) or (k3 != 0.0) or (p1 != 0.0) or (p2 != 0.0)
     if distorted:
         # start from the first-order inverse u = m - d(m): one Newton step saved
-        r2 = x * x + y * y
-        q = r2 * (k1 + r2 * (k2 + r2 * k3))
-        x = ux - (ux * q + p1 * (r2 + 2 * ux * ux) + 2 * p2 * ux * uy)
-        y = uy - (uy * q + p2 * (r2 + 2 * uy * uy) + 2 * p1 * ux * uy)
+        x, y = first_order_inverse(ux, uy, k1, k2, k3, p1, p2)
         last = np.inf
         for _ in range(30):
-            r2 = x * x + y * y
-            q = r2 * (k1 + r2 * (k2 + r2 * k3))
-            fx = x + x * q + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y - ux
-            fy = y + y * q + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y - uy
-            g = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-            j11 = 1 + q + 2 * x * x * g + 6 * p1 * x + 2 * p2 * y
-            j22 = 1 + q + 2 * y * y * g + 6 * p2 * y + 2 * p1 * x
-            j12 = 2 * x * y * g + 2 * p1 * y + 2 * p2 * x
-            det = j11 * j22 - j12 * j12
+            x, y, last, det, tr = newton_step(x, y, ux, uy, k1, k2, k3, p1, p2)
             if not (det > 0.0):
                 return False
-            sx = (j22 * fx - j12 * fy) / det
-            sy = (j11 * fy - j12 * fx) / det
-            x -= sx
-            y -= sy
-            last = abs(sx) + abs(sy)
             if last <= _NEWTON_TOL * (1.0 + abs(x) + abs(y)):
                 break
         # as fringecal.sensor.undistort: refuse what did not converge

@@ -26,6 +26,8 @@ import math
 import numpy as np
 from numba import njit
 
+from ..lens import newton_step
+
 from ..sensor import Sensor
 
 SPHERE, CYLINDER, BOX, PLANE = 0, 1, 2, 3
@@ -56,21 +58,9 @@ def undistort_point(mx, my, s, gx, gy):
         return mx, my, True
     ok = False
     for _ in range(30):
-        r2 = x * x + y * y
-        q = r2 * (k1 + r2 * (k2 + r2 * k3))
-        fx = x + x * q + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y - mx
-        fy = y + y * q + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y - my
-        g = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        j11 = 1 + q + 2 * x * x * g + 6 * p1 * x + 2 * p2 * y
-        j22 = 1 + q + 2 * y * y * g + 6 * p2 * y + 2 * p1 * x
-        j12 = 2 * x * y * g + 2 * p1 * y + 2 * p2 * x
-        det = j11 * j22 - j12 * j12
-        sx = (j22 * fx - j12 * fy) / det
-        sy = (j11 * fy - j12 * fx) / det
-        x -= sx
-        y -= sy
-        if abs(sx) + abs(sy) <= 1e-13 * (1 + abs(x) + abs(y)):
-            ok = det > 0 and j11 + j22 > 0
+        x, y, step, det, tr = newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
+        if step <= 1e-13 * (1 + abs(x) + abs(y)):
+            ok = det > 0 and tr > 0
             break
     return x, y, ok
 
