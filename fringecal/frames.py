@@ -78,6 +78,16 @@ class Frame:
         t_new = self.to_world(inner.t)
         return Frame.from_matrix(R_new, t_new, near=self.angles + inner.angles)
 
+    def difference(self, other: "Frame") -> tuple[float, float]:
+        """(distance between the origins in mm, angle of the relative rotation in rad).
+
+        >>> a = Frame.from_params([0, 0, 0, 0, 0, 0.0])
+        >>> [round(v, 12) for v in a.difference(Frame.from_params([3, 4, 0, 0, 0, 0.1]))]
+        [5.0, 0.1]
+        """
+        c = (np.trace(self.R @ other.R.T) - 1) / 2
+        return float(np.linalg.norm(self.t - other.t)), float(np.arccos(np.clip(c, -1.0, 1.0)))
+
     def inverse(self) -> "Frame":
         """T_b_a from T_a_b."""
         R = self.R

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
-import numpy as np
 import pandas as pd
 
 from ..artefact import Artefact, load_rods
@@ -101,12 +100,13 @@ class PoseMove:
 
     @property
     def translation_error_mm(self) -> float:
-        return float(np.linalg.norm(self.reached.t - self.planned.t))
+        """Distance between the planned and reached artefact origins."""
+        return self.reached.difference(self.planned)[0]
 
     @property
     def rotation_error_rad(self) -> float:
-        c = (np.trace(self.reached.R @ self.planned.R.T) - 1) / 2
-        return float(np.arccos(np.clip(c, -1.0, 1.0)))
+        """Angle of the rotation between the planned and reached artefact orientations."""
+        return self.reached.difference(self.planned)[1]
 
 
 def plan_acquisition(run_config, inputs: AcquisitionInputs | None = None) -> list[MeasurementPlan]:

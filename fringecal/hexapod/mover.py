@@ -43,13 +43,12 @@ class ArtefactMove:
     @property
     def translation_error_mm(self) -> float:
         """Distance between the planned and reached artefact origins."""
-        return float(np.linalg.norm(self.reached.t - self.planned.t))
+        return self.reached.difference(self.planned)[0]
 
     @property
     def rotation_error_rad(self) -> float:
         """Angle of the rotation between the planned and reached artefact orientations."""
-        c = (np.trace(self.reached.R @ self.planned.R.T) - 1) / 2
-        return float(np.arccos(np.clip(c, -1.0, 1.0)))
+        return self.reached.difference(self.planned)[1]
 
 
 class PlatformMover:
