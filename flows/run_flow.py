@@ -29,7 +29,7 @@ from fringecal.ballbar import thesis_positions, vdi7_positions
 from fringecal.config import thesis_dir
 from fringecal.rundir import RunDir, output_record, package_versions, write_json_atomic
 from fringecal.runconfig import RunConfig, load_run_config
-from fringecal.store import StoreError, open_store
+from fringecal.store import is_complete
 from tasks.acquire import acquire_measurement_task, acquisition_table_task, move_hexapod_task
 from tasks.pipeline import (ballbar_store_task, bundle_task, first_pass_task, initialise_task, label_task,
                             prior_task, report_task, second_pass_task, truth_task, verify_task)
@@ -87,13 +87,7 @@ def _refs_intact(value) -> bool:
     """Every file a (nested) result refers to still exists with the same content;
     stores count as intact while complete (later steps add variables to them)."""
     if isinstance(value, Ref):
-        if value.kind == "store":
-            try:
-                open_store(value.path).close()
-                return True
-            except (StoreError, FileNotFoundError):
-                return False
-        return value.exists_unchanged()
+        return is_complete(value.path) if value.kind == "store" else value.exists_unchanged()
     if isinstance(value, dict):
         return all(_refs_intact(v) for v in value.values())
     if isinstance(value, (list, tuple)):
