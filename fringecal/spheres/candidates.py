@@ -84,29 +84,45 @@ class SphereCandidate:
         return int(self.region.sum())
 
 
-def surface_normals(maps: PointMaps, step: int = 1) -> np.ndarray:
-    """Unit normals (rows, cols, 3) from central differences of the point maps.
+def surface_normals(maps: PointMaps, step: int = 1, rows=None, cols=None) -> np.ndarray:
+    """Unit normals from central differences of the point maps, ``step`` pixels apart.
 
-    NaN where a neighbour ``step`` pixels away is missing. Orientation is arbitrary;
+    For every pixel, shape (rows, cols, 3), or with ``rows``, ``cols`` only for those
+    pixels, shape (n, 3). NaN where a neighbour is missing. Orientation is arbitrary;
     :func:`find_sphere_candidates` turns them towards the viewpoint.
     """
-    P = np.stack([maps.x, maps.y, maps.z], axis=-1).astype(float)
-    P[~maps.valid] = np.nan
-    du = np.full_like(P, np.nan)
-    dv = np.full_like(P, np.nan)
-    du[:, step:-step] = P[:, 2 * step:] - P[:, :-2 * step]
-    dv[step:-step, :] = P[2 * step:, :] - P[:-2 * step, :]
+    P = np.stack([maps.x, maps.y, maps.z], axis=-1)
+    H, W = maps.valid.shape
+    if rows is None:
+        rows, cols = np.indices((H, W)).reshape(2, -1)
+        shape = (H, W, 3)
+    else:
+        shape = (len(rows), 3)
+    rows = np.asarray(rows)
+    cols = np.asarray(cols)
+
+    def at(r, c):
+        inside = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+        r, c = np.clip(r, 0, H - 1), np.clip(c, 0, W - 1)
+        out = P[r, c].astype(float)
+        out[~(inside & maps.valid[r, c])] = np.nan
+        return out
+
+    du = at(rows, cols + step) - at(rows, cols - step)
+    dv = at(rows + step, cols) - at(rows - step, cols)
     n = np.cross(du, dv)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return n / norm
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return n.reshape(shape)
 
 
 def _pixel_step(maps: PointMaps, baseline_mm: float) -> int:
-    """Pixel step whose surface distance is about ``baseline_mm`` (median over the image)."""
-    P = np.stack([maps.x, maps.y, maps.z], axis=-1)
+    """Pixel step whose surface distance is about ``baseline_mm`` (median over every
+    8th row of the image)."""
+    P = np.stack([maps.x[::8], maps.y[::8], maps.z[::8]], axis=-1)
+    valid = maps.valid[::8]
     d = np.linalg.norm(P[:, 1:] - P[:, :-1], axis=-1)
-    ok = maps.valid[:, 1:] & maps.valid[:, :-1] & np.isfinite(d)
+    ok = valid[:, 1:] & valid[:, :-1] & np.isfinite(d)
     if not ok.any():
         return 1
     spacing = float(np.median(d[ok]))
@@ -133,19 +149,18 @@ def find_sphere_candidates(maps: PointMaps, radius_mm: float, viewpoint,
     """
     cfg = config or CandidateConfig()
     step = _pixel_step(maps, cfg.normal_baseline_mm)
-    n = surface_normals(maps, step)
-    P = np.stack([maps.x, maps.y, maps.z], axis=-1).astype(float)
-    view = np.asarray(viewpoint, float) - P
+    rows, cols = np.nonzero(maps.valid)
+    pts = np.stack([maps.x[rows, cols], maps.y[rows, cols], maps.z[rows, cols]], axis=-1).astype(float)
+    n = surface_normals(maps, step, rows, cols)
+    view = np.asarray(viewpoint, float) - pts
     view /= np.linalg.norm(view, axis=-1, keepdims=True)
-    cos_inc = np.einsum("ijk,ijk->ij", n, view)
-    n = np.where((cos_inc < 0)[..., None], -n, n)
-    cos_inc = np.abs(cos_inc)
-    voting = maps.valid & np.isfinite(cos_inc) & (cos_inc >= np.cos(np.radians(cfg.max_incidence_deg)))
-    rows, cols = np.nonzero(voting)
+    cos_inc = np.einsum("ij,ij->i", n, view)
+    n[cos_inc < 0] *= -1
+    voting = np.isfinite(cos_inc) & (np.abs(cos_inc) >= np.cos(np.radians(cfg.max_incidence_deg)))
+    rows, cols, pts = rows[voting], cols[voting], pts[voting]
     if len(rows) < cfg.min_votes:
         return []
-    pts = P[rows, cols]
-    votes = pts - radius_mm * n[rows, cols]
+    votes = pts - radius_mm * n[voting]
 
     cells = np.floor(votes / cfg.cell_mm).astype(np.int64)
     uniq, counts = np.unique(cells, axis=0, return_counts=True)
@@ -181,19 +196,23 @@ def find_sphere_candidates(maps: PointMaps, radius_mm: float, viewpoint,
         strengths.append(k)
         best = max(best, k)
     keep = [i for i, k in enumerate(strengths) if k >= cfg.min_vote_fraction * best]
-    vote_map = np.full(P.shape, np.nan)
-    vote_map[rows, cols] = votes
+    # A candidate's region: the pixels whose own vote lands near its centre and whose
+    # point lies near its surface. A pixel claimed twice (spheres touching in the image)
+    # goes to the nearer surface.
+    deviation = np.full(len(votes), np.inf)
+    owner = np.full(len(votes), -1)
+    for j, i in enumerate(keep):
+        idx = np.asarray(tree.query_ball_point(centres[i], cfg.region_vote_mm), dtype=int)
+        if not len(idx):
+            continue
+        dev = np.abs(np.linalg.norm(pts[idx] - centres[i], axis=1) - radius_mm)
+        take = (dev <= cfg.shell_mm) & (dev < deviation[idx])
+        deviation[idx[take]] = dev[take]
+        owner[idx[take]] = j
     out = []
-    for i in keep:
-        c = centres[i]
-        d = np.linalg.norm(P - c, axis=-1)
-        with np.errstate(invalid="ignore"):
-            near_vote = np.linalg.norm(vote_map - c, axis=-1) <= cfg.region_vote_mm
-            shell = maps.valid & (np.abs(d - radius_mm) <= cfg.shell_mm) & near_vote
-        out.append(SphereCandidate(c, strengths[i], shell))
-    # A pixel in two shells (spheres touching in the image) goes to the nearer surface.
-    if len(out) > 1:
-        dev = np.stack([np.abs(np.linalg.norm(P - c.centre, axis=-1) - radius_mm) for c in out])
-        owner = np.argmin(np.where(np.stack([c.region for c in out]), dev, np.inf), axis=0)
-        out = [SphereCandidate(c.centre, c.votes, c.region & (owner == i)) for i, c in enumerate(out)]
+    for j, i in enumerate(keep):
+        region = np.zeros(maps.valid.shape, bool)
+        sel = owner == j
+        region[rows[sel], cols[sel]] = True
+        out.append(SphereCandidate(centres[i], strengths[i], region))
     return out
