@@ -16,7 +16,7 @@ __all__ = ["digest_path", "digest_value", "CODE_VERSION"]
 
 #: Bump when a change in fringecal alters results (or what a run writes) without changing
 #: the inputs or settings a step is keyed on: cached steps and up-to-date runs are redone.
-CODE_VERSION = "2"
+CODE_VERSION = "3"
 
 _CHUNK = 1 << 20
 
