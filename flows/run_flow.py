@@ -113,6 +113,14 @@ def write_manifest(rd: RunDir, cfg: RunConfig, command: str) -> dict:
     return manifest
 
 
+def _copy_if_changed(src: Path, dst: Path) -> None:
+    if dst.exists() and digest_path(dst) == digest_path(src):
+        return
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    tmp.write_bytes(Path(src).read_bytes())
+    tmp.replace(dst)
+
+
 def _write_artefact(cfg: RunConfig, dst: Path) -> None:
     """The run's artefact (CMM coordinates with the configured corrections) as
     ``RUN_DIR/artefact.csv``, rewritten only when its content changes (it keys the cache)."""
@@ -152,6 +160,8 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
     rd = RunDir(run_dir).create()
     write_manifest(rd, cfg, command)
     _write_artefact(cfg, rd.artefact)
+    if rc.rods is not None:
+        _copy_if_changed(rc.rods, rd.root / "rods.csv")
     T = _Tasks(rd)
     timings: dict[str, float] = {}
     artefact = ref_for(rd.artefact, "table")
@@ -261,7 +271,9 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
     progress.step("report", 1)
     # summary.json changes every run (timings); the report is current while these are
     report = T.call(report_task, {"bundle": bundle, "verification": verified["verification"], "truth": truth,
-                                  "labels": labels, "acquisition": [moved["table"], measurements]}, str(rd.root),
+                                  "labels": labels, "acquisition": [moved["table"], measurements],
+                                  "rods": ref_for(rd.root / "rods.csv") if rc.rods is not None else None},
+                    str(rd.root),
                     timings)
     progress.advance("report")
     summary["total_seconds"] = time.perf_counter() - t_start
