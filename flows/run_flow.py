@@ -56,12 +56,12 @@ class _Tasks:
     def _note(self, name: str, state) -> None:
         (self.cached if state.name == "Cached" else self.ran).append(name)
 
-    def call(self, task, *args, label: str | None = None, refresh: bool = False, **kwargs):
+    def call(self, task, *args, refresh: bool = False, **kwargs):
         state = self._opts(task, refresh)(*args, return_state=True, **kwargs)
         value = state.result()
         if not refresh and state.name == "Cached" and not _refs_intact(value):
-            return self.call(task, *args, label=label, refresh=True, **kwargs)
-        self._note(label or task.name, state)
+            return self.call(task, *args, refresh=True, **kwargs)
+        self._note(task.name, state)
         return value
 
     def submit(self, task, *args, refresh: bool = False, **kwargs):

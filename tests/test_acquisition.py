@@ -12,7 +12,7 @@ import yaml
 from typer.testing import CliRunner
 
 from flows.cli import app
-from fringecal.acquisition import (AcquisitionInputs, MeasurementPlan, acquire_measurement, measurement_rng,
+from fringecal.acquisition import (AcquisitionInputs, acquire_measurement, measurement_rng,
                                    move_hexapod, plan_acquisition, planned_poses, poses_table, truth_from_store)
 from fringecal.frames import Frame
 from fringecal.fringe.decode import decode
@@ -20,7 +20,7 @@ from fringecal.fringe.sequence import FringeSequence
 from fringecal.pointcloud import triangulate_maps
 from fringecal.runconfig import load_run_config
 from fringecal.simulate import RenderConfig, artefact_scene, backdrop, phase_noise, render_measurement, scaled_scanner
-from fringecal.simulate.evaluation import pure_mask, tau_error_summary, tau_residuals, unwrap_threshold
+from fringecal.simulate.evaluation import pure_mask, tau_error_summary, tau_residuals
 from fringecal.store import is_complete, open_store
 
 runner = CliRunner()

@@ -8,6 +8,8 @@ candidates with rod cones and selects the control points from the clean pixels.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pandas as pd
 import xarray as xr
@@ -56,13 +58,13 @@ def first_pass(store, scanner: Scanner, radius_mm: float, extraction_config, mea
     return rows, failures
 
 
+@dataclass(frozen=True)
 class ExtractionResult:
-    """Final fits and control points of one measurement."""
+    """Final fits, candidates that could not be fitted, and control points of one measurement."""
 
-    def __init__(self, fits: pd.DataFrame, failures: pd.DataFrame, control_points: pd.DataFrame):
-        self.fits = fits
-        self.failures = failures
-        self.control_points = control_points
+    fits: pd.DataFrame
+    failures: pd.DataFrame
+    control_points: pd.DataFrame
 
 
 def second_pass(store, scanner: Scanner, artefact, rods: pd.DataFrame | None, labelled: pd.DataFrame,
