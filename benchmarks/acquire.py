@@ -1,5 +1,5 @@
-"""Benchmark: one simulated measurement end to end (render + decode + store write with
-the ground truth), as one ``fringecal acquire`` task does it.
+"""Benchmark: one simulated measurement end to end (render + decode + store write, and
+the ground truth's own store), as one ``simulate-render`` step instance does it.
 
 Prints JSON: wall and CPU seconds (median of ``--repeats``) at each ``--widths``, split
 into rendering and decoding + writing the store, the store's size on disk, and the
@@ -22,8 +22,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from fringecal.acquisition import AcquisitionInputs, acquire_measurement, plan_acquisition
+from fringecal.acquisition import load_simulated_rig, simulate_measurement
 from fringecal.runconfig import load_run_config
+from fringecal.simulate.scenes import artefact_scene
 
 
 def store_mb(path: Path) -> float:
@@ -39,21 +40,31 @@ def main():
     tmp = Path(tempfile.mkdtemp(prefix="fringecal-bench-acquire-"))
     try:
         for width in map(int, args.widths.split(",")):
-            cfg = load_run_config(None, {"acquisition": {"camera_width_px": width, "hexapod": {"enabled": False}}})
-            inputs = AcquisitionInputs.from_run_config(cfg)
-            plan = plan_acquisition(cfg, inputs)[0]
-            acquire_measurement(plan, plan.T_world_artefact, cfg, tmp / "warm.zarr", inputs)  # compile, caches
+            cfg = load_run_config(None, {"simulate": {"acquisition": {"camera_width_px": width,
+                                                                      "hexapod": {"enabled": False}}}})
+            sr = load_simulated_rig(cfg.simulate)
+            pose, T = next(iter(sr.planned.items()))
+            scanner = sr.truth.scanners[0]
+            measurement = f"{pose}-{scanner.name}"
+            scene = artefact_scene(sr.artefact, sr.rods, T, sr.hardware)
+
+            def acquire(path):
+                return simulate_measurement(measurement, scanner, scene, cfg.simulate.acquisition, cfg.decode, path,
+                                            path.with_name("truth-" + path.name))
+
+            acquire(tmp / "warm.zarr")  # compile, caches
             runs = []
             for i in range(args.repeats):
                 path = tmp / f"{width}-{i}.zarr"
                 w, c = time.perf_counter(), time.process_time()
-                r = acquire_measurement(plan, plan.T_world_artefact, cfg, path, inputs)
+                r = acquire(path)
                 runs.append({"wall_s": time.perf_counter() - w, "cpu_s": time.process_time() - c,
                              "render_s": r.summary["render_s"], "decode_store_s": r.summary["decode_store_s"],
-                             "store_mb": store_mb(path)})
+                             "store_mb": store_mb(path), "truth_store_mb": store_mb(path.with_name("truth-" + path.name))})
                 shutil.rmtree(path)
+                shutil.rmtree(path.with_name("truth-" + path.name))
             med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-            out["widths"][width] = {"measurement": plan.measurement, **med, "runs_wall_s": [r["wall_s"] for r in runs]}
+            out["widths"][width] = {"measurement": measurement, **med, "runs_wall_s": [r["wall_s"] for r in runs]}
             print(json.dumps({width: out["widths"][width]}), flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -19,19 +19,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fringecal.artefact import load_artefact  # noqa: E402
-from fringecal.frames import Frame  # noqa: E402
+from fringecal.acquisition import frames_from_rows  # noqa: E402
 from fringecal.pointcloud import triangulate_maps  # noqa: E402
-from fringecal.rig import load_rig  # noqa: E402
-from fringecal.simulate.resolution import scaled_scanner  # noqa: E402
+from fringecal.rundir import RunDir  # noqa: E402
 from fringecal.spheres.fit import SphereModel  # noqa: E402
-from fringecal.store import open_store  # noqa: E402
-
-POSE = ["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]
 
 
 def main():
@@ -39,34 +33,32 @@ def main():
     ap.add_argument("run_dir", nargs="?", default="runs/thesis")
     ap.add_argument("--visible", type=float, default=0.6)
     args = ap.parse_args()
-    root = Path(args.run_dir)
-    manifest = json.loads((root / "manifest.json").read_text())
-    rig = load_rig(manifest["inputs"]["sensors"]["path"])
-    art = load_artefact(root / "artefact.csv")
-    acq = pd.read_csv(root / "tables" / "acquisition.csv", dtype=str)
-    fits = pd.read_csv(root / "tables" / "sphere_fits_labelled.csv", dtype={"measurement": str, "candidate": str,
-                                                                          "sphere_id": str}, keep_default_na=False)
+    rd = RunDir(args.run_dir)
+    rig = rd.truth.sensors.load()  # cameras at the simulated resolution
+    art = rd.artefact.load()
+    poses = frames_from_rows(rd.truth.poses.load())
+    acq = rd.acquisition.load()
+    fits = rd.sphere_fits_labelled.load()
     rows, errors, errors_visible = [], [], []
-    for m in acq.itertuples():
-        ds = open_store(root / m.store)
-        a = ds.attrs
-        width = a["camera_format"]["width_px"]
-        sc = scaled_scanner(rig.scanner(m.scanner), width)
-        T = Frame.from_params([a["T_world_artefact"][c] for c in POSE])
-        centres = T.to_world(art.centres)
-        sphere_index = ds["truth_sphere_index"].values
-        purity = ds["truth_purity"].values
-        light = ds["truth_light"].values
+    for m in acq[acq.kind == "artefact"].itertuples():
+        ds, truth = rd.store(m.measurement).open(), rd.truth.store(m.measurement).open()
+        t = truth.attrs
+        sc = rig.scanner(m.scanner)
+        width = sc.camera.format.width_px
+        centres = poses[m.pose].to_world(art.centres)
+        sphere_index = truth["truth_sphere_index"].values
+        purity = truth["truth_purity"].values
+        light = truth["truth_light"].values
         valid = ds["valid"].values.astype(bool)
-        label = ds["sphere_label"].values
-        obj = ds["truth_object_index"].values
-        names = np.array(a["object_names"])
+        label = rd.sphere_labels(m.measurement).open()["sphere_label"].values
+        obj = truth["truth_object_index"].values
+        names = np.array(t["object_names"])
         visible = []
         pitch = sc.camera.format.width_mm / (width - 1)
         for i, sid in enumerate(art.ids):
             dist = np.linalg.norm(centres[i] - sc.camera.pinhole)
             disc = np.pi * (sc.camera.c * art.radii[i] / dist / pitch) ** 2
-            seen = np.count_nonzero((sphere_index == a["sphere_ids"].index(sid)) & (purity >= 0.999) & (light == 1))
+            seen = np.count_nonzero((sphere_index == t["sphere_ids"].index(sid)) & (purity >= 0.999) & (light == 1))
             if seen >= args.visible * disc:
                 visible.append(sid)
         g = fits[(fits.measurement == m.pose) & (fits.scanner == m.scanner)]
@@ -90,12 +82,14 @@ def main():
         rows.append({"measurement": m.measurement, "fully_visible": visible, "labelled": labelled,
                      "all_visible_found": set(visible) <= set(labelled), "non_sphere_pixels_kept": wrong_px})
         ds.close()
+        truth.close()
+
     def stats(e):
         e = np.array(e)
         return {"n": int(len(e)), "rms": float(1000 * np.sqrt(np.mean(e ** 2))), "median": float(1000 * np.median(e)),
                 "max": float(1000 * e.max())}
 
-    doc = {"run_dir": str(root), "camera_width_px": int(width), "measurements": rows,
+    doc = {"run_dir": str(rd.root), "camera_width_px": int(width), "measurements": rows,
            "all_fully_visible_found_and_labelled": all(r["all_visible_found"] for r in rows),
            "non_sphere_pixels_kept_total": int(sum(r["non_sphere_pixels_kept"] for r in rows)),
            "centre_error_true_sensors_um": {"all_labelled": stats(errors), "fully_visible": stats(errors_visible)}}

@@ -1,12 +1,14 @@
-"""Processing time of the thesis-scale data set: 24 measurements at 2048 x 2048 px,
-frames already acquired, to a verified calibration (issue 6).
+"""Processing time of the thesis-scale data set: 24 measurements at 2048 x 2048 px and
+the 18 ball-bar measurements, frames already acquired, to a verified calibration.
 
 Needs a run directory of the full-resolution profile (``fringecal run --config
-configs/run_thesis_full.yaml --out runs/thesis-full``) for its stores. The frames of
-a measurement are rendered (not timed) and then decoded and stored (timed, median of
-``--repeat``); every later step is timed on the run's stores by calling the same
-functions the flow's tasks call, without Prefect (whose overhead is reported apart:
-about 7 s to start plus ~0.1 s per task). Prints JSON.
+configs/run_thesis_full.yaml --out runs/thesis-full``) for its stores. The run's
+inputs (tables, artefact, acquisition stores as hard links) are copied to a scratch
+run directory, and every processing step is timed there with the step objects the
+flow runs (:mod:`fringecal.steps`, ``--workers`` instances at a time, forced to
+recompute), without Prefect, whose overhead is reported apart (about 7 s to start
+plus ~0.1 s per task). Decoding and storing is timed on one measurement's frames
+rendered in memory (the renderer is not timed), median of ``--repeat``. Prints JSON.
 
     PYTHONPATH=. python benchmarks/thesis_scale.py runs/thesis-full
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -22,123 +25,76 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fringecal.artefact import load_artefact, load_rods  # noqa: E402
-from fringecal.ballbar import BallBarPosition, frame_along  # noqa: E402
-from fringecal.calibration import calibrate_run  # noqa: E402
-from fringecal.calibration_file import read_calibration_json  # noqa: E402
-from fringecal.frames import Frame  # noqa: E402
-from fringecal.pipeline.extract import first_pass, second_pass  # noqa: E402
-from fringecal.pipeline.initialise import initial_calibration, poses_from_table  # noqa: E402
-from fringecal.pipeline.verify import ballbar_centres  # noqa: E402
-from fringecal.rig import load_rig  # noqa: E402
-from fringecal.runconfig import RunConfig  # noqa: E402
-from fringecal.simulate import artefact_scene, render_measurement  # noqa: E402
-from fringecal.simulate.resolution import scaled_rig  # noqa: E402
-from fringecal.spheres.steps import label_pose_link  # noqa: E402
+from fringecal.acquisition import frames_from_rows, render_frames  # noqa: E402
 from fringecal.fringe.measurement import decode_to_store  # noqa: E402
-from schemas import AcquiredPosesTable, AcquisitionTable, read_table  # noqa: E402
+from fringecal.rundir import RunDir  # noqa: E402
+from fringecal.runconfig import RunConfig  # noqa: E402
+from fringecal.simulate.scenes import artefact_scene  # noqa: E402
+from fringecal.steps import COMMON, run_step  # noqa: E402
+from fringecal.store import copy_store  # noqa: E402
 
-POSE = ["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]
+
+def scratch_copy(src: RunDir, dst: RunDir) -> None:
+    """The inputs of the processing steps: what a data source leaves in a run directory."""
+    for f in (src.artefact, src.rods, src.ballbar, src.sensors_prior, src.poses_planned, src.acquisition):
+        if f.exists():
+            f.path.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f.path, dst.root / f.rel)
+    for m in src.acquisition.load()["measurement"]:
+        copy_store(src.store(m).path, dst.store(m).path)
+
+
+def decode_seconds(rd: RunDir, cfg: RunConfig, repeat: int) -> float:
+    """Median wall time to decode and store one measurement's frames (in memory)."""
+    row = rd.acquisition.load().iloc[0]
+    T = frames_from_rows(rd.truth.poses.load())[row["pose"]]
+    scene = artefact_scene(rd.truth.artefact.load(), rd.rods.load() if rd.rods.exists() else None, T)
+    acq = cfg.simulate.acquisition
+    m = render_frames(row["measurement"], rd.truth.sensors.load().scanner(row["scanner"]), scene, acq)
+    times = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(repeat):
+            t0 = time.perf_counter()
+            decode_to_store(m.frames, m.sequence, Path(tmp) / f"m{i}.zarr", {"measurement": "bench"},
+                            settings=cfg.decode, full_scale=acq.render.max_dn)
+            times.append(time.perf_counter() - t0)
+    return float(np.median(times))
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run_dir", nargs="?", default="runs/thesis-full")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--workers", type=int, default=2, help="measurements processed at a time (the flow: 2)")
+    ap.add_argument("--workers", type=int, default=2, help="step instances at a time (the flow: 2)")
     args = ap.parse_args()
-    root = Path(args.run_dir)
-    manifest = json.loads((root / "manifest.json").read_text())
-    cfg = RunConfig.model_validate(manifest["config"])
-    rc = cfg.rig_config()
-    width = cfg.acquisition.camera_width_px
-    art = load_artefact(root / "artefact.csv")
-    rods = load_rods(rc.rods, art)
-    acq = read_table(root / "tables" / "acquisition.csv", AcquisitionTable)
-    out = {"run_dir": str(root), "camera_width_px": width, "n_measurements": len(acq)}
-
-    # decode + store of one measurement from frames in memory (the renderer is not timed)
-    truth = scaled_rig(load_rig(rc.sensors, reference=rc.reference_scanner), width)
-    poses = read_table(root / "tables" / "acquisition_poses.csv", AcquiredPosesTable)
-    p0 = poses.iloc[0]
-    T0 = Frame.from_params([p0[c] for c in POSE])
-    m = render_measurement(truth.scanners[0], artefact_scene(art, rods, T0), cfg.acquisition.render,
-                           np.random.default_rng(1), cfg.acquisition.sequence.build())
-    times = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for i in range(args.repeat):
-            t0 = time.perf_counter()
-            decode_to_store(m.frames, m.sequence, Path(tmp) / f"m{i}.zarr", {"measurement": "bench"},
-                            settings=cfg.decode, full_scale=cfg.acquisition.render.max_dn)
-            times.append(time.perf_counter() - t0)
-    del m
-    out["decode_and_store_s_per_measurement"] = float(np.median(times))
-
-    prior = load_rig(root / "tables" / "sensors_prior.csv")
-    radius = float(np.median(art.radii))
-    pool = ThreadPoolExecutor(max_workers=args.workers)  # as the flow's task runner
-    t0 = time.perf_counter()
-    fits = [rows for rows, _ in pool.map(
-        lambda r: first_pass(root / r.store, prior.scanner(r.scanner), radius, cfg.extraction, r.pose),
-        acq.itertuples())]
-    out["spheres_first_pass_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    planned = {str(r.measurement): Frame.from_params([getattr(r, f"planned_{c}") for c in POSE])
-               for r in poses.itertuples()}
-    lpl = label_pose_link(pd.concat(fits, ignore_index=True), art, rc.reference_scanner,
-                          cfg.extraction.labelling_config(), planned=planned)
-    out["label_pose_link_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    local = poses_from_table(lpl.poses.poses)
-
-    def second(r):
-        g = lpl.fits[(lpl.fits.measurement == r.pose) & (lpl.fits.scanner == r.scanner)]
-        return second_pass(root / r.store, prior.scanner(r.scanner), art, rods, g, local.get((r.pose, r.scanner)),
-                           cfg.extraction, cfg.control_points, r.pose)
-
-    list(pool.map(second, acq.itertuples()))
-    out["spheres_second_pass_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    initial_calibration(prior, lpl.centres, lpl.poses.poses, lpl.links_table(), art)
-    out["start_values_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    result, _ = calibrate_run(root)  # the run's own inputs (identical to the above)
-    out["bundle_adjustment_s"] = time.perf_counter() - t0
-    out["n_control_points"] = int(result.problem.n_points)
-
-    ver = json.loads((root / "verification.json").read_text())
-    bb = load_artefact(cfg.verification.ballbar or rc.ballbar)
-    names = [p["measurement"] for p in ver["calibrated"]["positions"]]
-    table = pd.read_csv(root / "tables" / "ballbar_centres_calibrated.csv", dtype={"measurement": str})
-    positions, stores = [], {}
-    for name in names:
-        g = table[table.measurement == name]
-        a = g[g.sphere_id == "A"].iloc[0]
-        b = g[g.sphere_id == "B"].iloc[0]
-        pos = BallBarPosition(name, frame_along(a[["x_mm", "y_mm", "z_mm"]].to_numpy(float),
-                                                b[["x_mm", "y_mm", "z_mm"]].to_numpy(float)),
-                              {"A": a.scanner, "B": b.scanner})
-        positions.append(pos)
-        for sid, sc in pos.scanner_of.items():
-            stores[(name, sid)] = root / "measurements" / f"{name}-{sc}.zarr"
-    cal = scaled_rig(read_calibration_json(root / "calibration.json"), cfg.verification.camera_width_px or width)
-    t0 = time.perf_counter()
-    ballbar_centres(stores, positions, bb, {"calibrated": cal}, cfg.extraction.rejection_config())
-    out["verification_measuring_s"] = time.perf_counter() - t0
-    out["n_ballbar_measurements"] = len(stores)
-    decode_total = (len(acq) + len(stores)) * out["decode_and_store_s_per_measurement"]
-    steps = ["spheres_first_pass_s", "label_pose_link_s", "spheres_second_pass_s", "start_values_s",
-             "bundle_adjustment_s", "verification_measuring_s"]
-    out["decode_and_store_all_s"] = decode_total
-    out["total_from_frames_s"] = decode_total + sum(out[k] for k in steps)
-    out["workers"] = args.workers
-    out["note"] = ("decode+store timed on one measurement and multiplied by the number of calibration and "
-                   "ball-bar measurements (the decoder already uses every core); the sphere passes run "
-                   "--workers measurements at a time like the flow; Prefect adds ~7 s start-up and ~0.1 s per task")
+    src = RunDir(args.run_dir)
+    cfg = RunConfig.model_validate(src.read_manifest()["config"])
+    table = src.acquisition.load()
+    out = {"run_dir": str(src.root), "n_measurements": int((table.kind == "artefact").sum()),
+           "n_ballbar_measurements": int((table.kind == "ballbar").sum()), "workers": args.workers}
+    if cfg.simulate is not None:
+        out["camera_width_px"] = cfg.simulate.acquisition.camera_width_px
+        out["decode_and_store_s_per_measurement"] = decode_seconds(src, cfg, args.repeat)
+        out["decode_and_store_all_s"] = len(table) * out["decode_and_store_s_per_measurement"]
+    with tempfile.TemporaryDirectory(dir=src.root.parent) as tmp:
+        rd = RunDir(tmp)
+        scratch_copy(src, rd)
+        steps = {}
+        with ThreadPoolExecutor(max_workers=args.workers) as pool:
+            for step in COMMON:
+                items = step.items(rd, step.view(cfg))
+                t0 = time.perf_counter()
+                list(pool.map(lambda item: run_step(step, rd, cfg, item, force=True), items))
+                steps[step.name] = time.perf_counter() - t0
+        out["n_control_points"] = int(rd.bundle_summary.load()["n_control_points"])
+    out["steps_s"] = steps
+    out["total_from_frames_s"] = out.get("decode_and_store_all_s", 0.0) + sum(steps.values())
+    out["note"] = ("decode+store timed on one measurement and multiplied by the number of stores (the decoder "
+                   "already uses every core); the steps run --workers instances at a time like the flow; Prefect "
+                   "adds ~7 s start-up and ~0.1 s per task")
     print(json.dumps(out, indent=1))
 
 

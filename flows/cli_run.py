@@ -14,9 +14,10 @@ from .common import UserInputError, console, err_console, fail, guarded
 __all__ = ["run_command", "reproduce_command", "serve_command", "validate_run_config", "make_task_runner"]
 
 
-def validate_run_config(config: Path | dict | None, overrides: dict | None = None):
-    """Load and check a run config and every file it names, before any Prefect work."""
-    from fringecal.acquisition import AcquisitionInputs
+def validate_run_config(config: Path | dict | None, overrides: dict | None = None, dataset: Path | None = None):
+    """Load and check a run config and everything its data source names -- a simulated
+    rig's files and hexapod reach, or a recorded data set's whole layout -- before
+    any Prefect work."""
     from fringecal.config import ConfigError
     from fringecal.runconfig import RunConfig, load_run_config
 
@@ -25,14 +26,33 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
             cfg = RunConfig.model_validate(config)
         except ValueError as err:
             raise ConfigError(f"run config: {err}") from None
-        cfg.rig_config()
     else:
-        cfg = load_run_config(config, overrides)
-    # sensors (one camera and one projector per scanner), artefact, rods, materials and poses
-    inputs = AcquisitionInputs.from_run_config(cfg)
-    if len(inputs.artefact) < 3:
-        raise ConfigError(f"{cfg.rig_config().artefact}: an artefact needs at least three spheres for a pose")
+        cfg = load_run_config(config, overrides, dataset)
+    if cfg.source == "dataset":
+        from fringecal.dataset import DataSet
+
+        DataSet.open(cfg.dataset)
+    else:
+        check_simulation(cfg.simulate)
     return cfg
+
+
+def check_simulation(sim) -> None:
+    """A simulated rig's files, and every planned pose within the hexapod's reach."""
+    from fringecal.acquisition import load_simulated_rig
+
+    sr = load_simulated_rig(sim)
+    hx = sim.acquisition.hexapod
+    if hx.enabled:
+        from fringecal.hexapod import HexapodRig, load_hexapod_config
+        from fringecal.hexapod.workspace import check_poses, describe_violations
+
+        rig = HexapodRig.from_config(load_hexapod_config(hx.config))
+        for pose, T in sr.planned.items():
+            check = check_poses(rig.config, rig.platform_pose_for(T))
+            if not check.ok:
+                raise UserInputError(f"{sim.rig}: artefact pose {pose} is out of the hexapod's reach: "
+                                     + "; ".join(describe_violations(rig.config, check)))
 
 
 def make_task_runner(kind: str, max_workers: int, dask_address: str | None = None, dask_workers: int = 2):
@@ -50,22 +70,26 @@ def make_task_runner(kind: str, max_workers: int, dask_address: str | None = Non
 
 
 def _current(cfg, out: Path) -> dict | None:
-    """The summary of an up-to-date run of this config in ``out`` (checked by content
-    digests before Prefect starts, which costs seconds), or None."""
-    from fringecal.rundir import up_to_date
+    """The summary of ``out`` if every step of this config is current there (checked
+    from the files' digests before Prefect starts, which costs seconds), else None."""
+    from fringecal.rundir import RunDir
+    from fringecal.summary import pipeline_status
 
-    summary = up_to_date(out, cfg.model_dump(mode="json"))
-    if summary is not None:
-        n = len(summary["tasks"]["ran"]) + len(summary["tasks"]["cached"])
-        summary = {**summary, "tasks": {"ran": [], "cached": ["(all %d steps: outputs unchanged)" % n]}}
-        err_console.print(f"{out} is up to date with this configuration (every output unchanged); --force reruns "
-                          "the flow from its cache")
-    return summary
+    rd = RunDir(out)
+    if not rd.summary.exists() or pipeline_status(rd, cfg) is not None:
+        return None
+    summary = rd.summary.load()
+    n = len(summary["tasks"]["ran"]) + len(summary["tasks"]["cached"])
+    err_console.print(f"{out} is up to date with this configuration (inputs, settings, code and every output "
+                      "unchanged); --force reruns the flow from its cache")
+    return {**summary, "tasks": {"ran": [], "cached": ["(all %d steps: outputs unchanged)" % n]}}
 
 
 def _quiet_prefect(verbose: bool) -> None:
     """Progress bars instead of Prefect's log lines; the temporary server's own
     shutdown chatter (events still in flight when the process ends) is not news."""
+    os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "fringecal")
+    os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
     if not verbose:
         os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
         os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "CRITICAL")
@@ -77,22 +101,29 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
     t = Table(title=f"fringecal run -> {run_dir}", show_header=False)
     t.add_column("", style="bold")
     t.add_column("", justify="right")
-    v, tr = summary["verification"], summary.get("truth") or {}
+    v, tr = summary.get("verification"), summary.get("truth")
+    source = summary.get("dataset") or "simulated rig"
     rows = [
+        ("source", str(source)),
         ("measurements / control points", f"{summary['n_measurements']} / {summary['n_control_points']:,}"),
         ("RMS F before -> after", f"{summary['rms_F_mm_before']:.3f} mm -> {1000 * summary['rms_F_mm_after']:.1f} um"),
         ("RMS eps1 / eps2 after", f"{1000 * summary['rms_eps1_mm_after']:.1f} / {1000 * summary['rms_eps2_mm_after']:.1f} um"),
         ("one part in (1.96 sigma eps2)", f"{summary['one_part_in']:,.0f}"),
-        ("ball-bar max |error|", f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "
-                                 f"{v['volume_diagonal_mm']:.0f} mm"),
-        ("verification (MPE %.0f um)" % (1000 * v["mpe_mm"]), "[green]PASS[/]" if v["pass"] else "[red]FAIL[/]"),
     ]
+    if v:
+        rows += [("ball-bar max |error|", f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "
+                                          f"{v['volume_diagonal_mm']:.0f} mm"),
+                 ("verification (MPE %.0f um)" % (1000 * v["mpe_mm"]), "[green]PASS[/]" if v["pass"] else "[red]FAIL[/]")]
+    else:
+        rows.append(("verification", "[yellow]not verified[/] (no ball-bar measurements)"))
     if tr:
         rows += [("truth: eps1 / eps2 floor", f"{1000 * tr['rms_eps1_mm_true_params']:.1f} / "
-                                              f"{1000 * tr['rms_eps2_mm_true_params']:.1f} um"),
-                 ("truth: ball-bar max |error|", f"{1000 * tr['verification_max_abs_error_true_params_mm']:.1f} um"),
-                 ("truth: max position / angle error", f"{tr['max_position_error_mm']:.3f} mm / "
-                                                       f"{1e3 * tr['max_angle_error_rad']:.3f} mrad")]
+                                              f"{1000 * tr['rms_eps2_mm_true_params']:.1f} um")]
+        if tr.get("verification_max_abs_error_true_params_mm") is not None:
+            rows.append(("truth: ball-bar max |error|",
+                         f"{1000 * tr['verification_max_abs_error_true_params_mm']:.1f} um"))
+        rows.append(("truth: max position / angle error", f"{tr['max_position_error_mm']:.3f} mm / "
+                                                          f"{1e3 * tr['max_angle_error_rad']:.3f} mrad"))
     rows += [("bundle adjustment / total", f"{summary['bundle_seconds']:.2f} s / {summary['total_seconds']:.0f} s"),
              ("tasks run / from cache", f"{len(summary['tasks']['ran'])} / {len(summary['tasks']['cached'])}")]
     for k, val in rows:
@@ -102,7 +133,7 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
 
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
-             verbose: bool, command: str, progress_console=None) -> dict:
+             verbose: bool, command: str, progress_console=None, until: Optional[str] = None) -> dict:
     _quiet_prefect(verbose)
     from flows.progress import RichProgress
     from flows.run_flow import run_flow
@@ -112,13 +143,20 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
                                    workers or cfg.runner.dask_workers)
     flow = run_flow.with_options(task_runner=task_runner)
     with RichProgress(progress_console or console).running():
-        return flow(cfg.model_dump(mode="json"), str(run_dir), None, command)
+        return flow(cfg.model_dump(mode="json"), str(run_dir), None, command, until)
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise UserInputError(f"--out {out}: is a file; a run directory is a folder")
 
 
 @guarded
 def run_command(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML (default: configs/run_thesis.yaml, the simulated thesis rig)."),
+    dataset: Optional[Path] = typer.Option(None, "--dataset", "-d", help="A recorded data set folder to calibrate (replaces the config's source)."),
     out: Path = typer.Option(Path("runs/thesis"), "--out", "-o", help="Run directory."),
+    until: Optional[str] = typer.Option(None, "--until", help="Stop after this step (e.g. simulate-render, decode, bundle)."),
     runner: Optional[str] = typer.Option(None, "--runner", help="threads (default) or dask."),
     dask_address: Optional[str] = typer.Option(None, "--dask-address", help="Scheduler of an existing Dask cluster."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Threads, or local Dask workers."),
@@ -126,18 +164,31 @@ def run_command(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Show Prefect's logs."),
     force: bool = typer.Option(False, "--force", help="Run the flow even if the run directory is up to date."),
 ):
-    """Acquire, decode, extract and label spheres, calibrate, verify and report: the thesis experiment."""
+    """Calibrate: decode or simulate the measurements, extract and label spheres, adjust, verify and report."""
+    from fringecal.steps import pipeline
+
     if runner not in (None, "threads", "dask"):
         raise UserInputError(f"--runner must be threads or dask, not {runner!r}")
-    cfg = validate_run_config(config)
-    summary = None if force else _current(cfg, out)
+    _check_out(out)
+    cfg = validate_run_config(config, dataset=dataset)
+    if until is not None and until not in (names := [s.name for s in pipeline(cfg)]):
+        raise UserInputError(f"--until {until}: not a step of this run; the steps are {', '.join(names)}")
+    summary = None if force or until else _current(cfg, out)
     if summary is None:
-        summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run",
-                           err_console if as_json else console)
+        from fringecal.hexapod import HexapodFault
+
+        try:
+            summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run",
+                               err_console if as_json else console, until)
+        except HexapodFault as err:  # the controller, not the input: its own status
+            fail(f"hexapod: {err}", code=1)
     if as_json:
         print(json.dumps(summary, indent=2))
-    else:
+    elif until is None:
         _print_summary(summary, out)
+    else:
+        console.print(f"stopped after {until}: {len(summary['tasks']['ran'])} step instances ran, "
+                      f"{len(summary['tasks']['cached'])} from the cache -> {out}")
 
 
 @guarded
@@ -151,34 +202,40 @@ def reproduce_command(
 
     rd = RunDir(run_dir)
     manifest = rd.read_manifest()
-    old = json.loads(rd.summary.read_text()) if rd.summary.exists() else None
+    old = rd.summary.load() if rd.summary.exists() else None
     cfg = validate_run_config(manifest["config"])
     target = out or run_dir
     summary = _execute(cfg, target, None, None, None, verbose, f"fringecal reproduce {run_dir}")
     _print_summary(summary, target)
     if old is None:
         return
-    keys = ["n_measurements", "n_control_points", "rms_F_mm_after", "rms_eps1_mm_after", "rms_eps2_mm_after",
-            "one_part_in"]
-    diffs = [(k, old[k], summary[k]) for k in keys if abs(float(old[k]) - float(summary[k])) > 1e-9 * max(1.0, abs(float(old[k])))]
-    dv = abs(old["verification"]["max_abs_error_mm"] - summary["verification"]["max_abs_error_mm"])
-    if dv > 1e-9:
-        diffs.append(("verification.max_abs_error_mm", old["verification"]["max_abs_error_mm"],
-                      summary["verification"]["max_abs_error_mm"]))
+    diffs = _differences(old, summary)
     if diffs:
         fail("reproduction differs: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in diffs), code=1)
     console.print("[green]reproduced:[/] the summary numbers are identical")
 
 
+def _differences(old: dict, new: dict) -> list[tuple]:
+    keys = ["n_measurements", "n_control_points", "rms_F_mm_after", "rms_eps1_mm_after", "rms_eps2_mm_after",
+            "one_part_in"]
+    diffs = [(k, old[k], new[k]) for k in keys
+             if abs(float(old[k]) - float(new[k])) > 1e-9 * max(1.0, abs(float(old[k])))]
+    a, b = (old.get("verification") or {}).get("max_abs_error_mm"), (new.get("verification") or {}).get("max_abs_error_mm")
+    if (a is None) != (b is None) or (a is not None and abs(a - b) > 1e-9):
+        diffs.append(("verification.max_abs_error_mm", a, b))
+    return diffs
+
+
 @guarded
 def serve_command(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML."),
+    dataset: Optional[Path] = typer.Option(None, "--dataset", "-d", help="A recorded data set folder."),
     out: Path = typer.Option(Path("runs/nightly"), "--out", "-o", help="Run directory of the scheduled runs."),
     cron: str = typer.Option("0 2 * * *", "--cron", help="Schedule (cron, local time)."),
     name: str = typer.Option("nightly-reverification", "--name", help="Deployment name."),
 ):
     """Serve the run flow as a scheduled deployment (e.g. a nightly re-verification)."""
-    cfg = validate_run_config(config)
+    cfg = validate_run_config(config, dataset=dataset)
     from flows.run_flow import run_flow
 
     console.print(f"serving deployment {name!r} on schedule {cron!r}; runs write to {out} (Ctrl-C stops)")

@@ -28,15 +28,16 @@ def fail(message: str, code: int = 2):
 
 
 def user_errors() -> tuple[type[BaseException], ...]:
-    """Exceptions that mean "the input is wrong": tables, configs, files, stores, frames."""
+    """Exceptions that mean "the input is wrong": tables, configs, data sets, files, stores, frames."""
     from fringecal.calibration_file import CalibrationFileError
     from fringecal.config import ConfigError
+    from fringecal.dataset import DataSetError
     from fringecal.fringe.importer import FrameStackError
     from fringecal.fringe.sequence import SequenceError
     from fringecal.store import StoreError
     from schemas import TableError
 
-    return (UserInputError, TableError, ConfigError, FileNotFoundError, CalibrationFileError,
+    return (UserInputError, TableError, ConfigError, DataSetError, FileNotFoundError, CalibrationFileError,
             FrameStackError, SequenceError, StoreError)
 
 

@@ -22,6 +22,8 @@ import pandas as pd
 
 from schemas import ArtefactTable, RodsTable, TableError, read_table, validate_table
 
+from .atomic import write_text
+
 __all__ = [
     "Artefact",
     "load_artefact",
@@ -155,10 +157,7 @@ def write_legacy_definition(artefact: Artefact, path, free: bool = False) -> Pat
         u = float(artefact.u[i])
         for label, value in (("x", x), ("y", y), ("z", z), ("r", float(artefact.radii[i]))):
             lines.append(f"{label}\t{flag}\t{value!r}\t{(u if label != 'r' else 0.0)!r}")
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    return write_text(path, "\n".join(lines) + "\n")
 
 
 def read_legacy_definition(path, ids=None) -> tuple[Artefact, np.ndarray]:

@@ -4,13 +4,15 @@ A ball-bar (two spheres, certified centre distance) is placed so that one sphere
 seen by one scanner and the other by the next: its measured length then tests the
 link between the scanners' frames that the calibration made. This module places the
 bar (:func:`thesis_positions`, :func:`vdi7_positions`), builds its scene for the
-virtual scanner, and measures the sphere a scanner sees in its maps
-(:func:`measure_sphere`).
+virtual scanner, and measures the sphere a scanner sees in its maps: from a plan that
+says which sphere it sees and where the other one is (:func:`measure_sphere`), or from
+the data alone (:func:`find_sightings`, :func:`cluster_centres`, :func:`name_clusters`,
+:func:`refit_sighting`, put together by :func:`fringecal.pipeline.verify.measure_position`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -20,11 +22,12 @@ from .frames import Frame
 from .pointcloud import PointMaps
 from .spheres.candidates import find_sphere_candidates
 from .spheres.fit import FitError
-from .spheres.regions import boundary_flags, fit_region
-from .spheres.robust import RejectionConfig
+from .spheres.regions import RegionPoints, boundary_flags, fit_region
+from .spheres.robust import RejectionConfig, fit_sphere_robust
 
 __all__ = ["BallBarPosition", "frame_along", "thesis_positions", "vdi7_positions", "ballbar_rods",
-           "measure_sphere", "SphereMeasurement"]
+           "measure_sphere", "SphereMeasurement", "SightingConfig", "Sighting", "find_sightings",
+           "cluster_centres", "name_clusters", "refit_sighting", "disc_pixels"]
 
 
 @dataclass(frozen=True)
@@ -140,3 +143,245 @@ def measure_sphere(maps: PointMaps, valid, camera, projector, radius_mm: float, 
     m = rf.fit.model
     return SphereMeasurement(np.asarray(m.centre, float), float(m.radius), float(m.rms), int(m.n_points),
                              dict(rf.fit.rejected))
+
+
+# -- measuring a position from the data alone ------------------------------------------
+
+
+@dataclass(frozen=True)
+class SightingConfig:
+    """What counts as a sighting of a bar sphere, and how the two spheres are named.
+
+    Attributes
+    ----------
+    radius_tolerance : float
+        A candidate's free-radius fit must lie within this fraction of one of the bar's
+        certified radii. 0.1 (2.5 mm for the thesis bar) is about three times the
+        worst free-fit error of a whole sphere in the simulated thesis rig at 320 px
+        (0.7-0.9 mm; RMS 0.27 mm, at 768 px 0.03 mm); end caps and tubes (10.9 mm)
+        and planes fail it by far.
+    min_disc_fraction : float
+        The fit must keep at least this fraction of the pixels of the sphere's full
+        disc in the camera (:func:`disc_pixels`). A whole sphere keeps 0.5-0.6 of them
+        at 320 px and 0.7-0.8 at 768 px (edge pixels and the rim go), one cut in half
+        by the image border about half that; a sliver at the border is no sighting.
+        Unlike a point count this does not depend on the camera's resolution;
+        ``RejectionConfig.min_points`` applies as well.
+    distinct_diameter_mm : float
+        Certified diameters that differ by more than this name the spheres by their
+        fitted radii (mean free-fit radius of each sphere's sightings, paired with the
+        certified radii the closer way). For 1 mm the pairing flips only if the two
+        free-fit errors differ by 0.5 mm the wrong way: never seen at 768 px, possible
+        at 320 px. Below it the spheres count as alike and are named by order
+        (:func:`name_clusters`).
+    """
+
+    radius_tolerance: float = 0.1
+    min_disc_fraction: float = 0.25
+    distinct_diameter_mm: float = 1.0
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """One bar sphere in one scanner's measurement, found and fitted with a free radius.
+
+    Attributes
+    ----------
+    scanner : str
+    centre : ndarray, shape (3,)
+        Free-radius fit, world mm.
+    radius_mm, rms_mm : float
+        Free-radius fit.
+    n_points : int
+        Points the free fit kept.
+    column_px : float
+        Mean camera column of the kept pixels (for naming, :func:`name_clusters`).
+    pixels : RegionPoints
+        The candidate region's points, refitted by :func:`refit_sighting`.
+    viewpoints : ndarray, shape (2, 3)
+        Camera and projector pinholes (silhouette test).
+    """
+
+    scanner: str
+    centre: np.ndarray
+    radius_mm: float
+    rms_mm: float
+    n_points: int
+    column_px: float
+    pixels: RegionPoints = field(repr=False)
+    viewpoints: np.ndarray = field(repr=False)
+
+
+def disc_pixels(camera, centre, radius_mm: float) -> float:
+    """Pixels of the full image disc of a sphere (``centre`` (3,), world mm) in ``camera``:
+    ``pi rho^2`` with ``rho = c R / sqrt(d^2 - R^2)`` pixels at the centre's distance ``d``
+    (the disc near the image centre; off-axis it grows slightly)."""
+    d2 = float(np.sum((np.asarray(centre, float) - camera.pinhole) ** 2))
+    fmt = camera.format
+    pitch = np.sqrt(fmt.width_mm / fmt.width_px * fmt.height_mm / fmt.height_px)
+    rho = camera.c * radius_mm / np.sqrt(max(d2 - radius_mm**2, 1e-9)) / pitch
+    return float(np.pi * rho**2)
+
+
+def _xyz(p) -> str:
+    return "(" + ", ".join(f"{v:.1f}" for v in p) + ") mm"
+
+
+def _implausible(model, radii, camera, cfg: SightingConfig) -> str | None:
+    """Why a free fit is no bar sphere, or None."""
+    off = np.abs(model.radius - radii) / radii
+    if off.min() > cfg.radius_tolerance:
+        return (f"fitted radius {model.radius:.3f} mm is not within {cfg.radius_tolerance:.0%} of the "
+                f"certified {' or '.join(f'{r:.3f}' for r in np.unique(radii))} mm")
+    disc = disc_pixels(camera, model.centre, float(radii[np.argmin(off)]))
+    if model.n_points < cfg.min_disc_fraction * disc:
+        return (f"{model.n_points} points kept, fewer than {cfg.min_disc_fraction:.0%} of the sphere's "
+                f"{disc:.0f}-pixel disc (a sliver at the image border?)")
+    return None
+
+
+def find_sightings(maps: PointMaps, valid, scanner, ballbar: Artefact, rejection_config: RejectionConfig | None = None,
+                   config: SightingConfig | None = None) -> tuple[list[Sighting], list[str]]:
+    """The bar spheres one scanner sees in its maps, with no plan: 0, 1 or 2 sightings.
+
+    Candidates of the bar's (median certified) radius are fitted robustly with a free
+    radius; a fit is a sighting when its radius and point count are plausible
+    (:class:`SightingConfig`).
+
+    Parameters
+    ----------
+    maps : PointMaps
+        The measurement triangulated with ``scanner`` (world mm), shape (rows, cols).
+    valid : bool array, shape (rows, cols)
+    scanner : Scanner
+        Its camera format must match the maps.
+    ballbar : Artefact
+        The bar; its first two spheres are the bar's.
+
+    Returns
+    -------
+    sightings : list of Sighting, strongest candidate first
+    notes : list of str
+        Why candidates were no sightings (or that none was found).
+    """
+    cfg = config or SightingConfig()
+    radii = ballbar.radii[:2]
+    search = float(np.median(radii))
+    cam, proj = scanner.camera, scanner.projector
+    cands = find_sphere_candidates(maps, search, cam.pinhole)
+    if not cands:
+        return [], [f"no sphere of radius {search:.3f} mm found"]
+    flags = {"edge": boundary_flags(valid)}
+    viewpoints = np.array([cam.pinhole, proj.pinhole])
+    out, notes = [], []
+    for c in cands:
+        try:
+            rf = fit_region(maps, c.region, None, expected_radius=search, flag_maps=flags, viewpoints=viewpoints,
+                            config=rejection_config)
+        except FitError as err:
+            notes.append(f"candidate at {_xyz(c.centre)}: {err}")
+            continue
+        m = rf.fit.model
+        why = _implausible(m, radii, cam, cfg)
+        if why is not None:
+            notes.append(f"candidate at {_xyz(m.centre)}: {why}")
+            continue
+        out.append(Sighting(scanner.name, np.asarray(m.centre, float), float(m.radius), float(m.rms),
+                            int(m.n_points), float(rf.kept_pixels[1].mean()), rf.pixels, viewpoints))
+    return out, notes
+
+
+def cluster_centres(centres, link_mm: float) -> np.ndarray:
+    """Single-linkage clusters of points: two closer than ``link_mm`` are one sphere.
+
+    Parameters
+    ----------
+    centres : array_like, shape (n, 3)
+    link_mm : float
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        Cluster labels 0, 1, ... in order of first appearance.
+
+    >>> cluster_centres([[0, 0, 0], [1000, 0, 0], [3, 0, 0], [1010, 0, 0]], 25.4).tolist()
+    [0, 1, 0, 1]
+    """
+    c = np.asarray(centres, float).reshape(-1, 3)
+    parent = list(range(len(c)))
+
+    def root(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    close = np.linalg.norm(c[:, None] - c[None], axis=-1) < link_mm
+    for i, j in zip(*np.nonzero(np.triu(close, 1))):
+        parent[root(j)] = root(i)
+    roots = [root(i) for i in range(len(c))]
+    first = {r: k for k, r in enumerate(dict.fromkeys(roots))}
+    return np.array([first[r] for r in roots], dtype=int)
+
+
+def name_clusters(sightings: list[Sighting], labels, ballbar: Artefact, scanner_order,
+                  config: SightingConfig | None = None) -> dict[int, str]:
+    """Sphere ids of the two clusters of a position's sightings.
+
+    If the bar's certified diameters differ by more than
+    ``config.distinct_diameter_mm``, each cluster takes the id whose certified radius
+    its mean free-fit radius matches (the closer pairing). Otherwise the spheres are
+    alike and the names follow the data's order: the bar's first id goes to the
+    sphere seen by the first scanner in ``scanner_order`` that sees any, and if that
+    scanner sees both, to the one further left in its image (smaller mean camera
+    column). A length (centre distance) does not depend on these names; with alike
+    spheres a swap fixes a radius wrong by at most half the diameter difference.
+
+    Parameters
+    ----------
+    sightings : list of Sighting
+    labels : array_like of int, shape (len(sightings),)
+        Exactly two distinct clusters (:func:`cluster_centres`).
+    scanner_order : sequence of str
+        The rig's scanners in order.
+
+    Returns
+    -------
+    dict cluster label -> sphere id
+    """
+    cfg = config or SightingConfig()
+    labels = np.asarray(labels)
+    ids, radii = ballbar.ids[:2], ballbar.radii[:2]
+    k0, k1 = sorted(set(labels.tolist()))
+    if abs(ballbar.diameters[0] - ballbar.diameters[1]) > cfg.distinct_diameter_mm:
+        fitted = [np.mean([s.radius_mm for s, lab in zip(sightings, labels) if lab == k]) for k in (k0, k1)]
+        straight = abs(fitted[0] - radii[0]) + abs(fitted[1] - radii[1])
+        swapped = abs(fitted[0] - radii[1]) + abs(fitted[1] - radii[0])
+        first = k0 if straight <= swapped else k1
+    else:
+        rank = {name: i for i, name in enumerate(scanner_order)}
+        order = sorted(range(len(sightings)),
+                       key=lambda i: (rank.get(sightings[i].scanner, len(rank)), sightings[i].column_px))
+        first = int(labels[order[0]])
+    return {first: ids[0], (k1 if first == k0 else k0): ids[1]}
+
+
+def refit_sighting(sighting: Sighting, radius_mm: float, rod_axis, rejection_config: RejectionConfig | None = None
+                   ) -> SphereMeasurement:
+    """Refit a sighting's points with the certified radius fixed and the rod masked.
+
+    ``rod_axis`` (3,) is the unit direction from this sphere towards the other one
+    (world); a cone about it masks the tube and its end cap, as in
+    :func:`measure_sphere`, which fits the same points the same way.
+
+    Raises
+    ------
+    FitError
+        Too few clean points.
+    """
+    px = sighting.pixels
+    fit = fit_sphere_robust(px.points, radius_mm, expected_radius=radius_mm, flags=px.flags,
+                            viewpoints=sighting.viewpoints, rod_axes=np.asarray(rod_axis, float).reshape(1, 3),
+                            config=rejection_config)
+    m = fit.model
+    return SphereMeasurement(np.asarray(m.centre, float), float(m.radius), float(m.rms), int(m.n_points),
+                             dict(fit.rejected))

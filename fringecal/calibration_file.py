@@ -29,10 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import write_text
 from .rig import Rig, Scanner
 from .sensor import PARAM_NAMES, Sensor, SensorFormat
 
-__all__ = ["write_calibration_xml", "read_calibration_xml", "write_calibration_json",
+__all__ = ["write_calibration_xml", "xml_text", "read_calibration_xml", "write_calibration_json",
            "read_calibration_json", "rig_to_dict", "rig_from_dict", "CalibrationFileError"]
 
 _GROUPS = {
@@ -97,17 +98,8 @@ def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
         raise CalibrationFileError(f"{source}: malformed calibration ({type(err).__name__}: {err})") from None
 
 
-def _atomic_write(path: Path, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
-    return path
-
-
 def write_calibration_json(rig: Rig, path, metadata: dict | None = None) -> Path:
-    return _atomic_write(Path(path), json.dumps(rig_to_dict(rig, metadata), indent=2) + "\n")
+    return write_text(Path(path), json.dumps(rig_to_dict(rig, metadata), indent=2) + "\n")
 
 
 def read_calibration_json(path) -> Rig:
@@ -120,6 +112,11 @@ def read_calibration_json(path) -> Rig:
 
 
 def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:
+    return write_text(Path(path), xml_text(rig, metadata))
+
+
+def xml_text(rig: Rig, metadata: dict | None = None) -> str:
+    """The XML calibration document of ``rig`` (see the module's layout)."""
     d = rig_to_dict(rig, metadata)
     root = ET.Element("calibration", software=d["software"], version=d["version"],
                       reference_scanner=d["reference_scanner"])
@@ -141,8 +138,7 @@ def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:
     for k, v in d["metadata"].items():
         ET.SubElement(meta, "item", key=str(k)).text = json.dumps(v)
     ET.indent(root)
-    text = '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
-    return _atomic_write(Path(path), text)
+    return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
 def read_calibration_xml(path) -> Rig:

@@ -12,7 +12,8 @@ from typing import Any, Optional
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-__all__ = ["ConfigError", "StrictModel", "RigConfig", "load_yaml_model", "package_root", "thesis_dir"]
+__all__ = ["ConfigError", "StrictModel", "RigConfig", "load_yaml_model", "read_yaml_mapping", "validate_model",
+           "deep_update", "package_root", "thesis_dir"]
 
 
 class ConfigError(ValueError):
@@ -66,28 +67,45 @@ def _resolve_paths(model: BaseModel, base: Path) -> BaseModel:
     return model.model_copy(update=updates) if updates else model
 
 
-def load_yaml_model(path, model: type[BaseModel], overrides: dict | None = None):
-    """Load ``path`` into ``model``; relative paths resolve against the file's folder."""
+def read_yaml_mapping(path) -> dict:
+    """The top-level mapping of a YAML file (an empty file is an empty mapping)."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
-    except yaml.YAMLError as err:
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, not a YAML file") from None
+    except (yaml.YAMLError, UnicodeDecodeError) as err:
         raise ConfigError(f"{path}: not valid YAML ({err})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, found {type(data).__name__}")
-    if overrides:
-        data = _deep_update(data, overrides)
+    return data
+
+
+def validate_model(data: dict, model: type[BaseModel], source, base: Path):
+    """``model`` from ``data``; relative paths resolve against ``base``; every path must exist.
+
+    Errors name ``source`` and the offending key path.
+    """
     try:
         obj = model.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_format_validation_error(path, err)) from None
-    obj = _resolve_paths(obj, path.parent)
+        raise ConfigError(_format_validation_error(Path(source), err)) from None
+    obj = _resolve_paths(obj, Path(base))
     missing = [f"{k}: {v}" for k, v in _paths(obj) if not v.exists()]
     if missing:
-        raise ConfigError(f"{path}: referenced file(s) not found: " + "; ".join(missing))
+        raise ConfigError(f"{source}: referenced file(s) not found: " + "; ".join(missing))
     return obj
+
+
+def load_yaml_model(path, model: type[BaseModel], overrides: dict | None = None):
+    """Load ``path`` into ``model``; relative paths resolve against the file's folder."""
+    path = Path(path)
+    data = read_yaml_mapping(path)
+    if overrides:
+        data = deep_update(data, overrides)
+    return validate_model(data, model, path, path.parent)
 
 
 def _paths(model: BaseModel, prefix: str = ""):
@@ -99,8 +117,9 @@ def _paths(model: BaseModel, prefix: str = ""):
             yield from _paths(v, prefix + name + ".")
 
 
-def _deep_update(base: dict, upd: dict) -> dict:
+def deep_update(base: dict, upd: dict) -> dict:
+    """``base`` with ``upd`` merged in, mappings merged key by key."""
     out = dict(base)
     for k, v in upd.items():
-        out[k] = _deep_update(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        out[k] = deep_update(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out

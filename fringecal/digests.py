@@ -1,24 +1,50 @@
-"""Content digests of files, directories (zarr stores) and JSON-like values.
+"""Content digests of files, folders (zarr stores), values and source code.
 
-They identify what a step computed from: cache keys of the pipeline's tasks and the
-up-to-date check of a run directory are built from them.
+They decide what a pipeline step has to recompute (:mod:`fringecal.steps.keys`): a
+step's cache key is built from the digests of the files it reads, of the settings it
+uses and of the source of the fringecal modules it runs.
+
+* :func:`digest_path` hashes a file, or a folder's relative paths and file contents
+  (hidden entries are skipped, so temporaries and lock files never count).
+* :class:`DigestCache` remembers digests by each file's size, modification time and
+  inode, as git's index does, so an unchanged 100 MB store or a 98-frame image stack
+  is hashed once, not at every check. A file changed in place gets a new mtime and is
+  hashed again. Entries for files modified within two seconds of hashing are not
+  kept (a second write within the file system's timestamp resolution could
+  otherwise go unseen).
+* :func:`source_digest` hashes the source files of modules and of every fringecal or
+  schemas module they import (the import graph is read from the source, imports
+  inside functions included), so editing a module changes the key of exactly the
+  steps that can run it.
 """
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import os
+import threading
+import time
+from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
-__all__ = ["digest_path", "digest_value", "CODE_VERSION"]
-
-#: Bump when a change in fringecal alters results (or what a run writes) without changing
-#: the inputs or settings a step is keyed on: cached steps and up-to-date runs are redone.
-CODE_VERSION = "3"
+__all__ = ["digest_path", "digest_value", "DigestCache", "source_digest", "module_files", "code_digest",
+           "INFRASTRUCTURE_MODULES"]
 
 _CHUNK = 1 << 20
+_RACY_NS = 2_000_000_000
+
+#: Modules that decide where files go and how keys are built, not what a step
+#: computes: they are left out of source digests so that, say, a new accessor in the
+#: run directory does not redo twelve minutes of rendering. A renamed output is still
+#: caught, because a step's record must list exactly the outputs it declares now.
+INFRASTRUCTURE_MODULES = frozenset({
+    "fringecal", "fringecal.atomic", "fringecal.digests", "fringecal.rundir", "fringecal.config",
+    "fringecal.runconfig", "fringecal.steps", "fringecal.steps.base", "fringecal.steps.keys",
+    "fringecal.steps.pipeline",
+})
 
 
 def _hash_file(h, path: Path) -> None:
@@ -27,8 +53,16 @@ def _hash_file(h, path: Path) -> None:
             h.update(chunk)
 
 
+def _files(path: Path) -> list[Path]:
+    out = []
+    for root, dirs, files in os.walk(path):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        out += [Path(root) / f for f in sorted(files) if not f.startswith(".")]
+    return out
+
+
 def digest_path(path) -> str:
-    """SHA-256 of a file, or of a directory's relative paths and file contents.
+    """SHA-256 of a file, or of a folder's relative paths and file contents.
 
     Hidden entries (names starting with '.') are ignored so temporary files and
     lock files do not change a store's digest.
@@ -36,27 +70,25 @@ def digest_path(path) -> str:
     path = Path(path)
     h = hashlib.sha256()
     if path.is_dir():
-        for root, dirs, files in os.walk(path):
-            dirs[:] = sorted(d for d in dirs if not d.startswith("."))
-            for name in sorted(f for f in files if not f.startswith(".")):
-                p = Path(root) / name
-                h.update(str(p.relative_to(path)).encode())
-                h.update(b"\0")
-                _hash_file(h, p)
+        for p in _files(path):
+            h.update(str(p.relative_to(path)).encode())
+            h.update(b"\0")
+            _hash_file(h, p)
     else:
         _hash_file(h, path)
     return h.hexdigest()
 
 
 def digest_value(value: Any) -> str:
-    """SHA-256 of a JSON-serialisable value; references (objects with a ``digest``
-    attribute) count by their digest, pydantic models by their JSON dump."""
+    """SHA-256 of a JSON-serialisable value; references (objects with ``path`` and
+    ``digest``) count by their digest, pydantic models by their JSON dump, paths by
+    their text, arrays by their values."""
     text = json.dumps(value, sort_keys=True, default=_json_default)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _json_default(o):
-    if hasattr(o, "digest") and hasattr(o, "path"):
+    if hasattr(o, "digest") and hasattr(o, "path"):  # a reference to a file counts by its content
         return {"ref": o.digest}
     if isinstance(o, Path):
         return str(o)
@@ -65,3 +97,152 @@ def _json_default(o):
     if hasattr(o, "tolist"):
         return o.tolist()
     raise TypeError(f"cannot digest {type(o).__name__}")
+
+
+class DigestCache:
+    """:func:`digest_path` with memory: digests keyed by the files' stat signatures.
+
+    Parameters
+    ----------
+    folder : path or None
+        Where entries persist between processes (one small JSON file per path);
+        None keeps them in memory only.
+
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "t.csv").write_text("a,b\\n1,2\\n")
+    >>> cache = DigestCache(d / ".digests")
+    >>> cache.digest(d / "t.csv") == digest_path(d / "t.csv")
+    True
+    """
+
+    def __init__(self, folder=None):
+        self.folder = None if folder is None else Path(folder)
+        self._memory: dict[str, tuple[str, str]] = {}
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def signature(path: Path) -> tuple[str, int]:
+        """(hash of every file's relative path, size, mtime and inode; newest mtime)."""
+        files = _files(path) if path.is_dir() else [path]
+        h = hashlib.sha256()
+        newest = 0
+        for p in files:
+            st = p.stat()
+            newest = max(newest, st.st_mtime_ns)
+            h.update(f"{p.relative_to(path) if p != path else ''}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\n"
+                     .encode())
+        return h.hexdigest(), newest
+
+    def _entry_file(self, key: str) -> Path | None:
+        return None if self.folder is None else self.folder / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}.json"
+
+    def digest(self, path) -> str:
+        """The content digest of ``path`` (hashed again only if its signature changed)."""
+        path = Path(path).resolve()
+        key = str(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: does not exist")
+        sig, newest = self.signature(path)
+        with self._lock:
+            hit = self._memory.get(key)
+        if hit is None and (entry := self._entry_file(key)) is not None and entry.exists():
+            try:
+                doc = json.loads(entry.read_text())
+                hit = (doc["signature"], doc["digest"]) if doc.get("path") == key else None
+            except (ValueError, KeyError, OSError):
+                hit = None
+        if hit is not None and hit[0] == sig:
+            return hit[1]
+        digest = digest_path(path)
+        if time.time_ns() - newest > _RACY_NS:
+            with self._lock:
+                self._memory[key] = (sig, digest)
+            if (entry := self._entry_file(key)) is not None:
+                from .atomic import write_json
+
+                write_json(entry, {"path": key, "signature": sig, "digest": digest})
+        return digest
+
+
+# -- source code ----------------------------------------------------------------------
+
+def _package_roots() -> dict[str, Path]:
+    here = Path(__file__).resolve().parent
+    return {"fringecal": here, "schemas": here.parent / "schemas"}
+
+
+def _module_file(name: str) -> Path | None:
+    top, _, rest = name.partition(".")
+    root = _package_roots().get(top)
+    if root is None:
+        return None
+    base = root.joinpath(*rest.split(".")) if rest else root
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _resolve(module: str, is_package: bool, node: ast.ImportFrom | ast.Import) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    if node.level == 0:
+        base = node.module or ""
+    else:
+        parts = module.split(".")
+        keep = len(parts) - node.level + (1 if is_package else 0)
+        base = ".".join(parts[:keep] + ([node.module] if node.module else []))
+    # ``from pkg import name``: name may be a submodule or an attribute of pkg
+    return [base] + [f"{base}.{a.name}" for a in node.names]
+
+
+@lru_cache(maxsize=None)
+def _imports(name: str) -> tuple[str, ...]:
+    path = _module_file(name)
+    if path is None:
+        return ()
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            for target in _resolve(name, path.name == "__init__.py", node):
+                if _module_file(target) is not None:
+                    out.add(target)
+    return tuple(sorted(out))
+
+
+def module_files(modules: Iterable[str]) -> dict[str, Path]:
+    """Module name -> source file of ``modules`` and every fringecal or schemas module
+    they import, directly or not, leaving out :data:`INFRASTRUCTURE_MODULES`."""
+    seen: dict[str, Path] = {}
+    todo = [m for m in modules]
+    while todo:
+        name = todo.pop()
+        if name in seen or name in INFRASTRUCTURE_MODULES:
+            continue
+        path = _module_file(name)
+        if path is None:
+            raise ModuleNotFoundError(f"{name}: not a fringecal or schemas module")
+        seen[name] = path
+        todo += _imports(name)
+    return dict(sorted(seen.items()))
+
+
+def source_digest(modules: Iterable[str]) -> str:
+    """SHA-256 over the source files of :func:`module_files` ``(modules)``."""
+    h = hashlib.sha256()
+    for name, path in module_files(modules).items():
+        h.update(name.encode() + b"\0")
+        _hash_file(h, path)
+    return h.hexdigest()
+
+
+def code_digest() -> str:
+    """One digest of every fringecal and schemas source file (provenance in the manifest)."""
+    h = hashlib.sha256()
+    for top, root in _package_roots().items():
+        for p in sorted(root.rglob("*.py")):
+            h.update(str(p.relative_to(root.parent)).encode() + b"\0")
+            _hash_file(h, p)
+    return h.hexdigest()

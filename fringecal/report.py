@@ -1,12 +1,19 @@
 """The run report: one self-contained HTML page a metrologist can hand to a customer.
 
-:func:`write_report` reads only files inside the run directory (``manifest.json``,
-``summary.json``, ``bundle_summary.json``, ``calibration.json``, ``verification.json``,
-``truth.json``, ``artefact.csv``, ``tables/*.csv``, ``figures/*.png``) and renders what
-is there: a missing optional file (``truth.json`` of a real run, say) gives its section
-a "not available" note, a malformed one a "could not be shown" note naming the error;
-neither stops the page. Images are embedded as base64 PNG, the style sheet is inline,
-there is no JavaScript, and every string read from a file is HTML-escaped.
+:func:`write_report` reads only files of the run directory, each through its
+:class:`~fringecal.rundir.RunDir` accessor (the manifest, the artefact and ball-bar,
+the acquisition, hexapod, labelling, link and DLT tables, the calibration, the
+bundle summary, the residual tables and histograms, the verification and, for a
+simulated run, the evaluation against the truth), and renders what is there: a
+missing optional file (the evaluation of a run of a recorded data set, which has
+no truth; the verification of a run without ball-bar recordings) gives its section
+a "not available" note, a malformed one a "could not be shown" note naming the file
+and the error; neither stops the page. When and by which command the run executed,
+and how long its steps took, describe one execution rather than the run's results:
+they are passed in (``execution``, ``timings``) or, when the page is rewritten
+later, taken from the run's summary. Images are embedded as base64 PNG, the style
+sheet is inline, there is no JavaScript, and every string read from a file is
+HTML-escaped. The page is written atomically (:meth:`fringecal.rundir.TextFile.save`).
 """
 
 from __future__ import annotations
@@ -15,7 +22,6 @@ import base64
 import hashlib
 import html
 import io
-import json
 import math
 import re
 from datetime import datetime, timezone
@@ -24,10 +30,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .rundir import RunDir
+from .rundir import RunDir, RunFile
 from .sensor import PARAM_NAMES
 
-__all__ = ["write_report"]
+__all__ = ["NO_TRUTH", "render_report", "write_report"]
+
+#: What the page says where a run of a recorded data set has no truth to compare with.
+NO_TRUTH = "absent, as for a run of a recorded data set (no truth)"
 
 _PARAM_LABELS = {"x0": "x<sub>0</sub>", "y0": "y<sub>0</sub>", "z0": "z<sub>0</sub>", "omega": "&omega;",
                  "phi": "&phi;", "kappa": "&kappa;", "xi_h": "&xi;<sub>H</sub>", "eta_h": "&eta;<sub>H</sub>",
@@ -146,16 +155,32 @@ def _verdict(ok) -> _Raw:
 
 def _table(headers, rows, left: int = 1, cls: str = "") -> str:
     """Rows of cells (escaped unless :class:`_Raw`); the first ``left`` columns align left.
-    A cell ``("PASS", "pass")`` is a coloured verdict."""
+    A cell ``("PASS", "pass")`` is a coloured verdict; a :class:`_Span` covers the same
+    column of the following rows, which then leave that cell out."""
     def cell(j, v, tag="td"):
         klass = "l" if j < left else ""
-        if isinstance(v, tuple):
+        span = ""
+        if isinstance(v, _Span):
+            v, klass, span = v.text, "l", f' rowspan="{v.rows}"'
+        elif isinstance(v, tuple):
             v, klass = v
-        return f"<{tag}{_cls(klass)}>{_e(v)}</{tag}>"
+        return f"<{tag}{_cls(klass)}{span}>{_e(v)}</{tag}>"
 
     head = "".join(cell(j, h, "th") for j, h in enumerate(headers))
     body = "\n".join("<tr>" + "".join(cell(j, v) for j, v in enumerate(r)) + "</tr>" for r in rows)
     return f"<table{_cls(cls)}><tr>{head}</tr>\n{body}</table>\n"
+
+
+class _Span:
+    """A cell spanning ``rows`` rows (a note standing for a whole column)."""
+
+    def __init__(self, text, rows: int):
+        self.text, self.rows = text, max(1, int(rows))
+
+
+def _column_note(rows: list[list], text) -> list[list]:
+    """``rows`` with one more column: ``text`` once, spanning all of them."""
+    return [r + [_Span(text, len(rows))] if i == 0 else list(r) for i, r in enumerate(rows)]
 
 
 def _cls(name: str) -> str:
@@ -186,82 +211,144 @@ def _pass_cell(v) -> tuple:
 
 # -- reading the run directory ---------------------------------------------------------------
 class _Run:
-    def __init__(self, root: Path):
-        self.rd = RunDir(root)
-        self.root = self.rd.root
-        self._json: dict[str, dict] = {}
+    """The run directory as the report reads it: every file through its RunDir accessor,
+    each loaded once; a missing file raises :class:`_Missing`, a malformed one ValueError."""
 
-    def json(self, name: str) -> dict:
-        path = self.root / name
-        if not path.is_file():
-            raise _Missing(f"{name} is not in the run directory")
-        if name not in self._json:
+    def __init__(self, rd: RunDir):
+        self.rd = rd
+        self.root = rd.root
+        self._loaded: dict[str, tuple[bool, object]] = {}
+
+    def load(self, f: RunFile, *args):
+        if not f.exists():
+            raise _Missing(f"{f.rel} is not in the run directory")
+        if f.rel not in self._loaded:
             try:
-                self._json[name] = json.loads(path.read_text(encoding="utf-8"))
-            except json.JSONDecodeError as err:
-                raise ValueError(f"{name}: not valid JSON ({err})") from None
-        return self._json[name]
+                self._loaded[f.rel] = (True, f.load(*args))
+            except (ValueError, KeyError, OSError) as err:
+                self._loaded[f.rel] = (False, err)
+        ok, value = self._loaded[f.rel]
+        if not ok:
+            raise value
+        return value
 
-    def maybe_json(self, name: str) -> dict | None:
+    def json(self, f: RunFile) -> dict:
+        doc = self.load(f)
+        if not isinstance(doc, dict):
+            raise ValueError(f"{f.rel}: not a JSON object")
+        return doc
+
+    def maybe_json(self, f: RunFile) -> dict | None:
         try:
-            return self.json(name)
-        except (_Missing, ValueError):
+            return self.json(f)
+        except (_Missing, ValueError, KeyError, OSError):
             return None
 
-    def table(self, name: str, model=None) -> pd.DataFrame:
-        from schemas import read_table
+    def table(self, f: RunFile) -> pd.DataFrame:
+        return self.load(f)
 
-        path = self.rd.table(name)
-        if not path.is_file():
-            raise _Missing(f"tables/{name}.csv is not in the run directory")
-        return read_table(path, model) if model is not None else pd.read_csv(path, dtype={"sensor": str})
-
-    def file(self, rel: str) -> Path:
-        path = self.root / rel
-        if not path.is_file():
-            raise _Missing(f"{rel} is not in the run directory")
-        return path
-
-    def rig(self):
-        from .calibration_file import read_calibration_json
-
-        return read_calibration_json(self.file("calibration.json"))
+    def manifest(self) -> dict:
+        return self.maybe_json(self.rd.manifest) or {}
 
     def config(self) -> dict:
-        return (self.maybe_json("manifest.json") or {}).get("config") or {}
+        cfg = self.manifest().get("config")
+        return cfg if isinstance(cfg, dict) else {}
+
+    def name(self) -> str:
+        return str(self.config().get("name") or self.root.name)
+
+    def source(self) -> str | None:
+        """``"simulated"``, ``"dataset"`` or None (not recorded)."""
+        src = self.manifest().get("source")
+        if src in ("simulated", "dataset"):
+            return src
+        try:
+            kinds = set(self.table(self.rd.acquisition)["source"].astype(str))
+            if kinds:
+                return "simulated" if kinds == {"simulated"} else "dataset"
+        except (_Missing, ValueError, KeyError, OSError):
+            pass
+        cfg = self.config()
+        if cfg.get("dataset"):
+            return "dataset"
+        return "simulated" if cfg.get("simulate") else None
+
+    def evaluation(self) -> dict:
+        """The evaluation against the truth (``rd.evaluation``); its absence explained
+        (a run of a recorded data set has no truth)."""
+        f = self.rd.evaluation
+        if not f.exists():
+            if self.source() == "simulated":
+                raise _Missing(f"{f.rel} is not in the run directory: this simulated run has not been evaluated "
+                               f"against its truth")
+            raise _Missing(f"{f.rel} is {NO_TRUTH}")
+        return self.json(f)
+
+    def no_truth(self) -> str:
+        """What a "true parameters" cell says when there is no evaluation to fill it."""
+        f = self.rd.evaluation
+        if f.exists():
+            return f"could not be read (see the {f.rel} note under Simulation truth)"
+        return NO_TRUTH if self.source() != "simulated" else f"not available ({f.rel} is not in the run directory)"
+
+    def clean(self, message: str) -> str:
+        """An error message with the run directory's absolute path left out."""
+        root = str(self.root)
+        return message.replace(root + "/", "").replace(root, self.root.name)
 
 
-def _guard(fn, *args) -> str:
+def _guard(fn, run: _Run, *args) -> str:
     try:
-        return fn(*args)
+        return fn(run, *args)
     except _Missing as why:
         return _note(f"Not available: {why}.")
-    except (ValueError, KeyError) as err:  # a malformed file: say which, keep the rest of the page
-        return _warn(f"Could not be shown: {type(err).__name__}: {err}")
+    except (ValueError, KeyError, TypeError, AttributeError, IndexError) as err:
+        # a malformed file: say which, keep the rest of the page
+        return _warn(f"Could not be shown: {type(err).__name__}: {run.clean(str(err))}")
 
 
-def _section(anchor: str, title: str, fn, *args) -> str:
-    return f'<section id="{anchor}">\n<h2>{_e(title)}</h2>\n{_guard(fn, *args)}</section>\n'
+def _section(anchor: str, title: str, fn, run: _Run, *args) -> str:
+    return f'<section id="{anchor}">\n<h2>{_e(title)}</h2>\n{_guard(fn, run, *args)}</section>\n'
+
+
+def _numeric(df: pd.DataFrame) -> pd.DataFrame:
+    """A table loaded as text (no schema) with its numeric columns as numbers."""
+    out = df.copy()
+    for col in out.columns:
+        try:
+            out[col] = pd.to_numeric(out[col])
+        except (ValueError, TypeError):
+            pass
+    return out
+
+
+def _execution(run: _Run, execution: dict | None) -> dict:
+    """When and by which command the run executed: passed in, else from the summary."""
+    if execution:
+        return dict(execution)
+    summ = run.maybe_json(run.rd.summary) or {}
+    return {k: summ[k] for k in ("created_utc", "command") if summ.get(k) is not None}
 
 
 # -- sections ---------------------------------------------------------------------------------
 def _status(run: _Run):
-    ver = run.maybe_json("verification.json")
+    """PASS/FAIL of the ball-bar verification, None when the run is not verified.
+    Only ``rd.verification`` decides (the summary may be of an earlier execution)."""
+    ver = run.maybe_json(run.rd.verification)
     if ver and isinstance(ver.get("calibrated"), dict) and "pass" in ver["calibrated"]:
         return _truthy(ver["calibrated"]["pass"])
-    summ = (run.maybe_json("summary.json") or {}).get("verification") or {}
-    return _truthy(summ["pass"]) if "pass" in summ else None
+    return None
 
 
 def _key_figures(run: _Run) -> str:
-    bs = run.maybe_json("bundle_summary.json") or {}
-    summ = run.maybe_json("summary.json") or {}
-    ver = (run.maybe_json("verification.json") or {}).get("calibrated") or summ.get("verification") or {}
+    bs = run.maybe_json(run.rd.bundle_summary) or {}
+    ver = (run.maybe_json(run.rd.verification) or {}).get("calibrated")
+    ver = ver if isinstance(ver, dict) else {}
     items = []
-    eps2 = summ.get("rms_eps2_mm_after", (bs.get("after") or {}).get("rms_eps2_mm"))
+    eps2 = (bs.get("after") or {}).get("rms_eps2_mm")
     if _finite(eps2):
         items.append(("RMS ε<sub>2</sub> after adjustment", _um(eps2)))
-    n = summ.get("one_part_in", bs.get("one_part_in_1p96_sigma"))
+    n = bs.get("one_part_in_1p96_sigma")
     if _finite(n):
         items.append(("calibration accuracy (1.96 σ of ε<sub>2</sub>)", _parts(n)))
     if _finite(ver.get("max_abs_error_mm")):
@@ -277,20 +364,32 @@ def _key_figures(run: _Run) -> str:
     return '<div class="key">' + "".join(f"<div>{label}<b>{_e(v)}</b></div>" for label, v in items) + "</div>\n"
 
 
-def _header(run: _Run, generated: str) -> str:
-    man = run.maybe_json("manifest.json") or {}
-    name = run.config().get("name") or run.root.name
-    digest = str(man.get("config_digest") or "n/a")
-    meta = _kv([("Run directory", run.root.name), ("Created (UTC)", man.get("created_utc", "n/a")),
+_SOURCES = {"simulated": "simulated rig", "dataset": "recorded data set"}
+
+
+def _source_text(run: _Run) -> str:
+    src = run.source()
+    cfg = run.config()
+    if src == "dataset" and cfg.get("dataset"):
+        return f"recorded data set {cfg['dataset']}"
+    if src == "simulated" and isinstance(cfg.get("simulate"), dict) and cfg["simulate"].get("rig"):
+        return f"simulated rig {cfg['simulate']['rig']}"
+    return _SOURCES.get(src, "not recorded")
+
+
+def _header(run: _Run, generated: str, execution: dict) -> str:
+    digest = str(run.manifest().get("config_digest") or "n/a")
+    meta = _kv([("Run directory", run.root.name), ("Data source", _source_text(run)),
+                ("Run started (UTC)", execution.get("created_utc") or "not recorded"),
                 ("Configuration digest", _Raw(f"<code>{_e(digest[:16])}</code>")),
                 ("Report written (UTC)", generated)])
-    return (f"<header><h1>Multi-scanner calibration report: {_e(name)} {_verdict(_status(run))}</h1>\n"
+    return (f"<header><h1>Multi-scanner calibration report: {_e(run.name())} {_verdict(_status(run))}</h1>\n"
             f'<p class="meta">Fringe-projection scanners calibrated into one global frame with a '
             f"CMM-measured sphere artefact (fringecal).</p>\n{meta}{_key_figures(run)}</header>\n")
 
 
 def _rig_part(run: _Run) -> str:
-    rig = run.rig()
+    rig = run.load(run.rd.calibration)
     rows = []
     for sc in rig.scanners:
         for s in sc.sensors:
@@ -304,13 +403,25 @@ def _rig_part(run: _Run) -> str:
 
 
 def _artefact_part(run: _Run) -> str:
-    from .artefact import load_artefact
-
-    art = load_artefact(run.file("artefact.csv"))
+    rd = run.rd
+    art = run.load(rd.artefact)
     d = art.distance_matrix()
-    rods = run.root / "rods.csv"
-    n_rods = f"{len(pd.read_csv(rods))}" if rods.is_file() else "not recorded in the run directory"
-    bs = run.maybe_json("bundle_summary.json") or {}
+    try:
+        n_rods = f"{len(run.load(rd.rods, art))}"
+    except _Missing:
+        n_rods = "none recorded for this run"
+    except ValueError as err:
+        n_rods = f"could not be read: {run.clean(str(err))}"
+    try:
+        bar = run.load(rd.ballbar)
+        length = float(np.linalg.norm(bar.centres[1] - bar.centres[0])) if len(bar) >= 2 else float("nan")
+        ballbar = (f"spheres {', '.join(bar.ids)}, diameters {', '.join(f'{x:.3f}' for x in bar.diameters)} mm, "
+                   f"centre distance {_num(length, '.4f', 'mm')} (CMM)")
+    except _Missing as why:
+        ballbar = str(why) if rd.verification.exists() else "none in this run (the calibration is not verified)"
+    except ValueError as err:
+        ballbar = f"could not be read: {run.clean(str(err))}"
+    bs = run.maybe_json(rd.bundle_summary) or {}
     diag = bs.get("volume_diagonal_mm")
     return _kv([("Spheres", f"{len(art)} (diameters {art.diameters.min():.3f} to {art.diameters.max():.3f} mm)"),
                 ("Rods", n_rods),
@@ -320,32 +431,57 @@ def _artefact_part(run: _Run) -> str:
                  _um(float(art.u.max())) if art.u.max() > 0 else "not given"),
                 ("Measurement-volume diagonal",
                  f"{_num(diag, '.1f', 'mm')} ({bs.get('volume_diagonal_source', 'source not recorded')})"
-                 if _finite(diag) else None)])
+                 if _finite(diag) else None),
+                ("Verification ball-bar", ballbar)])
 
 
 def _acquisition_part(run: _Run) -> str:
-    acq_cfg = run.config().get("acquisition") or {}
-    pairs = [("Camera resolution", f"{acq_cfg['camera_width_px']} px wide" if "camera_width_px" in acq_cfg else None)]
+    rd = run.rd
+    src = run.source()
+    cfg = run.config()
+    sim = cfg.get("simulate") if isinstance(cfg.get("simulate"), dict) else {}
+    width = (sim.get("acquisition") or {}).get("camera_width_px")
+    pairs = [("Data source", _source_text(run)),
+             ("Simulated camera resolution", f"{width} px wide" if src == "simulated" and width else None)]
     try:
-        acq = run.table("acquisition")
-        pairs.append(("Measurements (pose × scanner)",
-                      f"{len(acq)} from {acq['pose'].nunique()} artefact poses and {acq['scanner'].nunique()} "
-                      f"scanner(s); median valid pixel fraction {acq['valid_fraction'].median():.2f}"))
-    except _Missing:
-        summ = run.maybe_json("summary.json") or run.maybe_json("bundle_summary.json") or {}
-        pairs.append(("Artefact poses in the adjustment", summ.get("n_measurements")))
-    html_ = _kv(pairs)
-    try:
-        from schemas import AcquiredPosesTable
-
-        poses = run.table("acquisition_poses", AcquiredPosesTable)
+        acq = run.table(rd.acquisition)
+        art = acq[acq["kind"] == "artefact"]
+        bar = acq[acq["kind"] == "ballbar"]
+        pairs.append(("Measurements (artefact pose × scanner)",
+                      f"{len(art)} from {art['pose'].nunique()} artefact poses and {art['scanner'].nunique()} "
+                      f"scanner(s)"))
+        pairs.append(("Ball-bar recordings (position × scanner)",
+                      f"{len(bar)} from {bar['pose'].nunique()} positions" if len(bar) else
+                      "none (the calibration is not verified)"))
+        external = acq[acq["source"].astype(str) != "simulated"]
+        if len(external):
+            pairs.append(("Read from the data set", f"{len(external)} image stacks or stores"))
+        elif len(acq):
+            pairs.append(("Rendered by the simulator", f"{len(acq)} stores"))
     except _Missing as why:
-        return html_ + _note(f"Hexapod and pose plan not available: {why}.")
-    used = bool(poses["hexapod"].any())
-    t, r = poses["translation_error_mm"], poses["rotation_error_rad"]
-    html_ += _kv([("Hexapod", "used to move the artefact" if used else "not used (poses set directly)"),
-                  ("Planned vs reached pose", f"translation error max {_um(t.max())}, RMS "
-                   f"{_um(float(np.sqrt(np.mean(t ** 2))))}; rotation error max {_urad(r.max())}")])
+        bs = run.maybe_json(rd.bundle_summary) or {}
+        pairs.append(("Artefact poses in the adjustment", bs.get("n_measurements")))
+        pairs.append(("Acquisition table", f"not available: {why}"))
+    except (ValueError, KeyError) as err:  # a malformed table: named, the hexapod part still shown
+        return _kv(pairs) + _warn(f"Could not be shown: {type(err).__name__}: {run.clean(str(err))}") \
+            + _guard(_hexapod_part, run)
+    return _kv(pairs) + _guard(_hexapod_part, run)
+
+
+def _hexapod_part(run: _Run) -> str:
+    try:
+        poses = run.table(run.rd.hexapod_moves)
+    except _Missing as why:
+        if run.source() == "dataset":
+            return _note("Hexapod: the data set's artefact poses were not moved by a hexapod here (its "
+                         "measurements were recorded before this run), so there are no planned and reached "
+                         "poses to compare.")
+        return _note(f"Hexapod moves not available: {why}.")
+    used = bool(poses["hexapod"].map(_truthy).any())
+    t, r = poses["translation_error_mm"].astype(float), poses["rotation_error_rad"].astype(float)
+    html_ = _kv([("Hexapod", "used to move the artefact" if used else "not used (poses set directly)"),
+                 ("Planned vs reached pose", f"translation error max {_um(t.max())}, RMS "
+                  f"{_um(float(np.sqrt(np.mean(t ** 2))))}; rotation error max {_urad(r.max())}")])
     rows = [[p.measurement, _um(p.translation_error_mm), _urad(p.rotation_error_rad),
              f"{p.tx_mm:.3f}, {p.ty_mm:.3f}, {p.tz_mm:.3f}"] for p in poses.itertuples()]
     return html_ + ("<details><summary>Planned vs reached pose per artefact pose</summary>\n"
@@ -354,11 +490,10 @@ def _acquisition_part(run: _Run) -> str:
 
 
 def _processing_part(run: _Run) -> str:
-    from schemas import LabelOutcomesTable, ScannerLinksTable
-
+    rd = run.rd
     out = []
     try:
-        lab = run.table("label_outcomes", LabelOutcomesTable)
+        lab = run.table(rd.label_outcomes)
         ok = lab[lab["status"] == "labelled"]
         out.append(f"<p>Sphere labelling: {len(ok)} of {len(lab)} measurements labelled.</p>\n")
         bad = lab[lab["status"] != "labelled"]
@@ -370,54 +505,72 @@ def _processing_part(run: _Run) -> str:
                               left=3))
     except _Missing as why:
         out.append(_note(f"Labelling outcomes not available: {why}."))
-    try:
-        links = run.table("scanner_links", ScannerLinksTable)
-        out.append("<h3>Scanner links (start values)</h3>\n" + _table(
-            ["Scanner", "Linked to", "Via", "Measurements", "Translation spread", "Rotation spread"],
-            [[r.scanner, r.reference, r.via, r.n_measurements, _len(r.translation_spread_mm),
-              _urad(r.rotation_spread_rad)] for r in links.itertuples()], left=3))
-    except _Missing:
-        pass
-    try:
-        dlt = run.table("dlt")
-        out.append("<h3>Start values by DLT</h3>\n" + _table(
-            ["Sensor", "Points", "Reprojection RMS", "Method"],
-            [[r.sensor, r.n_points, _um(r.reprojection_rms_mm, 2), r.method] for r in dlt.itertuples()]))
-    except _Missing:
-        pass
+    out.append(_guard(_links_part, run))
+    out.append(_guard(_dlt_part, run))
     return "".join(out)
+
+
+def _links_part(run: _Run) -> str:
+    try:
+        links = run.table(run.rd.scanner_links)
+    except _Missing:
+        return ""
+    return "<h3>Scanner links (start values)</h3>\n" + _table(
+        ["Scanner", "Linked to", "Via", "Measurements", "Translation spread", "Rotation spread"],
+        [[r.scanner, r.reference, r.via, r.n_measurements, _len(r.translation_spread_mm),
+          _urad(r.rotation_spread_rad)] for r in links.itertuples()], left=3)
+
+
+def _dlt_part(run: _Run) -> str:
+    try:
+        dlt = _numeric(run.table(run.rd.dlt))
+    except _Missing:
+        return ""
+    return "<h3>Start values by DLT</h3>\n" + _table(
+        ["Sensor", "Points", "Reprojection RMS", "Method"],
+        [[r.sensor, r.n_points, _um(r.reprojection_rms_mm, 2), r.method] for r in dlt.itertuples()])
 
 
 def _timings(run: _Run, timings: dict | None) -> str:
     source = "this run"
     if not timings:
-        summ = run.maybe_json("summary.json") or {}
-        timings = summ.get("timings") or {k: summ[k] for k in ("bundle_seconds", "total_seconds") if k in summ}
-        source = "summary.json"
+        summ = run.maybe_json(run.rd.summary) or {}
+        timings = dict(summ.get("timings") or {})
+        if not timings and _finite(summ.get("bundle_seconds")):
+            timings["bundle"] = summ["bundle_seconds"]
+        if timings and _finite(summ.get("total_seconds")):
+            timings["total"] = summ["total_seconds"]
+        source = f"{run.rd.summary.rel} (recorded when the run executed)"
     if not timings:
-        raise _Missing("no step timings were passed in and summary.json records none")
+        raise _Missing(f"no step timings were passed in and {run.rd.summary.rel} records none")
     steps = {str(k).removesuffix("_seconds"): float(v) for k, v in timings.items() if _finite(v)}
     total = steps.pop("total") if "total" in steps else sum(steps.values())
     rows = [[k, _secs(v), f"{100 * v / total:.0f} %" if total > 0 else ""] for k, v in steps.items()]
     rows.append([_Raw("<b>total</b>"), _Raw(f"<b>{_secs(total)}</b>"), ""])
-    return _table(["Step", "Wall time", "Share"], rows) + f'<p class="meta">Timings from {source}.</p>\n'
+    return _table(["Step", "Wall time", "Share"], rows) + f'<p class="meta">Timings from {_e(source)}.</p>\n'
 
 
 def _results(run: _Run) -> str:
-    bs = run.json("bundle_summary.json")
-    truth = run.maybe_json("truth.json") or {}
+    bs = run.json(run.rd.bundle_summary)
+    try:
+        truth = run.evaluation()
+    except (_Missing, ValueError):
+        truth = None
     before, after = bs["before"], bs["after"]
     rows = []
     for key, label in (("rms_f_mm", "F (objective, eq. 2-24)"),
                        ("rms_eps1_mm", "ε<sub>1</sub> (ray closest approach)"),
                        ("rms_eps2_mm", "ε<sub>2</sub> (distance to the CMM sphere)")):
-        floor = truth.get(key.replace("_mm", "_mm_true_params"))
-        rows.append([_Raw(label), _len(before[key]), _len(after[key]), _len(floor)])
+        row = [_Raw(label), _len(before[key]), _len(after[key])]
+        if truth is not None:
+            row.append(_len(truth.get(key.replace("_mm", "_mm_true_params"))))
+        rows.append(row)
+    if truth is None:
+        rows = _column_note(rows, run.no_truth())
     sig = bs.get("sigma_mm") or {}
     dof = bs.get("degrees_of_freedom") or {}
-    out = _table(["RMS over control points", "start values", "after adjustment", "true parameters (simulation)"]
-                 if truth else ["RMS over control points", "start values", "after adjustment"],
-                 [r if truth else r[:3] for r in rows])
+    out = _table(["RMS over control points", "start values", "after adjustment", "true parameters (simulation)"],
+                 rows)
     out += _kv([("Calibration accuracy", f"{_parts(bs.get('one_part_in_1p96_sigma'))} of the "
                  f"{_num(bs.get('volume_diagonal_mm'), '.1f', 'mm')} volume diagonal (1.96 × RMS ε2, 95 %)"),
                 ("Control points", f"{bs.get('n_control_points', 'n/a')} in {bs.get('n_measurements', 'n/a')} "
@@ -431,7 +584,8 @@ def _results(run: _Run) -> str:
                 ("Start values used", bs.get("start")),
                 ("σ per term (ε1, ε2); σ0",
                  f"{_um(sig.get('alpha1'))}, {_um(sig.get('alpha2'))}; {_um(sig.get('sigma0'))}"),
-                ("Condition number (scaled normal matrix)", _num(bs.get("condition_number"), ".2e"))])
+                ("Condition number (scaled normal matrix)", _num(bs.get("condition_number"), ".2e")),
+                ("Adjustment wall time", _secs(bs["bundle_seconds"]) if _finite(bs.get("bundle_seconds")) else None)])
     notes = [(d.get("severity", ""), d.get("kind", ""), d.get("message", "")) for d in bs.get("diagnostics", [])]
     notes += [("warning", "weak direction", w) for w in bs.get("weak_directions", [])]
     notes += [("warning", "dropped measurement", f"{d.get('measurement')}: {d.get('reason')}")
@@ -443,7 +597,7 @@ def _results(run: _Run) -> str:
 
 
 def _parameters(run: _Run) -> str:
-    rig = run.rig()
+    rig = run.load(run.rd.calibration)
     u = rig.uncertainty
     out = ['<p>Refined values with standard uncertainties (k = 1) from the adjustment; parameters held '
            'fixed are marked. Angles per thesis eq. 2-6; distortion of the ideal image coordinates.</p>\n']
@@ -468,7 +622,7 @@ def _parameters(run: _Run) -> str:
 
 
 def _correlations(run: _Run, k: int = 10) -> str:
-    corr = run.json("bundle_summary.json")["correlation"]
+    corr = run.json(run.rd.bundle_summary)["correlation"]
     names = list(corr["names"])
     m = np.asarray(corr["matrix"], float)
     iu = np.triu_indices(len(names), 1)
@@ -484,28 +638,28 @@ def _correlations(run: _Run, k: int = 10) -> str:
 
 
 def _residuals(run: _Run) -> str:
-    from schemas import MeasurementResidualsTable, SphereResidualsTable
-
+    rd = run.rd
     figs = []
-    for name, label in (("eps1_hist", "ε1 histogram"), ("eps2_hist", "ε2 histogram")):
+    for term, label in (("eps1", "ε1 histogram"), ("eps2", "ε2 histogram")):
         try:
-            figs.append(_img(run.file(f"figures/{name}.png").read_bytes(), label))
+            figs.append(_img(run.load(rd.histogram(term)), label))
         except _Missing as why:
             figs.append(_note(f"Not available: {why}."))
     out = ('<p>Histograms of ε<sub>1</sub> and ε<sub>2</sub> over all control points at the start values and '
            'after the adjustment (as thesis figures 6-10 and 6-11).</p>\n'
            f'<div class="figs">{"".join(figs)}</div>\n')
 
-    def per_measurement():
-        t = run.table("residuals_per_measurement", MeasurementResidualsTable)
+    def per_measurement(run: _Run):
+        t = run.table(rd.residuals_per_measurement)
         t = t.iloc[sorted(range(len(t)), key=lambda i: _natural(t["measurement"].iloc[i]))]
         return _table(["Measurement", "Scanners", "Points", "Spheres", "RMS ε1", "RMS ε2", "Mean ε2",
                        "RMS ε2 at start"],
                       [[r.measurement, r.scanners, r.n_points, r.n_spheres, _um(r.rms_eps1_mm), _um(r.rms_eps2_mm),
                         _um(r.mean_eps2_mm), _len(r.rms_eps2_start_mm)] for r in t.itertuples()], left=2)
 
-    def per_sphere(show: int = 10, most: int = 300):
-        t = run.table("residuals_per_sphere", SphereResidualsTable).sort_values("rms_eps2_mm", ascending=False)
+    def per_sphere(run: _Run, show: int = 10, most: int = 300):
+        f = rd.residuals_per_sphere
+        t = run.table(f).sort_values("rms_eps2_mm", ascending=False)
         heads = ["Measurement", "Scanner", "Sphere", "Points", "RMS ε1", "RMS ε2", "Mean ε2", "Max |ε2|"]
         rows = [[r.measurement, r.scanner, r.sphere_id, r.n_points, _um(r.rms_eps1_mm), _um(r.rms_eps2_mm),
                  _um(r.mean_eps2_mm), _um(r.max_abs_eps2_mm)] for r in t.itertuples()]
@@ -513,17 +667,21 @@ def _residuals(run: _Run) -> str:
                  + _table(heads, rows[:show], left=3))
         if len(rows) > show:
             title = f"All {len(rows)} sphere images" if len(rows) <= most else \
-                f"The worst {most} of {len(rows)} sphere images (all in tables/residuals_per_sphere.csv)"
+                f"The worst {most} of {len(rows)} sphere images (all in {_e(f.rel)})"
             html_ += f"<details><summary>{title}</summary>\n" + _table(heads, rows[:most], left=3) + "</details>\n"
         return html_
 
-    out += "<h3>Per measurement</h3>\n" + _guard(per_measurement)
-    out += "<h3>Per sphere image</h3>\n" + _guard(per_sphere)
+    out += "<h3>Per measurement</h3>\n" + _guard(per_measurement, run)
+    out += "<h3>Per sphere image</h3>\n" + _guard(per_sphere, run)
     return out
 
 
 def _natural(s) -> list:
-    """Sort key putting measurement "2" before "10"."""
+    """Sort key putting measurement "2" before "10".
+
+    >>> sorted(["10", "2", "bb01"], key=_natural)
+    ['2', '10', 'bb01']
+    """
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(s))]
 
 
@@ -570,67 +728,105 @@ def _gum(cal: dict) -> str:
             f"(artefact calibration certificate).</p>\n")
 
 
+_SCHEMES = {"thesis9": "placed as in thesis section 6.9.3", "vdi7": "placed after the scheme of VDI/VDE 2634"}
+
+
+def _true_ballbar(run: _Run) -> tuple[dict | None, str]:
+    """The ball-bar measured with the true sensors (``rd.evaluation``), or why there is none."""
+    try:
+        ev = run.evaluation()
+    except (_Missing, ValueError):
+        return None, run.no_truth()
+    true = ev.get("verification_true_params")
+    if not isinstance(true, dict) or not isinstance(true.get("positions"), list):
+        return None, f"not evaluated ({run.rd.evaluation.rel} has no ball-bar measured with the true sensors)"
+    return true, ""
+
+
 def _verification(run: _Run) -> str:
-    ver = run.json("verification.json")
-    cal, true = ver["calibrated"], ver.get("true")
-    scheme = {"thesis9": "nine positions as thesis section 6.9.3", "vdi7": "the seven positions of VDI/VDE 2634"}
-    where = scheme.get(ver.get("scheme"), ver.get("scheme", "scheme not recorded"))
+    rd = run.rd
+    try:
+        ver = run.json(rd.verification)
+    except _Missing as why:
+        try:
+            acq = run.table(rd.acquisition)
+            if not (acq["kind"] == "ballbar").any():
+                why = _Missing(f"{why}: the run has no ball-bar recordings, so the calibration is not verified")
+        except (_Missing, ValueError, KeyError):
+            pass
+        raise why from None
+    cal = ver["calibrated"]
+    true, no_true = _true_ballbar(run)
+    recorded = ver.get("recorded_by") or {}
+    fails = ver.get("failures") or []
+    sim = run.config().get("simulate") if isinstance(run.config().get("simulate"), dict) else {}
+    scheme = (sim.get("verification") or {}).get("scheme") if run.source() == "simulated" else None
+    n_positions = len(recorded) or len({str(p["measurement"]).split(":")[0] for p in cal["positions"]})
+    where = f"{n_positions} positions" + (f", {_SCHEMES[scheme]}" if scheme in _SCHEMES else "")
     out = (f"<p>Ball-bar length measurement error per VDI/VDE 2634 ({_e(where)}): "
            f"the calibrated centre distance of the bar's two spheres against its certified length, "
            f"each position judged against the maximum permissible error (MPE). "
            f"Result: {_verdict(_truthy(cal['pass']))}</p>\n")
+    ratio = None
+    if true is not None and _finite(true.get("max_abs_error_mm")) and true["max_abs_error_mm"] > 0:
+        ratio = (f"max |error| {_um(true['max_abs_error_mm'])}; calibrated / true = "
+                 f"{cal['max_abs_error_mm'] / true['max_abs_error_mm']:.2f}")
     out += _kv([("Reference (certified) length", _num(cal["reference_length_mm"], ".4f", "mm")),
                 ("Mean measured length", _num(cal["mean_length_mm"], ".4f", "mm")),
                 ("Mean error", _um(cal.get("mean_error_mm"))),
                 ("Max |length error|", f"{_um(cal['max_abs_error_mm'])} = {_parts(cal.get('one_part_in'))} of the "
                                        f"{_num(cal.get('volume_diagonal_mm'), '.1f', 'mm')} volume diagonal"),
                 ("MPE", _um(cal.get("mpe_mm")) if _finite(cal.get("mpe_mm")) else "none set"),
-                ("With the true parameters (simulation)",
-                 f"max |error| {_um(true['max_abs_error_mm'])}; calibrated / true = "
-                 f"{cal['max_abs_error_mm'] / true['max_abs_error_mm']:.2f}" if true and true.get("max_abs_error_mm")
-                 else None)])
-    true_by = {str(p["measurement"]): p for p in (true or {}).get("positions", [])}
+                ("Positions", f"{len(recorded)} recorded, {len(cal['positions'])} length(s) measured, "
+                              f"{len(fails)} problem(s)" if recorded else None),
+                ("With the true parameters (simulation)", ratio if true is not None else no_true)])
+    true_by = {str(p.get("measurement")): p for p in (true or {}).get("positions", [])}
     rows = []
     for p in cal["positions"]:
-        row = [p["measurement"], _num(p["length_mm"], ".4f", "mm"), _um(p["error_mm"]), _pass_cell(p["pass"])]
-        if true:
-            t = true_by.get(str(p["measurement"]))
-            row += [_um(t["error_mm"]), _pass_cell(t["pass"])] if t else ["n/a", ""]
+        name = str(p["measurement"])
+        scanners = recorded.get(name, recorded.get(name.split(":")[0], []))
+        row = [name, ", ".join(map(str, scanners)), _num(p["length_mm"], ".4f", "mm"), _um(p["error_mm"]),
+               _pass_cell(p["pass"])]
+        if true is not None:
+            t = true_by.get(name)
+            row += [_um(t["error_mm"]), _pass_cell(t["pass"])] if t else ["not measured", ""]
         rows.append(row)
-    heads = ["Position", "Length", "Error", "Pass"] + (["Error (true parameters)", "Pass"] if true else [])
-    out += _table(heads, rows)
+    heads = ["Position", "Recorded by", "Length", "Error", "Pass"]
+    if true is not None:
+        heads += ["Error (true parameters)", "Pass (true parameters)"]
+    else:
+        heads += ["True parameters (simulation)"]
+        rows = _column_note(rows, no_true)
+    out += _table(heads, rows, left=2)
     out += f'<div class="figs">{_img(_ballbar_png(cal, true), "ball-bar length error per position")}</div>\n'
     out += _gum(cal)
-    fails = ver.get("failures") or []
     if fails:
-        out += "<h3>Positions that could not be measured</h3>\n" + _table(
-            ["Parameters", "Position", "Sphere", "Reason"],
-            [[f.get("rig"), f.get("measurement"), f.get("sphere_id"), f.get("reason")] for f in fails], left=4)
+        out += "<h3>Positions that could not be measured completely</h3>\n" + _table(
+            ["Position", "Scanner", "Sphere", "Reason"],
+            [[f.get("position"), f.get("scanner"), f.get("sphere_id"), f.get("reason")] for f in fails], left=4)
     return out
 
 
 def _truth(run: _Run) -> str:
-    try:
-        truth = run.json("truth.json")
-    except _Missing:
-        raise _Missing("truth.json is absent, as for a real (not simulated) run: no true parameters to "
-                       "compare with") from None
-    bs = run.maybe_json("bundle_summary.json") or {}
+    ev = run.evaluation()
+    bs = run.maybe_json(run.rd.bundle_summary) or {}
     after = bs.get("after") or {}
-    summ = run.maybe_json("summary.json") or {}
-    floor = (summ.get("truth") or {}).get("verification_max_abs_error_true_params_mm")
+    true_bar = ev.get("verification_true_params")
+    floor = true_bar.get("max_abs_error_mm") if isinstance(true_bar, dict) else None
     out = ("<p>The simulator knows every true parameter: the errors of the calibrated sensors, and the "
            "residual floor (the same control points evaluated with the true sensors and poses, set by noise).</p>\n")
-    out += _kv([("Max sensor position error", _um(truth.get("max_position_error_mm"))),
-                ("Max sensor angle error", _urad(truth.get("max_angle_error_rad"))),
+    out += _kv([("Max sensor position error", _um(ev.get("max_position_error_mm"))),
+                ("Max sensor angle error", _urad(ev.get("max_angle_error_rad"))),
+                ("RMS F: calibrated / true parameters",
+                 f"{_len(after.get('rms_f_mm'))} / {_len(ev.get('rms_f_mm_true_params'))}"),
                 ("RMS ε1: calibrated / true parameters",
-                 f"{_um(after.get('rms_eps1_mm'))} / {_um(truth.get('rms_eps1_mm_true_params'))}"),
+                 f"{_um(after.get('rms_eps1_mm'))} / {_um(ev.get('rms_eps1_mm_true_params'))}"),
                 ("RMS ε2: calibrated / true parameters",
-                 f"{_um(after.get('rms_eps2_mm'))} / {_um(truth.get('rms_eps2_mm_true_params'))}"),
+                 f"{_um(after.get('rms_eps2_mm'))} / {_um(ev.get('rms_eps2_mm_true_params'))}"),
                 ("Ball-bar max |error| with the true parameters", _um(floor) if _finite(floor) else None)])
     rows = [[s.get("sensor"), _um(s.get("position_error_mm")), _urad(s.get("angle_error_rad")),
              _um(s.get("c_error_mm")), _num(s.get("max_sigma_ratio_position_angles_c"), ".2f")]
-            for s in truth.get("sensors", [])]
+            for s in ev.get("sensors", [])]
     if rows:
         out += _table(["Sensor", "Position error", "Max angle error", "c error",
                        "max |error| / u (position, angles, c)"], rows)
@@ -641,28 +837,36 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def _provenance(run: _Run) -> str:
+def _provenance(run: _Run, execution: dict) -> str:
     import yaml
 
+    rd = run.rd
     out = []
-    files = [(n, _Raw(f"<code>{_sha256(run.root / n)}</code>")) for n in ("calibration.xml", "calibration.json")
-             if (run.root / n).is_file()]
+    files = [(f.rel, _Raw(f"<code>{_sha256(f.path)}</code>")) for f in (rd.calibration.xml, rd.calibration)
+             if f.path.is_file()]
+    command = execution.get("command")
+    run_facts = [("Run started (UTC)", execution.get("created_utc") or "not recorded"),
+                 ("Command", _Raw(f"<code>{_e(command)}</code>") if command else "not recorded")]
     try:
-        man = run.json("manifest.json")
+        man = run.json(rd.manifest)
     except _Missing as why:
-        return _kv(files) + _note(f"Not available: {why}.")
+        return _kv(run_facts + files) + _note(f"Not available: {why}.")
+    src = man.get("source")
     out.append(_kv([("Configuration digest (SHA-256)", _Raw(f"<code>{_e(man.get('config_digest', 'n/a'))}</code>")),
-                    ("Created (UTC)", man.get("created_utc")),
-                    ("Command", _Raw(f"<code>{_e(man.get('command', ''))}</code>")),
-                    *files]))
+                    ("Code digest (fringecal source)", _Raw(f"<code>{_e(man['code_digest'])}</code>")
+                     if man.get("code_digest") else None),
+                    ("Data source", _SOURCES.get(src, src) if src else None),
+                    *run_facts, *files]))
     vers = man.get("versions") or {}
     out.append("<h3>Software</h3>\n" + _table(["Package", "Version"], sorted(vers.items()), left=2))
     inputs = man.get("inputs") or {}
     if inputs:
-        out.append("<h3>Inputs</h3>\n" + _table(
-            ["Input", "Path", "SHA-256"],
-            [[k, v.get("path", ""), _Raw(f"<code>{_e(v.get('sha256', ''))}</code>")] for k, v in inputs.items()],
-            left=3))
+        rows = []
+        for path, digest in inputs.items():
+            if isinstance(digest, dict):  # {"path": ..., "sha256": ...}
+                path, digest = digest.get("path", path), digest.get("sha256", "")
+            rows.append([path, _Raw(f"<code>{_e(digest)}</code>")])
+        out.append("<h3>Inputs</h3>\n" + _table(["Input file", "SHA-256"], rows, left=2))
     cfg = man.get("config")
     if cfg is not None:
         text = yaml.safe_dump(cfg, sort_keys=False, allow_unicode=True, default_flow_style=False)
@@ -682,45 +886,60 @@ def _rig_section(run: _Run) -> str:
             + "<h3>Labelling and start values</h3>\n" + _guard(_processing_part, run))
 
 
-def render_report(run_dir: Path, timings: dict | None = None, generated: str | None = None) -> str:
-    """The report page of ``run_dir`` as an HTML string (see :func:`write_report`)."""
-    run = _Run(Path(run_dir))
-    if not any((run.root / n).is_file() for n in ("manifest.json", "summary.json", "bundle_summary.json",
-                                                  "calibration.json")):
-        raise FileNotFoundError(f"{run.root} is not a run directory: none of manifest.json, summary.json, "
-                                f"bundle_summary.json, calibration.json is there")
+def _run_dir(run_dir) -> RunDir:
+    return run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
+
+
+def render_report(run_dir, timings: dict | None = None, execution: dict | None = None,
+                  generated: str | None = None) -> str:
+    """The report page of ``run_dir`` (a :class:`~fringecal.rundir.RunDir` or a path)
+    as an HTML string; see :func:`write_report`. ``generated`` (UTC) defaults to now."""
+    rd = _run_dir(run_dir)
+    markers = (rd.manifest, rd.summary, rd.bundle_summary, rd.calibration)
+    if not any(f.path.is_file() for f in markers):
+        raise FileNotFoundError(f"{rd.root} is not a run directory: none of "
+                                f"{', '.join(f.rel for f in markers)} is there")
+    run = _Run(rd)
     generated = generated or datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
-    bodies = {"rig": (_rig_section, run), "timing": (_timings, run, timings), "results": (_results, run),
-              "parameters": (_parameters, run), "residuals": (_residuals, run),
-              "verification": (_verification, run), "truth": (_truth, run), "provenance": (_provenance, run)}
+    execution = _execution(run, execution)
+    bodies = {"rig": (_rig_section,), "timing": (_timings, timings), "results": (_results,),
+              "parameters": (_parameters,), "residuals": (_residuals,), "verification": (_verification,),
+              "truth": (_truth,), "provenance": (_provenance, execution)}
     nav = "<nav>" + "".join(f'<a href="#{a}">{_e(t)}</a>' for a, t in _SECTIONS) + "</nav>\n"
-    sections = "".join(_section(a, t, *bodies[a]) for a, t in _SECTIONS)
-    name = run.config().get("name") or run.root.name
+    sections = "".join(_section(a, t, bodies[a][0], run, *bodies[a][1:]) for a, t in _SECTIONS)
     from . import __version__
 
     return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
-            f"<title>Calibration report: {_e(name)}</title>\n<style>{_CSS}</style>\n</head>\n<body>\n"
-            f"{_header(run, generated)}{nav}{sections}"
+            f"<title>Calibration report: {_e(run.name())}</title>\n<style>{_CSS}</style>\n</head>\n<body>\n"
+            f"{_header(run, generated, execution)}{nav}{sections}"
             f'<footer class="meta"><p>Written by fringecal {_e(__version__)} on {_e(generated)} UTC from the files '
             f"of the run directory {_e(run.root.name)}.</p></footer>\n</body>\n</html>\n")
 
 
-def write_report(run_dir: Path, timings: dict | None = None) -> Path:
-    """Write ``run_dir/report.html``: one self-contained page describing the run.
+def write_report(run_dir, timings: dict | None = None, execution: dict | None = None) -> Path:
+    """Write the run's report page: one self-contained HTML page describing the run.
 
     Parameters
     ----------
-    run_dir : the run directory (DESIGN.md storage); only files inside it are read
-    timings : step name -> wall seconds of the run that produced it (``"total"`` is
-        the whole run); without it the timings recorded in ``summary.json`` are shown
+    run_dir : the run directory (a :class:`~fringecal.rundir.RunDir` or its path);
+        only its files are read
+    timings : step name -> wall seconds of the execution that produced the run
+        (``"total"``: the whole execution); without it the timings recorded in the
+        run's summary are shown
+    execution : ``{"created_utc": ..., "command": ...}`` of that execution; without
+        it, taken from the run's summary (``fringecal report`` rewriting the page later)
 
     Returns
     -------
-    The path of the report, written atomically (temporary name, then rename).
+    The path of the report, written atomically: a failed render leaves any previous
+    page untouched.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``run_dir`` is not a run directory (none of its manifest, summary, bundle
+        summary or calibration is there); nothing is written.
     """
-    path = RunDir(run_dir).report
-    text = render_report(run_dir, timings)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
-    return path
+    rd = _run_dir(run_dir)
+    text = render_report(rd, timings, execution)
+    return rd.report.save(text)

@@ -17,16 +17,17 @@ import dataclasses
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
-from .config import ConfigError, RigConfig, StrictModel, load_yaml_model, package_root, thesis_dir
+from .config import (ConfigError, RigConfig, StrictModel, deep_update, load_yaml_model, package_root,
+                     read_yaml_mapping, thesis_dir, validate_model)
 from .fringe.decode import DecodeSettings
 from .fringe.sequence import FringeSequence
 from .simulate.config import RenderConfig
 
-__all__ = ["RunConfig", "load_run_config", "default_run_config_path", "SequenceConfig", "AcquisitionConfig",
-           "PriorCalibrationConfig", "ExtractionConfig", "ControlPointConfig", "BundleConfig",
-           "VerificationConfig", "RunnerConfig", "HexapodStepConfig"]
+__all__ = ["RunConfig", "SimulationConfig", "load_run_config", "default_run_config_path", "SequenceConfig",
+           "AcquisitionConfig", "PriorCalibrationConfig", "ExtractionConfig", "ControlPointConfig", "BundleConfig",
+           "VerificationConfig", "SimulatedVerificationConfig", "RunnerConfig", "HexapodStepConfig"]
 
 
 def default_run_config_path() -> Path:
@@ -153,30 +154,50 @@ class ControlPointConfig(StrictModel):
 
 
 class BundleConfig(StrictModel):
-    """Weights and solver settings of the bundle adjustment (eq. 2-24)."""
+    """Weights and solver settings of the bundle adjustment (eq. 2-24).
+
+    ``start``: which start values to adjust from (see
+    :class:`fringecal.calibration.BundleOptions`). ``volume_diagonal_mm``: the
+    measurement volume's diagonal for the one-part-in-N figures (None: the bounding
+    box of the control points triangulated with the result).
+    """
 
     gamma1: float = Field(1.0, gt=0)
     gamma2: float = Field(1.0, gt=0)
     robust_loss: Literal["none", "huber", "cauchy"] = "none"
-    robust_scale_mm: float = Field(0.1, gt=0)
+    robust_scale_mm: Optional[float] = Field(None, gt=0, description="robust-loss scale; default from the residuals")
     max_iterations: int = Field(100, ge=1)
+    start: Literal["given", "data", "auto", "best"] = "auto"
+    volume_diagonal_mm: Optional[float] = Field(None, gt=0)
+
+    def options(self):
+        from .calibration.bundle import BundleOptions
+
+        return BundleOptions(max_iterations=self.max_iterations, loss=self.robust_loss,
+                             loss_scale_mm=self.robust_scale_mm if self.robust_loss != "none" else None,
+                             start=self.start)
 
 
 class VerificationConfig(StrictModel):
-    """Ball-bar verification (thesis 6.9.3; VDI/VDE 2634)."""
+    """Evaluation of the ball-bar lengths (thesis 6.9.3; VDI/VDE 2634): limit and the
+    GUM statement of the certified length."""
 
-    ballbar: Optional[Path] = None  # default: configs/thesis/ballbar.csv
+    mpe_mm: float = Field(0.1, gt=0)
+    certificate_u_mm: float = Field(0.0004, ge=0)
+    certificate_k: float = Field(2.0, gt=0)
+    coverage_factor: float = Field(1.96, gt=0)
+
+
+class SimulatedVerificationConfig(StrictModel):
+    """Where the simulated ball-bar is placed and how it is rendered."""
+
+    ballbar: Optional[Path] = None  # default: the rig's ballbar, else configs/thesis/ballbar.csv
     positions: Optional[Path] = None  # default: configs/thesis/ballbar_verification_table6-9.csv
     scheme: Literal["thesis9", "vdi7"] = "thesis9"
     # camera pixels of the verification measurements (None: as the acquisition); sphere
     # centres of a 50.85 mm ball fitted at 512 px scatter by ~30 um, which would hide
     # the calibration's own error, so the demo verifies at 768 px
     camera_width_px: Optional[int] = Field(None, ge=16)
-    volume_diagonal_mm: Optional[float] = Field(None, gt=0)
-    mpe_mm: float = Field(0.1, gt=0)
-    certificate_u_mm: float = Field(0.0004, ge=0)
-    certificate_k: float = Field(2.0, gt=0)
-    coverage_factor: float = Field(1.96, gt=0)
     seed: int = 99
 
 
@@ -189,30 +210,30 @@ class RunnerConfig(StrictModel):
     dask_workers: int = Field(2, ge=1)
 
 
-class RunConfig(StrictModel):
-    """Everything ``fringecal run`` does.
+class SimulationConfig(StrictModel):
+    """The simulated data source: a rig rendered by the virtual scanner.
 
     ``artefact_corrections`` (gravity sag between the CMM's supports and the use
     condition, thermal expansion from the CMM's 20 C to ``temperature_c``; see
     ``fringecal.engineering.corrections``) turn the CMM coordinates into the artefact
-    the run uses everywhere (and, when simulated, renders).
+    the run renders, fits and adjusts against.
     """
 
-    name: str = "thesis"
     rig: Path = Field(default_factory=lambda: thesis_dir() / "rig.yaml")
     artefact_corrections: Optional["ArtefactCorrections"] = None
     temperature_c: Optional[float] = None
     acquisition: AcquisitionConfig = Field(default_factory=AcquisitionConfig)
     prior: PriorCalibrationConfig = Field(default_factory=PriorCalibrationConfig)
-    decode: DecodeSettings = Field(default_factory=DecodeSettings)
-    extraction: ExtractionConfig = Field(default_factory=ExtractionConfig)
-    control_points: ControlPointConfig = Field(default_factory=ControlPointConfig)
-    bundle: BundleConfig = Field(default_factory=BundleConfig)
-    verification: VerificationConfig = Field(default_factory=VerificationConfig)
-    runner: RunnerConfig = Field(default_factory=RunnerConfig)
+    verification: SimulatedVerificationConfig = Field(default_factory=SimulatedVerificationConfig)
 
     def rig_config(self) -> RigConfig:
         return load_yaml_model(self.rig, RigConfig)
+
+    def ballbar_path(self) -> Path:
+        return self.verification.ballbar or self.rig_config().ballbar or thesis_dir() / "ballbar.csv"
+
+    def positions_path(self) -> Path:
+        return self.verification.positions or thesis_dir() / "ballbar_verification_table6-9.csv"
 
     def artefact(self):
         """The artefact of the run: the CMM definition with the configured corrections."""
@@ -223,17 +244,85 @@ class RunConfig(StrictModel):
                                  self.temperature_c)
 
 
-from .engineering.corrections import ArtefactCorrections  # noqa: E402  (after RunConfig's forward reference)
+class RunConfig(StrictModel):
+    """Everything ``fringecal run`` does: where the measurements come from (``simulate``
+    a rig, or a recorded ``dataset`` folder; exactly one) and how they are processed.
 
+    ``reference_scanner`` (the scanner whose frame is the world) comes from the rig or
+    the data set's ``dataset.yaml`` unless given here.
+    """
+
+    name: Optional[str] = None
+    simulate: Optional[SimulationConfig] = None
+    dataset: Optional[Path] = None
+    reference_scanner: Optional[str] = None
+    decode: DecodeSettings = Field(default_factory=DecodeSettings)
+    extraction: ExtractionConfig = Field(default_factory=ExtractionConfig)
+    control_points: ControlPointConfig = Field(default_factory=ControlPointConfig)
+    bundle: BundleConfig = Field(default_factory=BundleConfig)
+    verification: VerificationConfig = Field(default_factory=VerificationConfig)
+    runner: RunnerConfig = Field(default_factory=RunnerConfig)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_source(cls, data):
+        if isinstance(data, dict):
+            if data.get("simulate") is not None and data.get("dataset") is not None:
+                raise ValueError("give either simulate (a simulated rig) or dataset (a recorded data set), not both")
+            if data.get("simulate") is None and data.get("dataset") is None:
+                data = {**data, "simulate": {}}
+        return data
+
+    @property
+    def source(self) -> str:
+        """``"simulated"`` or ``"dataset"``."""
+        return "dataset" if self.dataset is not None else "simulated"
+
+
+from .engineering.corrections import ArtefactCorrections  # noqa: E402  (after the forward reference)
+
+SimulationConfig.model_rebuild()
 RunConfig.model_rebuild()
 
 
-def load_run_config(path: Path | None = None, overrides: dict | None = None) -> RunConfig:
-    """Load a run config (default ``configs/run_thesis.yaml``); ``overrides`` are merged in."""
-    path = Path(path) if path is not None else default_run_config_path()
-    cfg = load_yaml_model(path, RunConfig, overrides)
-    try:
-        cfg.rig_config()
-    except ConfigError as err:
-        raise ConfigError(f"{path}: rig {cfg.rig}: {err}") from None
+def load_run_config(path: Path | None = None, overrides: dict | None = None, dataset: Path | None = None) -> RunConfig:
+    """Resolve a run config: the YAML at ``path`` (default ``configs/run_thesis.yaml``
+    unless a data set is given), ``overrides`` merged in, and with ``dataset`` that data
+    set as the source (it replaces the file's own source).
+
+    A data set's ``dataset.yaml`` supplies the name, the reference scanner and its
+    processing overrides; keys written in the run config take precedence over them.
+    """
+    from .dataset import DATASET_FILE, DatasetConfig
+
+    if path is None and dataset is None:
+        path = default_run_config_path()
+    path = None if path is None else Path(path)
+    data = read_yaml_mapping(path) if path is not None else {}
+    base = path.parent if path is not None else Path.cwd()
+    source = path if path is not None else "run configuration"
+    if overrides:
+        data = deep_update(data, overrides)
+    if data.get("simulate") is not None and data.get("dataset") is not None:
+        raise ConfigError(f"{source}: give either simulate (a simulated rig) or dataset (a recorded data set), "
+                          "not both")
+    if dataset is not None:
+        data = {k: v for k, v in data.items() if k != "simulate"}
+        data["dataset"] = str(Path(dataset).resolve())
+    if data.get("dataset") is not None:
+        root = (base / str(data["dataset"])).resolve()
+        ds = load_yaml_model(root / DATASET_FILE, DatasetConfig) if root.is_dir() else None
+        if ds is None:
+            raise ConfigError(f"{root}: no such data set folder")
+        data = deep_update(ds.processing.model_dump(exclude_none=True), data)
+        data.setdefault("name", ds.name)
+        data.setdefault("reference_scanner", ds.reference_scanner)
+    cfg = validate_model(data, RunConfig, source, base)
+    if cfg.simulate is not None:
+        try:
+            rig = cfg.simulate.rig_config()
+        except ConfigError as err:
+            raise ConfigError(f"{source}: rig {cfg.simulate.rig}: {err}") from None
+        cfg = cfg.model_copy(update={"name": cfg.name or rig.name,
+                                     "reference_scanner": cfg.reference_scanner or rig.reference_scanner})
     return cfg

@@ -1,18 +1,36 @@
-"""The run directory: one object that owns every path of a run (DESIGN.md, storage).
+"""The run directory: one object that owns every file of a run (DESIGN.md, storage).
 
-Layout::
+No other module spells a file name of the run directory: steps, the report, the
+flow and the command line reach every file through :class:`RunDir`, whose
+accessors return typed handles (:class:`TableFile`, :class:`JsonFile`,
+:class:`StoreFile`, ...) with ``path``, ``exists()``, ``load()`` and ``save()``
+bound to the file's schema and written by the one atomic writer
+(:mod:`fringecal.atomic`). Layout::
 
     RUN_DIR/
-      manifest.json            resolved config, its hash, package versions, input digests
-      artefact.csv             the artefact definition the run used (copied in)
-      measurements/<id>.zarr   one zarr v3 store per measurement (pose x scanner)
-      tables/<name>.csv        every table of every step
-      figures/<name>.png       report plots
-      calibration.xml, calibration.json
-      report.html, summary.json
+      manifest.json              resolved config, its digest, code digest, package versions, input digests
+      summary.json               the run's figures, step timings, each step's key and outputs
+      report.html                one self-contained page for the customer
+      artefact.csv, rods.csv     the artefact the run used (CMM table with corrections), its rods
+      ballbar.csv                the verification ball-bar (CMM table, spheres A and B)
+      calibration.xml/.json      the calibrated sensors with uncertainties
+      bundle_summary.json, verification.json, evaluation.json (simulated runs)
+      measurements/<id>.zarr     acquisition stores, one per (measurement, scanner) or (position, scanner);
+                                 immutable once complete
+      maps/<id>.zarr             derived maps of a measurement: x, y, z, eps1, candidate regions
+      labels/<id>.zarr           sphere labels of a measurement's pixels
+      tables/*.csv               every table of every step (schema-checked), per-measurement
+                                 tables in tables/<name>/<id>.csv
+      figures/*.png              residual histograms
+      truth/                     simulated runs only: true sensors, poses and ground-truth maps,
+                                 read by the simulator and the evaluation step, nothing else
+      .steps/<step>/<item>.json  what each step computed from what (key and output digests)
+      .digests/, .prefect/       digest cache, Prefect's cached task results
 
-A measurement id is ``<pose>-<scanner>``: the thesis's 24 measurements are 12 artefact
-poses seen by two scanners.
+A store id is ``<measurement>-<scanner>`` (e.g. ``1-scanner1``) for the artefact and
+``<position>-<scanner>`` (e.g. ``bb01-scanner2``) for the ball-bar.
+
+:meth:`RunDir.temporary` gives a throw-away run directory for tests.
 """
 
 from __future__ import annotations
@@ -20,20 +38,33 @@ from __future__ import annotations
 import hashlib
 import json
 import platform
+import shutil
 import sys
+import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
+from typing import Iterator
 
-__all__ = ["RunDir", "measurement_id", "package_versions", "write_json_atomic", "output_record", "up_to_date"]
+import pandas as pd
+
+from . import atomic
+
+__all__ = ["RunDir", "RunFile", "TableFile", "JsonFile", "TextFile", "StoreFile", "ArtefactFile", "RigFile",
+           "RodsFile", "CalibrationFile", "TruthDir", "measurement_id", "package_versions"]
 
 _PACKAGES = ("fringecal", "numpy", "scipy", "numba", "zarr", "xarray", "pandas", "pandera",
              "opencv-python-headless", "prefect", "matplotlib", "pydantic")
 
 
-def measurement_id(pose: str, scanner: str) -> str:
-    """``<pose>-<scanner>``, e.g. ``01-scanner1``."""
-    return f"{pose}-{scanner}"
+def measurement_id(group: str, scanner: str) -> str:
+    """``<measurement>-<scanner>``, e.g. ``1-scanner1``.
+
+    >>> measurement_id("bb01", "scanner2")
+    'bb01-scanner2'
+    """
+    return f"{group}-{scanner}"
 
 
 def package_versions() -> dict[str, str]:
@@ -46,119 +77,452 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def write_json_atomic(path, obj) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
-    tmp.replace(path)
-    return path
+# -- typed files ------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RunFile:
+    """One file or folder of a run directory.
+
+    ``optional`` files may legitimately be absent (a data set without rods); a step
+    that declares one as an output removes it when it has nothing to write.
+    """
+
+    root: Path
+    rel: str
+    optional: bool = False
+
+    @property
+    def path(self) -> Path:
+        return self.root / self.rel
+
+    def exists(self) -> bool:
+        return self.path.exists()
+
+    def remove(self) -> None:
+        if self.path.is_dir():
+            shutil.rmtree(self.path)
+        else:
+            self.path.unlink(missing_ok=True)
+
+    def __fspath__(self) -> str:
+        return str(self.path)
 
 
 @dataclass(frozen=True)
+class TableFile(RunFile):
+    """A CSV table validated by a :mod:`schemas` model on load and save.
+
+    An empty table is written as its schema's header and loads as an empty frame.
+    """
+
+    schema: type | None = None
+
+    def load(self) -> pd.DataFrame:
+        from schemas import read_csv_text, validate_table
+
+        df = read_csv_text(self.path)
+        if df.empty or self.schema is None:
+            return df
+        return validate_table(df, self.schema, str(self.path))
+
+    def save(self, df: pd.DataFrame) -> Path:
+        from schemas import write_table
+
+        if df.empty and self.schema is not None:
+            cols = list(df.columns) or list(self.schema.to_schema().columns)
+            return write_table(pd.DataFrame(columns=cols), self.path)
+        return write_table(df, self.path, self.schema)
+
+
+@dataclass(frozen=True)
+class ArtefactFile(RunFile):
+    """An artefact definition (:class:`fringecal.artefact.Artefact`)."""
+
+    def load(self):
+        from .artefact import load_artefact
+
+        return load_artefact(self.path)
+
+    def save(self, artefact) -> Path:
+        from schemas import ArtefactTable, write_table
+
+        return write_table(artefact.to_frame(), self.path, ArtefactTable)
+
+
+@dataclass(frozen=True)
+class RodsFile(RunFile):
+    """The artefact's rods (checked against the artefact's spheres on load)."""
+
+    def load(self, artefact=None) -> pd.DataFrame:
+        from .artefact import load_rods
+
+        return load_rods(self.path, artefact)
+
+    def save(self, rods: pd.DataFrame) -> Path:
+        from schemas import RodsTable, write_table
+
+        return write_table(rods, self.path, RodsTable)
+
+
+@dataclass(frozen=True)
+class RigFile(RunFile):
+    """A sensor-parameter table (:class:`fringecal.rig.Rig`)."""
+
+    def load(self, reference: str | None = None):
+        from .rig import load_rig
+
+        return load_rig(self.path, reference=reference)
+
+    def save(self, rig) -> Path:
+        from schemas import SensorParametersTable, write_table
+
+        return write_table(rig.to_frame(), self.path, SensorParametersTable)
+
+
+@dataclass(frozen=True)
+class JsonFile(RunFile):
+    def load(self) -> dict:
+        try:
+            return json.loads(self.path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{self.path}: not valid JSON ({err})") from None
+
+    def save(self, doc) -> Path:
+        return atomic.write_json(self.path, doc)
+
+
+@dataclass(frozen=True)
+class TextFile(RunFile):
+    def load(self) -> str:
+        return self.path.read_text(encoding="utf-8")
+
+    def save(self, text: str) -> Path:
+        return atomic.write_text(self.path, text)
+
+
+@dataclass(frozen=True)
+class BytesFile(RunFile):
+    def load(self) -> bytes:
+        return self.path.read_bytes()
+
+    def save(self, data: bytes) -> Path:
+        return atomic.write_bytes(self.path, data)
+
+
+@dataclass(frozen=True)
+class StoreFile(RunFile):
+    """A zarr v3 measurement store (:mod:`fringecal.store`)."""
+
+    def exists(self) -> bool:
+        from .store import is_complete
+
+        return is_complete(self.path)
+
+    def open(self):
+        from .store import open_store
+
+        return open_store(self.path)
+
+    def attrs(self) -> dict:
+        from .store import store_attributes
+
+        return store_attributes(self.path)
+
+    def save(self, ds) -> Path:
+        from .store import write_store
+
+        return write_store(self.path, ds)
+
+
+@dataclass(frozen=True)
+class CalibrationFile(RunFile):
+    """The calibration as JSON (``rel``) with its XML twin (same name, ``.xml``)."""
+
+    @property
+    def xml(self) -> RunFile:
+        return RunFile(self.root, str(Path(self.rel).with_suffix(".xml")))
+
+    def load(self):
+        from .calibration_file import read_calibration_json
+
+        return read_calibration_json(self.path)
+
+    def save(self, rig, metadata: dict | None = None) -> Path:
+        from .calibration_file import rig_to_dict, xml_text
+
+        with atomic.atomic_paths([self.path, self.xml.path]) as (tmp_json, tmp_xml):
+            tmp_json.write_text(json.dumps(rig_to_dict(rig, metadata), indent=2) + "\n", encoding="utf-8")
+            tmp_xml.write_text(xml_text(rig, metadata), encoding="utf-8")
+        return self.path
+
+
+# -- the run directory -------------------------------------------------------------------
+
+class TruthDir:
+    """``RUN_DIR/truth``: what only a simulated run knows (read by the simulator and by
+    the evaluation step, never by the pipeline). ``fringecal simulate`` writes the same
+    layout as a folder of its own beside the data set (``prefix=""``)."""
+
+    def __init__(self, root: Path, prefix: str = "truth/"):
+        self.root = Path(root)
+        self.prefix = prefix
+
+    def _at(self, cls, rel: str, **kw):
+        return cls(self.root, f"{self.prefix}{rel}", **kw)
+
+    @property
+    def sensors(self) -> RigFile:
+        """The true sensors in the world frame, cameras at the simulated resolution."""
+        return self._at(RigFile, "sensors.csv")
+
+    @property
+    def artefact(self) -> ArtefactFile:
+        """The artefact as built, which the renderer places (the run's ``artefact.csv`` is
+        the CMM table the pipeline fits against)."""
+        return self._at(ArtefactFile, "artefact.csv")
+
+    @property
+    def scanner_frames(self) -> TableFile:
+        """``T_world_scanner`` of each scanner's own (prior calibration) frame."""
+        return self._at(TableFile, "scanner_frames.csv")
+
+    @property
+    def poses(self) -> TableFile:
+        """The artefact pose each measurement was rendered at (``T_world_artefact``)."""
+        from schemas import PosePlanTable
+
+        return self._at(TableFile, "poses.csv", schema=PosePlanTable)
+
+    @property
+    def ballbar_positions(self) -> TableFile:
+        """``T_world_ballbar`` of each verification position."""
+        from schemas import PosePlanTable
+
+        return self._at(TableFile, "ballbar_positions.csv", schema=PosePlanTable)
+
+    @property
+    def hexapod_moves(self) -> TableFile:
+        """The hexapod's log of a simulated data set (a run keeps it in its tables)."""
+        return self._at(TableFile, "hexapod_moves.csv")
+
+    def store(self, measurement: str) -> StoreFile:
+        """The renderer's ground-truth maps of one acquisition store."""
+        return self._at(StoreFile, f"measurements/{measurement}.zarr")
+
+
 class RunDir:
-    """Paths of one run. Creating the object touches nothing; :meth:`create` makes folders."""
+    """Every file of one run. Creating the object touches nothing; :meth:`create` makes folders."""
 
-    root: Path
+    def __init__(self, root):
+        self.root = Path(root)
+        self.truth = TruthDir(self.root)
 
-    def __post_init__(self):
-        object.__setattr__(self, "root", Path(self.root))
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.root)!r})"
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, RunDir) and other.root == self.root
+
+    def __hash__(self) -> int:
+        return hash(self.root)
 
     def create(self) -> "RunDir":
-        for d in (self.root, self.measurements_dir, self.tables_dir, self.figures_dir):
-            d.mkdir(parents=True, exist_ok=True)
+        self.root.mkdir(parents=True, exist_ok=True)
         return self
 
-    @property
-    def manifest(self) -> Path:
-        return self.root / "manifest.json"
+    @classmethod
+    @contextmanager
+    def temporary(cls) -> Iterator["RunDir"]:
+        """A run directory in a temporary folder, removed afterwards (for tests)."""
+        with tempfile.TemporaryDirectory(prefix="fringecal-run-") as d:
+            yield cls(d).create()
 
-    @property
-    def artefact(self) -> Path:
-        return self.root / "artefact.csv"
+    def _at(self, cls, rel: str, **kw):
+        return cls(self.root, rel, **kw)
 
-    @property
-    def measurements_dir(self) -> Path:
-        return self.root / "measurements"
+    def _table(self, rel: str, schema_name: str | None, optional: bool = False) -> TableFile:
+        import schemas
 
-    @property
-    def tables_dir(self) -> Path:
-        return self.root / "tables"
+        return TableFile(self.root, rel, optional, getattr(schemas, schema_name) if schema_name else None)
 
+    # -- provenance and results ------------------------------------------------------
     @property
-    def figures_dir(self) -> Path:
-        return self.root / "figures"
-
-    @property
-    def calibration_xml(self) -> Path:
-        return self.root / "calibration.xml"
+    def manifest(self) -> JsonFile:
+        return self._at(JsonFile, "manifest.json")
 
     @property
-    def calibration_json(self) -> Path:
-        return self.root / "calibration.json"
+    def summary(self) -> JsonFile:
+        return self._at(JsonFile, "summary.json")
 
     @property
-    def report(self) -> Path:
-        return self.root / "report.html"
-
-    @property
-    def summary(self) -> Path:
-        return self.root / "summary.json"
-
-    def store(self, measurement: str) -> Path:
-        return self.measurements_dir / f"{measurement}.zarr"
-
-    def table(self, name: str) -> Path:
-        return self.tables_dir / f"{name}.csv"
-
-    def figure(self, name: str) -> Path:
-        return self.figures_dir / f"{name}.png"
+    def report(self) -> TextFile:
+        return self._at(TextFile, "report.html")
 
     def read_manifest(self) -> dict:
         if not self.manifest.exists():
-            raise FileNotFoundError(f"{self.root} is not a run directory: {self.manifest.name} is missing")
-        return json.loads(self.manifest.read_text())
+            raise FileNotFoundError(f"{self.root} is not a run directory: {self.manifest.rel} is missing")
+        return self.manifest.load()
 
     @staticmethod
     def config_digest(config: dict) -> str:
         return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()
 
+    # -- inputs of the run, written by its data source ---------------------------------
+    @property
+    def artefact(self) -> ArtefactFile:
+        return self._at(ArtefactFile, "artefact.csv")
 
-def output_record(rd: RunDir, files: dict, stores: list) -> dict:
-    """What a later run checks, before any orchestration starts, to know that ``rd`` is
-    up to date: content digests of the files, and each store's acquisition digest
-    (stores gain variables after acquisition, so not their bytes)."""
-    from .store import store_attributes
+    @property
+    def rods(self) -> RodsFile:
+        return self._at(RodsFile, "rods.csv", optional=True)
 
-    return {"files": {str(Path(p).relative_to(rd.root)): d for p, d in files.items()},
-            "stores": {str(Path(p).relative_to(rd.root)): store_attributes(p).get("config_digest") for p in stores}}
+    @property
+    def ballbar(self) -> ArtefactFile:
+        return self._at(ArtefactFile, "ballbar.csv", optional=True)
 
+    @property
+    def sensors_prior(self) -> RigFile:
+        """Each scanner's own calibration in its own frame (the reference scanner's is the world)."""
+        return self._at(RigFile, "tables/sensors_prior.csv")
 
-def up_to_date(run_dir, config_doc: dict) -> dict | None:
-    """The summary of ``run_dir`` if it holds a complete run of exactly this config with
-    every recorded output unchanged since; None otherwise."""
-    from . import __version__
-    from .digests import CODE_VERSION, digest_path
-    from .store import StoreError, store_attributes
+    @property
+    def poses_planned(self) -> TableFile:
+        """Planned ``T_world_artefact`` per measurement, in any fixed frame."""
+        return self._table("tables/poses_planned.csv", "PosePlanTable", optional=True)
 
-    rd = RunDir(run_dir)
-    try:
-        manifest = rd.read_manifest()
-        summary = json.loads(rd.summary.read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
-    if (manifest.get("config_digest") != RunDir.config_digest(config_doc) or "outputs" not in summary
-            or manifest.get("code_version") != CODE_VERSION
-            or manifest.get("versions", {}).get("fringecal") != __version__):
-        return None
-    for rel, digest in summary["outputs"]["files"].items():
-        p = rd.root / rel
-        if not p.exists() or digest_path(p) != digest:
-            return None
-    for rel, digest in summary["outputs"]["stores"].items():
-        try:
-            if store_attributes(rd.root / rel).get("config_digest") != digest:
-                return None
-        except StoreError:
-            return None
-    return summary
+    @property
+    def acquisition(self) -> TableFile:
+        """Every acquisition store of the run: id, kind, measurement or position, scanner, source."""
+        return self._table("tables/acquisition.csv", "AcquisitionTable")
+
+    @property
+    def hexapod_moves(self) -> TableFile:
+        """Planned and reached pose per measurement, with encoder counts (simulated or live hexapod)."""
+        return self._table("tables/hexapod_moves.csv", "AcquiredPosesTable", optional=True)
+
+    def store(self, measurement: str) -> StoreFile:
+        """The acquisition store of ``measurement`` (a ``<group>-<scanner>`` id)."""
+        return self._at(StoreFile, f"measurements/{measurement}.zarr")
+
+    # -- spheres, labels, control points -------------------------------------------------
+    def maps(self, measurement: str) -> StoreFile:
+        """Point maps x, y, z, eps1 (scanner frame) and candidate regions of a measurement."""
+        return self._at(StoreFile, f"maps/{measurement}.zarr")
+
+    def sphere_labels(self, measurement: str) -> StoreFile:
+        """Index of the artefact sphere each pixel belongs to (-1: none)."""
+        return self._at(StoreFile, f"labels/{measurement}.zarr")
+
+    def fits_first(self, measurement: str) -> TableFile:
+        return self._table(f"tables/fits_first/{measurement}.csv", "SphereFitsTable")
+
+    def fits_final(self, measurement: str) -> TableFile:
+        return self._table(f"tables/fits_final/{measurement}.csv", "SphereFitsTable")
+
+    def control_points_of(self, measurement: str) -> TableFile:
+        return self._table(f"tables/control_points/{measurement}.csv", "ControlPointsTable")
+
+    @property
+    def sphere_fits_labelled(self) -> TableFile:
+        return self._table("tables/sphere_fits_labelled.csv", "SphereFitsTable")
+
+    @property
+    def label_outcomes(self) -> TableFile:
+        return self._table("tables/label_outcomes.csv", "LabelOutcomesTable")
+
+    @property
+    def sphere_centres(self) -> TableFile:
+        return self._table("tables/sphere_centres.csv", "SphereCentresTable")
+
+    @property
+    def poses(self) -> TableFile:
+        """``T_scanner_artefact`` per (measurement, scanner) from the labelled centres."""
+        return self._table("tables/poses.csv", "PosesTable")
+
+    @property
+    def poses_skipped(self) -> TableFile:
+        return self._table("tables/poses_skipped.csv", None)
+
+    @property
+    def scanner_links(self) -> TableFile:
+        return self._table("tables/scanner_links.csv", "ScannerLinksTable")
+
+    # -- calibration ---------------------------------------------------------------------------
+    @property
+    def control_points(self) -> TableFile:
+        return self._table("tables/control_points.csv", "ControlPointsTable")
+
+    @property
+    def poses_initial(self) -> TableFile:
+        return self._table("tables/poses_initial.csv", "PosePlanTable")
+
+    @property
+    def sensors_initial(self) -> RigFile:
+        return self._at(RigFile, "tables/sensors_initial.csv")
+
+    @property
+    def dlt(self) -> TableFile:
+        return self._table("tables/dlt.csv", None)
+
+    @property
+    def calibration(self) -> CalibrationFile:
+        return self._at(CalibrationFile, "calibration.json")
+
+    @property
+    def sensors_calibrated(self) -> TableFile:
+        return self._table("tables/sensors_calibrated.csv", "CalibratedSensorsTable")
+
+    @property
+    def poses_calibrated(self) -> TableFile:
+        return self._table("tables/poses_calibrated.csv", "CalibratedPosesTable")
+
+    @property
+    def residuals_per_sphere(self) -> TableFile:
+        return self._table("tables/residuals_per_sphere.csv", "SphereResidualsTable")
+
+    @property
+    def residuals_per_measurement(self) -> TableFile:
+        return self._table("tables/residuals_per_measurement.csv", "MeasurementResidualsTable")
+
+    def histogram(self, term: str) -> BytesFile:
+        """``figures/<term>_hist.png`` for ``eps1`` or ``eps2``."""
+        return self._at(BytesFile, f"figures/{term}_hist.png")
+
+    @property
+    def bundle_summary(self) -> JsonFile:
+        return self._at(JsonFile, "bundle_summary.json")
+
+    # -- verification and evaluation -----------------------------------------------------------
+    @property
+    def verification(self) -> JsonFile:
+        return self._at(JsonFile, "verification.json", optional=True)
+
+    @property
+    def ballbar_centres(self) -> TableFile:
+        return self._table("tables/ballbar_centres.csv", "BallbarCentresTable", optional=True)
+
+    @property
+    def evaluation(self) -> JsonFile:
+        """Simulated runs: the calibration against the truth."""
+        return self._at(JsonFile, "evaluation.json", optional=True)
+
+    @property
+    def ballbar_centres_true(self) -> TableFile:
+        return self._table("tables/ballbar_centres_true.csv", "BallbarCentresTable", optional=True)
+
+    # -- bookkeeping -------------------------------------------------------------------------------
+    def step_record(self, step: str, item: str) -> JsonFile:
+        """What ``step`` computed for ``item`` ('' for one-off steps) and from what."""
+        return self._at(JsonFile, f".steps/{step}/{item or '_'}.json")
+
+    @property
+    def digest_cache_dir(self) -> Path:
+        return self.root / ".digests"
+
+    @property
+    def prefect_storage(self) -> Path:
+        return self.root / ".prefect"
+
+    def relative(self, path) -> str:
+        """``path`` relative to the run directory (as recorded in tables and records)."""
+        return str(Path(path).resolve().relative_to(self.root.resolve()))

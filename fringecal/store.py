@@ -12,12 +12,8 @@ Stores open with plain ``xarray.open_zarr(path)``; :func:`open_store` adds the
 checks. Maps are float32 (or bool) of shape (H, W) on dims ``("v", "u")`` (camera
 row, column), chunked 512 x 512 and compressed with Blosc/lz4.
 
-:func:`add_variables` adds or replaces variables (later: ``x``, ``y``, ``z``,
-``eps1``) without rewriting the rest: it builds the updated store in a temporary
-sibling whose existing chunk files are hard links (zarr replaces files on write and
-never edits them in place, so the original cannot change), writes the new variables,
-finalises it and swaps it in by rename. Readers see the old or the new store, never
-a mix; reopen a store after updating it.
+A complete store is never changed: maps derived from it (point clouds, labels) go to
+stores of their own. :func:`copy_store` copies one (hard links where possible).
 """
 
 from __future__ import annotations
@@ -30,12 +26,11 @@ import warnings
 from pathlib import Path
 from typing import Mapping
 
-import numpy as np
 import xarray as xr
 import zarr
 from zarr.codecs import BloscCodec
 
-__all__ = ["StoreError", "write_store", "open_store", "is_complete", "add_variables", "store_encoding",
+__all__ = ["StoreError", "write_store", "open_store", "is_complete", "store_attributes", "copy_store", "store_encoding",
            "COMPLETE_ATTR", "MANIFEST_ATTR"]
 
 COMPLETE_ATTR = "fringecal_complete"
@@ -126,37 +121,25 @@ def open_store(path, verify: bool = False) -> xr.Dataset:
     return ds
 
 
-def add_variables(path, variables: Mapping[str, xr.DataArray], attrs: Mapping | None = None) -> Path:
-    """Add (or replace) variables of a complete store, and merge ``attrs`` into its
-    attributes, atomically (see the module notes).
+def copy_store(src, dst) -> Path:
+    """Copy a complete store to ``dst`` atomically; chunk files are hard links where the
+    file system allows (stores are never edited in place, so the copy cannot change)."""
+    src, dst = Path(src), Path(dst)
+    _check_complete(src)
 
-    ``variables`` maps names to DataArrays on the store's dims (e.g. ``("v", "u")``)
-    with matching sizes; their coordinates are not written.
-    """
-    path = Path(path)
-    _check_complete(path)
-    with xr.open_zarr(path, consolidated=True) as old:
-        sizes = dict(old.sizes)
-        merged = {k: v for k, v in old.attrs.items() if k not in (COMPLETE_ATTR, MANIFEST_ATTR)}
-    merged.update(attrs or {})
-    _check_json(merged, path)
-    new = {}
-    for name, da in variables.items():
-        da = da if isinstance(da, xr.DataArray) else xr.DataArray(np.asarray(da), dims=("v", "u"))
-        for dim, n in da.sizes.items():
-            if dim in sizes and sizes[dim] != n:
-                raise StoreError(f"{path}: variable {name!r} has {dim} = {n}, the store has {sizes[dim]}")
-        new[name] = da.drop_vars(list(da.coords))
-    ds = xr.Dataset(new, attrs=merged)
-    tmp = _tmp_sibling(path, "tmp")
+    def link(s, d):
+        try:
+            return os.link(s, d)
+        except OSError:
+            return shutil.copy2(s, d)
+
+    tmp = _tmp_sibling(dst, "tmp")
     try:
-        _link_copy(path, tmp, skip=set(new))
-        ds.to_zarr(tmp, mode="a", zarr_format=3, consolidated=False, encoding=store_encoding(ds))
-        _finalise(tmp)
-        _swap_in(tmp, path)
+        shutil.copytree(src, tmp, copy_function=link, ignore=lambda d, names: [n for n in names if n.startswith(".")])
+        _swap_in(tmp, dst)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return path
+    return dst
 
 
 def _tmp_sibling(path: Path, tag: str) -> Path:
@@ -204,25 +187,6 @@ def _swap_in(tmp: Path, path: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.rename(tmp, path)
-
-
-def _link_copy(src: Path, dst: Path, skip: set[str]) -> None:
-    """Copy a store: metadata files copied, chunk files hard-linked; skip folders in ``skip``."""
-    def copy(s, d):
-        if os.path.basename(s) == "zarr.json":
-            return shutil.copy2(s, d)
-        try:
-            return os.link(s, d)
-        except OSError:
-            return shutil.copy2(s, d)
-
-    shutil.copytree(src, dst, copy_function=copy,
-                    ignore=lambda d, names: [n for n in names if Path(d) == src and n in skip])
-    root = json.loads((dst / "zarr.json").read_text())
-    root.pop("consolidated_metadata", None)
-    for key in (COMPLETE_ATTR, MANIFEST_ATTR):
-        root.get("attributes", {}).pop(key, None)
-    (dst / "zarr.json").write_text(json.dumps(root, indent=2))
 
 
 def _check_complete(path: Path) -> None:

@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import pandas as pd
 
-from schemas import SphereCentresTable, TableError, validate_table
+from schemas import BallbarCentresTable, SphereCentresTable, TableError, validate_table
 
 __all__ = [
     "GumStatement",
@@ -109,38 +109,61 @@ class BallBarResult:
 
 
 def ballbar_lengths(centres: pd.DataFrame, source: str = "<centres>", ids=("A", "B")) -> pd.DataFrame:
-    """Centre distance of spheres ``A`` and ``B`` per measurement.
+    """Centre distance of spheres ``A`` and ``B`` per position.
 
-    The two spheres of a position may come from different scanners (one sphere seen by
-    each, as in thesis table 6-9); rows are matched by measurement only.
+    Rows are grouped by ``position`` (the table of
+    :func:`fringecal.pipeline.verify.measure_position`) or, in tables without that
+    column, by ``measurement`` (thesis table 6-9, the plan-driven centres). The two
+    spheres of a position may come from different scanners (one sphere seen by each,
+    as in thesis table 6-9). A sphere seen by several scanners has a row from each;
+    the position then gives one length per (scanner of A, scanner of B) pair, each a
+    test of the link between those two scanners.
 
     Returns
     -------
-    DataFrame with columns ``measurement, length_mm`` in first-seen order.
+    DataFrame with columns ``measurement, length_mm, position, scanner_a, scanner_b``,
+    positions in first-seen order, pairs in row order. ``measurement`` names the
+    length: the position when it has one pair, ``"<position>:<scannerA>/<scannerB>"``
+    otherwise.
+
+    Raises
+    ------
+    TableError
+        A position without a row for ``A`` or ``B``, or with other sphere ids (all
+        problems at once, with line numbers).
     """
-    centres = validate_table(centres, SphereCentresTable, source)
-    a_id, b_id = ids
+    key = "position" if "position" in centres.columns else "measurement"
+    model = BallbarCentresTable if key == "position" else SphereCentresTable
+    table = validate_table(centres, model, source)
     problems = []
     rows = []
-    for meas, g in centres.groupby("measurement", sort=False):
+    for meas, g in table.groupby(key, sort=False):
         found = {sid: g[g.sphere_id == sid] for sid in ids}
         for sid, rows_sid in found.items():
-            if len(rows_sid) != 1:
-                lines = [int(i) + 2 for i in rows_sid.index]
-                what = "no" if len(rows_sid) == 0 else f"{len(rows_sid)} (lines {lines})"
+            if len(rows_sid) == 0:
                 problems.append((int(g.index[0]) + 2, "sphere_id",
-                                 f"measurement {meas!r} has {what} row(s) for sphere {sid!r}; need exactly one"))
+                                 f"{key} {meas!r} has no row(s) for sphere {sid!r}; need at least one"))
         others = sorted(set(g.sphere_id) - set(ids))
         if others:
             problems.append((int(g.index[0]) + 2, "sphere_id",
-                             f"measurement {meas!r}: sphere id(s) {others} are not ball-bar spheres {list(ids)}"))
-        if all(len(v) == 1 for v in found.values()):
-            pa = found[a_id][["x_mm", "y_mm", "z_mm"]].to_numpy(float)[0]
-            pb = found[b_id][["x_mm", "y_mm", "z_mm"]].to_numpy(float)[0]
-            rows.append((meas, float(np.linalg.norm(pb - pa))))
+                             f"{key} {meas!r}: sphere id(s) {others} are not ball-bar spheres {list(ids)}"))
+        if all(len(v) for v in found.values()):
+            rows += _pair_lengths(meas, found[ids[0]], found[ids[1]])
     if problems:
         raise TableError(source, problems)
-    return pd.DataFrame(rows, columns=["measurement", "length_mm"])
+    return pd.DataFrame(rows, columns=["measurement", "length_mm", "position", "scanner_a", "scanner_b"])
+
+
+def _pair_lengths(position, rows_a: pd.DataFrame, rows_b: pd.DataFrame) -> list[tuple]:
+    """(name, length, position, scanner A, scanner B) for every pair of an A and a B row."""
+    xyz = ["x_mm", "y_mm", "z_mm"]
+    pairs = [(a, b) for a in rows_a.itertuples() for b in rows_b.itertuples()]
+    out = []
+    for a, b in pairs:
+        name = position if len(pairs) == 1 else f"{position}:{a.scanner}/{b.scanner}"
+        length = float(np.linalg.norm(np.array([getattr(b, c) - getattr(a, c) for c in xyz], float)))
+        out.append((name, length, position, a.scanner, b.scanner))
+    return out
 
 
 def evaluate_ballbar(lengths_mm, reference_length_mm: float, measurements=None, mpe_mm: float | None = None,

@@ -6,6 +6,7 @@ from .tables import (  # noqa: F401
     FREE_COLUMNS,
     REJECTION_REASONS,
     ArtefactTable,
+    BallbarCentresTable,
     CalibratedPosesTable,
     CalibratedSensorsTable,
     ControlPointsTable,

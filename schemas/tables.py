@@ -470,18 +470,37 @@ class AcquiredPosesTable(PosePlanTable):
 
 
 class AcquisitionTable(_Base):
-    """The measurements of an acquisition: id ``<pose>-<scanner>``, its pose and
-    scanner, the store (relative to the run directory), and what the decoder kept."""
+    """Every acquisition store of a run: id ``<group>-<scanner>``, ``kind`` (``artefact``:
+    a calibration measurement; ``ballbar``: a verification position), the measurement
+    or position (``pose``), the scanner, the store (relative to the run directory) and
+    where its data came from (``simulated``, or the stack's path in the data set)."""
 
     measurement: Series[str] = pa.Field(unique=True)
+    kind: Series[str] = pa.Field(isin=["artefact", "ballbar"])
     pose: Series[str] = pa.Field()
     scanner: Series[str] = pa.Field()
     store: Series[str] = pa.Field(str_length={"min_value": 1})
-    valid_fraction: Series[float] = pa.Field(ge=0, le=1)
-    sphere_pixels: Series[int] = pa.Field(ge=0)
+    source: Series[str] = pa.Field(str_length={"min_value": 1})
 
-    _id_columns = ("measurement", "pose", "scanner")
-    _unique_together = (("pose", "scanner"),)
+    _id_columns = ("measurement", "kind", "pose", "scanner")
+    _unique_together = (("kind", "pose", "scanner"),)
+
+
+class BallbarCentresTable(_Base):
+    """Ball-bar sphere centres in the world frame, one row per (position, scanner, sphere)."""
+
+    position: Series[str] = pa.Field()
+    scanner: Series[str] = pa.Field()
+    sphere_id: Series[str] = pa.Field()
+    x_mm: Series[float] = pa.Field()
+    y_mm: Series[float] = pa.Field()
+    z_mm: Series[float] = pa.Field()
+    radius_mm: Optional[Series[float]] = pa.Field(gt=0)
+    rms_mm: Optional[Series[float]] = pa.Field(ge=0)
+    n_points: Optional[Series[int]] = pa.Field(ge=0)
+
+    _id_columns = ("position", "scanner", "sphere_id")
+    _unique_together = (("position", "scanner", "sphere_id"),)
 
 
 class DriftCentresTable(_Base):
@@ -702,12 +721,12 @@ def read_table(path, model) -> pd.DataFrame:
 
 
 def write_table(df: pd.DataFrame, path, model=None) -> Path:
-    """Validate (when ``model`` is given) and write atomically (temporary name, then rename)."""
+    """Validate (when ``model`` is given) and write atomically (:mod:`fringecal.atomic`)."""
+    from fringecal.atomic import atomic_path
+
     path = Path(path)
     if model is not None:
         df = validate_table(df, model, str(path))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    df.to_csv(tmp, index=False, float_format="%.10g")
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False, float_format="%.10g")
     return path

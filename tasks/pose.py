@@ -14,7 +14,7 @@ from .refs import Ref, cache_key, ref_for
 
 
 def _key(context, parameters) -> str:
-    return cache_key("estimate-poses", parameters)
+    return cache_key("estimate-poses", parameters, ("fringecal.pose",))
 
 
 @task(name="estimate-poses", cache_key_fn=_key, persist_result=True)

@@ -1,9 +1,11 @@
 """Small references that tasks pass instead of arrays or tables.
 
 A :class:`Ref` names a file or a directory (a zarr store) and carries a content
-digest. Prefect results hold only refs; cache keys are built from the refs' digests,
-the task's parameters and a code version, so a rerun with unchanged inputs is all
-cache hits and a changed input reruns exactly what depends on it.
+digest. The small flows of single commands (``fringecal decode``, ``fringecal pose``)
+pass refs; their cache keys are built from the refs' digests, the task's parameters
+and the source digest of the fringecal modules the task runs, so a rerun with
+unchanged inputs and code is all cache hits. (The pipeline's steps have their own
+declared keys: :mod:`fringecal.steps.keys`.)
 """
 
 from __future__ import annotations
@@ -12,9 +14,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from fringecal.digests import CODE_VERSION, digest_path, digest_value
+from fringecal.digests import digest_path, digest_value, source_digest
 
-__all__ = ["Ref", "digest_path", "digest_value", "ref_for", "cache_key", "CODE_VERSION"]
+__all__ = ["Ref", "digest_path", "digest_value", "ref_for", "cache_key"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,7 @@ def ref_for(path, kind: str = "file") -> Ref:
     return Ref(str(path), digest_path(path), kind)
 
 
-def cache_key(task_name: str, parameters: dict[str, Any]) -> str:
-    """Cache key from a task name, the code version and its parameters (refs by digest)."""
-    return f"{task_name}-{digest_value({'code': CODE_VERSION, 'params': parameters})[:32]}"
+def cache_key(task_name: str, parameters: dict[str, Any], modules: tuple[str, ...]) -> str:
+    """Cache key from a task name, its parameters (refs by digest) and the source of
+    ``modules`` (and what they import)."""
+    return f"{task_name}-{digest_value({'code': source_digest(modules), 'params': parameters})[:32]}"

@@ -13,6 +13,8 @@ os.environ["PREFECT_LOCAL_STORAGE_PATH"] = str(_PREFECT_TMP / "storage")
 os.environ["PREFECT_RESULTS_LOCAL_STORAGE_PATH"] = str(_PREFECT_TMP / "storage")
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ["PREFECT_LOGGING_LEVEL"] = "WARNING"
+os.environ["PREFECT_LOGGING_EXTRA_LOGGERS"] = "fringecal"
+os.environ["PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW"] = "ignore"  # steps run without a flow too
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
 import numpy as np  # noqa: E402
@@ -53,3 +55,50 @@ def prefect_harness():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+def write_small_config(d: Path) -> Path:
+    """A small simulated thesis rig: four of the twelve poses (four stand-offs), three
+    ball-bar positions, 320 px cameras and a short fringe sequence -- the whole pipeline
+    in well under a minute."""
+    import pandas as pd
+    import yaml
+
+    poses = pd.read_csv(THESIS / "poses_scanner1_table6-1.csv")
+    poses[poses.measurement.isin([1, 5, 9, 12])].to_csv(d / "poses.csv", index=False)
+    bb = pd.read_csv(THESIS / "ballbar_verification_table6-9.csv")
+    bb[bb.measurement.isin([1, 4, 9])].to_csv(d / "ballbar_positions.csv", index=False)
+    rig = yaml.safe_load((THESIS / "rig.yaml").read_text())
+    for k in ("sensors", "sensors_initial", "artefact", "rods", "ballbar", "materials"):
+        rig[k] = str(THESIS / rig[k])
+    rig["artefact_poses"] = str(d / "poses.csv")
+    (d / "rig.yaml").write_text(yaml.safe_dump(rig))
+    cfg = {
+        "name": "small",
+        "simulate": {"rig": str(d / "rig.yaml"),
+                     "acquisition": {"camera_width_px": 320, "seed": 11,
+                                     "sequence": {"fringe_counts": [32, 31, 30, 28, 24, 16], "n_steps": 5}},
+                     "verification": {"positions": str(d / "ballbar_positions.csv"), "camera_width_px": 320}},
+        "control_points": {"spacing_px": 1},
+    }
+    path = d / "run.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+@pytest.fixture(scope="session")
+def small_config(tmp_path_factory) -> Path:
+    return write_small_config(tmp_path_factory.mktemp("config"))
+
+
+@pytest.fixture(scope="session")
+def small_dataset(small_config, tmp_path_factory) -> tuple[Path, Path]:
+    """The small rig written as a recorded data set by ``fringecal simulate`` (PNG frames),
+    and its truth folder."""
+    from fringecal.acquisition.export import write_dataset
+    from fringecal.runconfig import load_run_config
+
+    d = tmp_path_factory.mktemp("dataset")
+    out, truth = d / "small", d / "small-truth"
+    write_dataset(load_run_config(small_config), out, truth, "png")
+    return out, truth

@@ -12,8 +12,8 @@ import yaml
 from typer.testing import CliRunner
 
 from flows.cli import app
-from fringecal.acquisition import (AcquisitionInputs, acquire_measurement, measurement_rng,
-                                   move_hexapod, plan_acquisition, planned_poses, poses_table, truth_from_store)
+from fringecal.acquisition import (acquisition_table, load_simulated_rig, measurement_rng, move_hexapod, poses_table,
+                                   simulate_measurement, truth_from_store)
 from fringecal.frames import Frame
 from fringecal.fringe.decode import decode
 from fringecal.fringe.sequence import FringeSequence
@@ -41,10 +41,11 @@ def tiny_config(tmp_path, pose_rows=(0, 1), width=96, sequence=SHORT, url="hexsi
            "artefact": str(d / "artefact_cmm2.csv"), "rods": str(d / "rods.csv"), "artefact_poses": "poses.csv",
            "materials": str(d / "materials.yaml")}
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
-    run = {"name": "tiny", "rig": "rig.yaml",
-           "acquisition": {"camera_width_px": width, "hexapod": {"url": url},
-                           "sequence": {"fringe_counts": list(sequence.fringe_counts), "n_steps": sequence.n_steps},
-                           **acq}}
+    run = {"name": "tiny", "simulate": {
+        "rig": "rig.yaml",
+        "acquisition": {"camera_width_px": width, "hexapod": {"url": url},
+                        "sequence": {"fringe_counts": list(sequence.fringe_counts), "n_steps": sequence.n_steps},
+                        **acq}}}
     path = tmp_path / "run.yaml"
     path.write_text(yaml.safe_dump(run))
     return path
@@ -142,20 +143,27 @@ def test_default_noise_gives_the_thesis_epsilon_one(noise_pairs):
 
 # -- acquisition pieces ------------------------------------------------------------------------------
 
+def _sim(path, overrides=None):
+    return load_run_config(path, overrides).simulate
+
+
 def test_plan_lists_every_pose_and_scanner_in_order(tmp_path):
-    cfg = load_run_config(tiny_config(tmp_path, pose_rows=(2, 0)))
-    plans = plan_acquisition(cfg)
-    assert [p.measurement for p in plans] == ["3-scanner1", "3-scanner2", "1-scanner1", "1-scanner2"]
-    assert list(planned_poses(plans)) == ["3", "1"]
-    assert plans[2].T_world_artefact.params[0] == pytest.approx(200.048)
+    sr = load_simulated_rig(_sim(tiny_config(tmp_path, pose_rows=(2, 0))))
+    table = acquisition_table(sr)
+    artefact = table[table.kind == "artefact"]
+    assert list(artefact.measurement) == ["3-scanner1", "3-scanner2", "1-scanner1", "1-scanner2"]
+    assert list(sr.planned) == ["3", "1"] and sr.planned["1"].params[0] == pytest.approx(200.048)
+    # thesis table 6-9: sphere A in scanner one's view, B in scanner two's
+    assert all(p.scanner_of == {"A": "scanner1", "B": "scanner2"} for p in sr.positions)
+    assert list(table[table.kind == "ballbar"].measurement[:2]) == ["bb01-scanner1", "bb01-scanner2"]
 
 
 def test_hexapod_moves_reach_the_plan_to_encoder_quantisation(tmp_path):
     from fringecal.hexapod import HexapodRig, load_hexapod_config
     from fringecal.hexapod.planning import quantisation_bound
 
-    cfg = load_run_config(tiny_config(tmp_path, pose_rows=range(12)))
-    moves = move_hexapod(planned_poses(plan_acquisition(cfg)), cfg)
+    sim = _sim(tiny_config(tmp_path, pose_rows=range(12)))
+    moves = move_hexapod(load_simulated_rig(sim).planned, sim.acquisition.hexapod)
     rig = HexapodRig.from_config(load_hexapod_config())
     for m in moves:
         planned, reached = rig.platform_pose_for(m.planned), rig.platform_pose_for(m.reached)
@@ -164,8 +172,8 @@ def test_hexapod_moves_reach_the_plan_to_encoder_quantisation(tmp_path):
         assert 1e-4 < m.translation_error_mm < 0.1 and m.rotation_error_rad < 1e-4
     table = poses_table(moves)
     assert table["hexapod"].all() and table["counts_1"].notna().all()
-    off = load_run_config(tiny_config(tmp_path, pose_rows=(0,)), {"acquisition": {"hexapod": {"enabled": False}}})
-    still = move_hexapod(planned_poses(plan_acquisition(off)), off)
+    off = _sim(tiny_config(tmp_path, pose_rows=(0,)), {"simulate": {"acquisition": {"hexapod": {"enabled": False}}}})
+    still = move_hexapod(load_simulated_rig(off).planned, off.acquisition.hexapod)
     assert still[0].reached is still[0].planned and poses_table(still)["counts_1"].isna().all()
 
 
@@ -174,77 +182,85 @@ def test_hexapod_faults_and_unreachable_poses_name_the_pose(tmp_path):
 
     from fringecal.hexapod.simulator import get_controller
 
-    one = load_run_config(tiny_config(tmp_path, pose_rows=(0,), url="hexsim://acq-count"))
-    move_hexapod(planned_poses(plan_acquisition(one)), one)
+    def move(sim):
+        return move_hexapod(load_simulated_rig(sim).planned, sim.acquisition.hexapod)
+
+    move(_sim(tiny_config(tmp_path, pose_rows=(0,), url="hexsim://acq-count")))
     n = get_controller("acq-count").n_received  # commands to open the box and reach pose 1
-    cfg = load_run_config(tiny_config(tmp_path, pose_rows=(0, 1, 2), url=f"hexsim://acq-fault?fault=timeout&after={n + 1}"))
     with pytest.raises(HexapodFault, match="artefact pose 2: hexapod stopped: no reply"):
-        move_hexapod(planned_poses(plan_acquisition(cfg)), cfg)
+        move(_sim(tiny_config(tmp_path, pose_rows=(0, 1, 2), url=f"hexsim://acq-fault?fault=timeout&after={n + 1}")))
     box = get_controller("acq-fault")
     assert [c.split()[0] for c in box.motion_log()] == ["MOVEALL", "MOVEALL"]  # pose 3 never commanded
     assert box.log[-1][1].startswith("STOP")
-    far = load_run_config(tiny_config(tmp_path, pose_rows=(0, 1), shift_mm=2000.0))
     with pytest.raises(TargetRejected, match="artefact pose 1: .*outside the workspace"):
-        move_hexapod(planned_poses(plan_acquisition(far)), far)
+        move(_sim(tiny_config(tmp_path, pose_rows=(0, 1), shift_mm=2000.0)))
 
 
 def test_measurement_noise_depends_on_seed_and_id_only(tmp_path, thesis):
     cfg = load_run_config(tiny_config(tmp_path, width=48, store_frames=True))
-    inputs = AcquisitionInputs.from_run_config(cfg)
-    a, b = plan_acquisition(cfg, inputs)[:2]
-    T = a.T_world_artefact
-    acquire_measurement(a, T, cfg, tmp_path / "a1.zarr", inputs)
-    acquire_measurement(b, T, cfg, tmp_path / "b.zarr", inputs)
-    acquire_measurement(a, T, cfg, tmp_path / "a2.zarr", inputs)  # after another measurement
+    sim = cfg.simulate
+    sr = load_simulated_rig(sim)
+    T = sr.planned["1"]
+    scene = artefact_scene(sr.artefact, sr.rods, T, sr.hardware)
+    s1, s2 = sr.truth.scanners
+
+    def acquire(mid, scanner, out, acq=sim.acquisition):
+        simulate_measurement(mid, scanner, scene, acq, cfg.decode, tmp_path / out, tmp_path / f"truth-{out}")
+
+    acquire("1-scanner1", s1, "a1.zarr")
+    acquire("1-scanner2", s2, "b.zarr")
+    acquire("1-scanner1", s1, "a2.zarr")  # after another measurement
     f1, f2 = (open_store(tmp_path / n).frames.values for n in ("a1.zarr", "a2.zarr"))
     np.testing.assert_array_equal(f1, f2)
-    # the same id under another seed differs; the store's truth is the renderer's
-    other = cfg.model_copy(update={"acquisition": cfg.acquisition.model_copy(update={"seed": 1})})
-    acquire_measurement(a, T, other, tmp_path / "a3.zarr", inputs)
+    # the same id under another seed differs; the truth store holds the renderer's truth
+    acquire("1-scanner1", s1, "a3.zarr", sim.acquisition.model_copy(update={"seed": 1}))
     assert np.mean(open_store(tmp_path / "a3.zarr").frames.values != f1) > 0.3
     rig, artefact, rods, _ = thesis
-    scanner = scaled_scanner(rig.scanner(a.scanner), 48)
-    m = render_measurement(scanner, artefact_scene(artefact, rods, T, inputs.hardware), cfg.acquisition.render,
-                           measurement_rng(cfg.acquisition.seed, a.measurement), SHORT)
+    scanner = scaled_scanner(rig.scanner("scanner1"), 48)
+    m = render_measurement(scanner, artefact_scene(artefact, rods, T, sr.hardware), sim.acquisition.render,
+                           measurement_rng(sim.acquisition.seed, "1-scanner1"), SHORT)
     np.testing.assert_array_equal(m.frames, f1)
-    truth = truth_from_store(xr.open_zarr(tmp_path / "a1.zarr"))
+    assert not [v for v in open_store(tmp_path / "a1.zarr").variables if v.startswith("truth")]
+    truth = truth_from_store(xr.open_zarr(tmp_path / "truth-a1.zarr"))
     np.testing.assert_array_equal(truth.point, m.truth.point)
     np.testing.assert_array_equal(truth.tau_y, m.truth.tau_y)
     np.testing.assert_array_equal(truth.object_index, m.truth.object_index)
     assert truth.object_kinds == m.truth.object_kinds
 
 
-# -- flow and CLI ------------------------------------------------------------------------------------
+# -- the simulated source's steps in the flow, and the command line -------------------------------
 
 def _stamp(path):
     return os.stat(path).st_ino, os.stat(path / "zarr.json").st_mtime_ns
 
 
 @pytest.mark.flow
-def test_acquire_flow_two_poses_two_scanners(prefect_harness, tmp_path, thesis):
-    from flows.acquire_flow import acquire_flow
+def test_simulated_acquisition_two_poses_two_scanners(prefect_harness, tmp_path, thesis):
+    from flows.run_flow import run_flow
     from fringecal.rundir import RunDir
 
-    cfg = load_run_config(tiny_config(tmp_path, width=128, url="hexsim://flowtest"))
+    cfg = tiny_config(tmp_path, width=128, url="hexsim://flowtest")
     rd = RunDir(tmp_path / "run")
-    result = acquire_flow(cfg, str(rd.root))
+    summary = run_flow(str(cfg), str(rd.root), until="simulate-render")
     ids = ["1-scanner1", "1-scanner2", "2-scanner1", "2-scanner2"]
-    assert list(result["stores"]) == ids
+    assert [t.split(":")[1] for t in summary["tasks"]["ran"] if t.startswith("simulate-render")] == ids
     _, artefact, _, _ = thesis
-    poses = pd.read_csv(result["poses"].path, dtype={"measurement": str}).set_index("measurement")
+    reached = rd.truth.poses.load().set_index("measurement")
+    moves = rd.hexapod_moves.load().set_index("measurement")
     for mid in ids:
-        path = rd.store(mid)
-        assert is_complete(path) and result["stores"][mid].path == str(path)
+        path = rd.store(mid).path
+        assert is_complete(path)
         ds = xr.open_zarr(path)  # plain xarray reads the store
-        assert {"tau_x", "valid", "truth_tau_x", "truth_x", "truth_sphere_index"} <= set(ds.data_vars)
+        assert {"tau_x", "valid"} <= set(ds.data_vars) and not [v for v in ds.data_vars if v.startswith("truth")]
         a = ds.attrs
         assert (a["measurement"], a["scanner"], a["camera_format"]["width_px"]) == (mid, mid[2:], 128)
-        reached = Frame.from_params([a["T_world_artefact"][c] for c in POSE_COLS])
-        planned = Frame.from_params([a["T_world_artefact_planned"][c] for c in POSE_COLS])
-        np.testing.assert_allclose(reached.params, poses.loc[a["pose"], POSE_COLS].to_numpy(float), atol=1e-6)
-        assert 1e-4 < np.linalg.norm(reached.t - planned.t) < 0.1  # rounding to whole encoder counts
+        pose = a["pose"]
+        T_reached = Frame.from_params(reached.loc[pose, POSE_COLS].to_numpy(float))
+        T_planned = Frame.from_params(moves.loc[pose, [f"planned_{c}" for c in POSE_COLS]].to_numpy(float))
+        np.testing.assert_allclose(T_reached.params, moves.loc[pose, POSE_COLS].to_numpy(float), atol=1e-6)
+        assert 1e-4 < np.linalg.norm(T_reached.t - T_planned.t) < 0.1  # rounding to whole encoder counts
         # the rendered truth follows the reached pose, not the planned one
-        truth = truth_from_store(ds)
+        truth = truth_from_store(xr.open_zarr(rd.truth.store(mid).path))
         on = truth.centre_object_index >= 0
         kinds = np.array(truth.object_kinds)[truth.centre_object_index[on]]
         names = np.array(truth.object_names)[truth.centre_object_index[on]]
@@ -253,61 +269,62 @@ def test_acquire_flow_two_poses_two_scanners(prefect_harness, tmp_path, thesis):
         assert len(sid) > 50
         radii = artefact.radii[artefact.index(sid)]
         off = [np.abs(np.linalg.norm(points - T.to_world(artefact.centres_of(sid)), axis=1) - radii).max()
-               for T in (reached, planned)]
-        assert off[0] < 1e-6 and off[1] > 1e-3, off
+               for T in (T_reached, T_planned)]
+        assert off[0] < 1e-5 and off[1] > 1e-3, off
         assert np.mean(ds.valid.values[truth.sphere_mask()]) > 0.9
-    table = pd.read_csv(result["measurements"].path)
-    assert list(table["measurement"]) == ids and (table["sphere_pixels"] > 20).all()
 
-    stamps = {m: _stamp(rd.store(m)) for m in ids}
-    table_stamp = os.stat(result["poses"].path).st_mtime_ns
-    again = acquire_flow(cfg, str(rd.root))  # all cache hits: nothing rewritten
-    assert again["stores"] == result["stores"] and {m: _stamp(rd.store(m)) for m in ids} == stamps
-    assert os.stat(result["poses"].path).st_mtime_ns == table_stamp
+    stamps = {m: _stamp(rd.store(m).path) for m in ids}
+    table_stamp = os.stat(rd.hexapod_moves.path).st_mtime_ns
+    again = run_flow(str(cfg), str(rd.root), until="simulate-render")  # all cache hits: nothing rewritten
+    assert again["tasks"]["ran"] == [] and {m: _stamp(rd.store(m).path) for m in ids} == stamps
+    assert os.stat(rd.hexapod_moves.path).st_mtime_ns == table_stamp
 
     import shutil
 
-    shutil.rmtree(rd.store("2-scanner1"))  # only the deleted store is made again
-    acquire_flow(cfg, str(rd.root))
-    assert is_complete(rd.store("2-scanner1"))
-    assert {m: _stamp(rd.store(m)) for m in ids if m != "2-scanner1"} == \
+    shutil.rmtree(rd.store("2-scanner1").path)  # only the deleted store is made again
+    third = run_flow(str(cfg), str(rd.root), until="simulate-render")
+    assert third["tasks"]["ran"] == ["simulate-render:2-scanner1"] and is_complete(rd.store("2-scanner1").path)
+    assert {m: _stamp(rd.store(m).path) for m in ids if m != "2-scanner1"} == \
         {m: s for m, s in stamps.items() if m != "2-scanner1"}
 
 
 @pytest.mark.flow
-def test_cli_acquire_json(prefect_harness, tmp_path):
+def test_cli_run_until_the_acquisition_json(prefect_harness, tmp_path):
     cfg = tiny_config(tmp_path, pose_rows=(0,), width=64, url="hexsim://clitest", hexapod={"enabled": False})
-    res = runner.invoke(app, ["acquire", "--config", str(cfg), "--out", str(tmp_path / "run"), "--json"])
+    res = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "run"), "--until", "simulate-render",
+                              "--json"])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout[res.stdout.index("{"):])
-    assert [m["measurement"] for m in doc["measurements"]] == ["1-scanner1", "1-scanner2"]
-    assert doc["poses"][0]["hexapod"] is False and doc["poses"][0]["translation_error_mm"] == 0
+    assert doc["tasks"]["ran"] == ["simulate-prepare", "simulate-hexapod", "simulate-render:1-scanner1",
+                                   "simulate-render:1-scanner2"]
+    moves = pd.read_csv(tmp_path / "run" / "tables" / "hexapod_moves.csv")
+    assert not moves["hexapod"][0] and moves["translation_error_mm"][0] == 0
     assert (tmp_path / "run" / "measurements" / "1-scanner2.zarr").is_dir()
 
 
 @pytest.mark.flow
-def test_cli_acquire_controller_fault_exits_1(prefect_harness, tmp_path):
+def test_cli_run_controller_fault_exits_1(prefect_harness, tmp_path):
     cfg = tiny_config(tmp_path, pose_rows=(0,), url="hexsim://?fault=garbled")
-    res = runner.invoke(app, ["acquire", "--config", str(cfg), "--out", str(tmp_path / "run")])
+    res = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "run")])
     assert res.exit_code == 1, res.output
     assert "hexapod: opening the hexapod at hexsim://?fault=garbled: hexapod stopped: bad reply" in res.output
     cfg = tiny_config(tmp_path, pose_rows=(0,), url="hexsim://?fault=garbled&after=1")
-    res = runner.invoke(app, ["acquire", "--config", str(cfg), "--out", str(tmp_path / "run")])
+    res = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "run")])
     assert res.exit_code == 1 and "hexapod: artefact pose 1: hexapod stopped: bad reply" in res.output
     assert not list((tmp_path / "run" / "measurements").glob("*.zarr"))
 
 
-def test_cli_acquire_bad_configs_fail_before_prefect(tmp_path):
+def test_cli_bad_simulation_configs_fail_before_prefect(tmp_path):
     def run(path):
-        return runner.invoke(app, ["acquire", "--config", str(path), "--out", str(tmp_path / "run")])
+        return runner.invoke(app, ["run", "--config", str(path), "--out", str(tmp_path / "run")])
 
     good = tiny_config(tmp_path)
     doc = yaml.safe_load(good.read_text())
-    doc["acquisition"]["camera_widht_px"] = 10
+    doc["simulate"]["acquisition"]["camera_widht_px"] = 10
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump(doc))
     res = run(bad)
-    assert res.exit_code == 2 and "acquisition.camera_widht_px: unknown key" in res.output
+    assert res.exit_code == 2 and "simulate.acquisition.camera_widht_px: unknown key" in res.output
 
     rig = yaml.safe_load((tmp_path / "rig.yaml").read_text())
     del rig["artefact_poses"]

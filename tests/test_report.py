@@ -1,9 +1,11 @@
 """report.html: atomic, self-contained, shows the run's numbers, degrades and escapes.
 
-The run directory is built here: a real bundle adjustment of simulated thesis control
-points (fringecal.calibration.synthetic + calibrate_run) gives the calibration files,
-tables and histograms; the files of the other steps (manifest, summary, verification,
-truth, acquisition and labelling tables) are written with plausible values.
+The run directory is built here: a real bundle adjustment (the ``bundle`` step) of
+simulated thesis control points (fringecal.calibration.synthetic) gives the
+calibration files, tables and histograms; the files of the other steps (manifest,
+summary, verification, evaluation, acquisition, hexapod and labelling tables) are
+written through their RunDir accessors with plausible values. Every file is reached
+through RunDir: the tests spell no run-directory file name either.
 """
 
 import json
@@ -16,86 +18,103 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from fringecal.calibration.run import calibrate_run
+from fringecal.artefact import Artefact
 from fringecal.calibration.synthetic import dlt_start, simulate_control_points, thesis_truth, write_run_inputs
-from fringecal.report import write_report
-from fringecal.rundir import RunDir, package_versions, write_json_atomic
+from fringecal.report import NO_TRUTH, render_report, write_report
+from fringecal.runconfig import RunConfig
+from fringecal.rundir import RunDir, package_versions
+from fringecal.steps import get_step, run_step
 from fringecal.verification import evaluate_ballbar
-from schemas import AcquiredPosesTable, AcquisitionTable, LabelOutcomesTable, write_table
 
 POSE_COLUMNS = ["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]
 REFERENCE_MM = 1015.650
 CAL_ERRORS_MM = [0.021, -0.034, 0.047, -0.012, 0.008, -0.041, 0.029, -0.003, 0.016]
 TRUE_ERRORS_MM = [0.018, -0.029, 0.044, -0.010, 0.011, -0.037, 0.025, -0.006, 0.013]
+POSITIONS = [f"bb{i + 1:02d}" for i in range(len(CAL_ERRORS_MM))]
+SCANNERS = ("scanner1", "scanner2")
+DIAGONAL_MM = 2872.3
+CREATED = "2026-01-02T03:04:05Z"
+COMMAND = "fringecal run --out runs/report-test"
+SUMMARY_TIMINGS = {"simulate-render": 120.5, "spheres-first": 31.2, "bundle": 0.4, "verify": 25.0}
+TIMINGS = {"simulate-render": 118.25, "spheres-first": 30.5, "bundle": 0.35, "verify": 24.0, "total": 175.0}
 
 
 def _ballbar(errors, mpe=0.1):
-    names = [str(i + 1) for i in range(len(errors))]
-    return evaluate_ballbar(REFERENCE_MM + np.array(errors), REFERENCE_MM, names, mpe, 2872.3, 0.0004, 2.0, 1.96)
+    return evaluate_ballbar(REFERENCE_MM + np.array(errors), REFERENCE_MM, POSITIONS[:len(errors)], mpe, DIAGONAL_MM,
+                            0.0004, 2.0, 1.96)
+
+
+def _config(**kw) -> dict:
+    cfg = RunConfig(name="thesis", bundle={"start": "given", "volume_diagonal_mm": DIAGONAL_MM}, **kw)
+    return cfg.model_dump(mode="json")
+
+
+def _manifest(config: dict, source: str, inputs: dict) -> dict:
+    return {"config": config, "config_digest": RunDir.config_digest(config), "source": source,
+            "code_digest": "cd" * 32, "versions": package_versions(), "inputs": inputs}
 
 
 @pytest.fixture(scope="module")
 def base_run(tmp_path_factory):
-    run = tmp_path_factory.mktemp("report-run")
+    rd = RunDir(tmp_path_factory.mktemp("report-run")).create()
     rig, art, poses = thesis_truth()
     sim = simulate_control_points(rig, art, poses, spacing_px=40, rng=31)
     start_rig, start_poses = dlt_start(sim, rng=31)
-    write_run_inputs(run, sim, start_rig, start_poses, {"start": "given", "volume_diagonal_mm": 2872.3})
-    calibrate_run(run)
-    bs = json.loads((run / "bundle_summary.json").read_text())
+    write_run_inputs(rd, sim, start_rig, start_poses)
+    run_step(get_step("bundle"), rd, RunConfig(bundle={"start": "given", "volume_diagonal_mm": DIAGONAL_MM}))
+    bs = rd.bundle_summary.load()
+    rd.rods.save(pd.DataFrame({"rod_id": ["r1", "r2", "r3"], "sphere_a": list(art.ids[:3]),
+                               "sphere_b": list(art.ids[1:4]),
+                               "length_mm": np.linalg.norm(art.centres[1:4] - art.centres[:3], axis=1)}))
+    rd.ballbar.save(Artefact(("A", "B"), [[0.0, 0.0, 0.0], [REFERENCE_MM, 0.0, 0.0]], [30.002, 29.998],
+                             name="ballbar"))
 
-    config = {"name": "thesis", "acquisition": {"camera_width_px": 512, "hexapod": {"enabled": True}},
-              "verification": {"scheme": "thesis9", "mpe_mm": 0.1}}
-    write_json_atomic(run / "manifest.json", {
-        "config": config, "config_digest": RunDir.config_digest(config), "versions": package_versions(),
-        "inputs": {"artefact": {"path": "configs/thesis/artefact_cmm2.csv", "sha256": "ab" * 32}},
-        "created_utc": "2026-01-02T03:04:05Z", "command": "fringecal run --out runs/report-test"})
+    config = _config(simulate={"acquisition": {"camera_width_px": 512}, "verification": {"scheme": "thesis9"}})
+    rd.manifest.save(_manifest(config, "simulated", {"configs/thesis/artefact_cmm2.csv": "ab" * 32}))
     cal, true = _ballbar(CAL_ERRORS_MM), _ballbar(TRUE_ERRORS_MM)
-    write_json_atomic(run / "verification.json", {"calibrated": cal.to_dict(), "true": true.to_dict(),
-                                                  "failures": [], "scheme": "thesis9"})
-    write_json_atomic(run / "truth.json", {
+    rd.verification.save({"calibrated": cal.to_dict(), "failures": [],
+                          "recorded_by": {p: list(SCANNERS) for p in POSITIONS}})
+    rd.evaluation.save({
         "max_position_error_mm": 0.61, "max_angle_error_rad": 2.1e-4, "rms_f_mm_true_params": 0.168,
         "rms_eps1_mm_true_params": 0.0449, "rms_eps2_mm_true_params": 0.1608,
         "sensors": [{"sensor": s.name, "position_error_mm": 0.1 * (i + 1), "angle_error_rad": 5e-5 * (i + 1),
                      "c_error_mm": 0.003 * (i - 1), "max_sigma_ratio_position_angles_c": 1.1 + 0.2 * i}
-                    for i, s in enumerate(rig.sensors)]})
-    write_json_atomic(run / "summary.json", {
-        "n_measurements": bs["n_measurements"], "n_control_points": bs["n_control_points"],
-        "rms_F_mm_before": bs["before"]["rms_f_mm"], "rms_F_mm_after": bs["after"]["rms_f_mm"],
-        "rms_eps1_mm_after": bs["after"]["rms_eps1_mm"], "rms_eps2_mm_after": bs["after"]["rms_eps2_mm"],
-        "one_part_in": bs["one_part_in_1p96_sigma"], "bundle_seconds": 0.4, "total_seconds": 181.0,
-        "verification": {"reference_length_mm": REFERENCE_MM, "mean_length_mm": cal.mean_length_mm,
-                         "max_abs_error_mm": cal.max_abs_error_mm, "volume_diagonal_mm": 2872.3,
-                         "pass": cal.passed},
-        "truth": {"max_position_error_mm": 0.61, "max_angle_error_rad": 2.1e-4, "rms_eps1_mm_true_params": 0.0449,
-                  "rms_eps2_mm_true_params": 0.1608,
-                  "verification_max_abs_error_true_params_mm": true.max_abs_error_mm}})
-    reached = poses.rename(columns=lambda c: c).copy()
-    planned = reached[POSE_COLUMNS].to_numpy() + np.array([0.004, -0.003, 0.002, 1e-5, -2e-5, 1e-5])
-    acq_poses = reached[["measurement", *POSE_COLUMNS]].copy()
+                    for i, s in enumerate(rig.sensors)],
+        "verification_true_params": {**true.to_dict(), "failures": []}})
+    # what an earlier execution recorded; the report takes only when/how/how long from it
+    rd.summary.save({
+        "name": "thesis", "source": "simulated", "n_measurements": bs["n_measurements"],
+        "verification": {"pass": True}, "created_utc": CREATED, "command": COMMAND,
+        "timings": SUMMARY_TIMINGS, "total_seconds": 181.0})
+    planned = poses[POSE_COLUMNS].to_numpy() + np.array([0.004, -0.003, 0.002, 1e-5, -2e-5, 1e-5])
+    moves = poses[["measurement", *POSE_COLUMNS]].copy()
     for j, c in enumerate(POSE_COLUMNS):
-        acq_poses[f"planned_{c}"] = planned[:, j]
-    acq_poses["translation_error_mm"] = np.linalg.norm(planned[:, :3] - reached[POSE_COLUMNS[:3]].to_numpy(), axis=1)
-    acq_poses["rotation_error_rad"] = 2.4e-5
-    acq_poses["hexapod"] = True
-    write_table(acq_poses, run / "tables/acquisition_poses.csv", AcquiredPosesTable)
-    acq = pd.DataFrame([{"measurement": f"{m}-{s}", "pose": m, "scanner": s, "store": f"measurements/{m}-{s}.zarr",
-                         "valid_fraction": 0.3, "sphere_pixels": 20000}
-                        for m in poses.measurement for s in ("scanner1", "scanner2")])
-    write_table(acq, run / "tables/acquisition.csv", AcquisitionTable)
-    labels = acq[["measurement", "scanner"]].assign(status="labelled", reason="", method="planned", n_candidates=4,
-                                                     n_labelled=4, rms_mm=0.05, message="")
+        moves[f"planned_{c}"] = planned[:, j]
+    moves["translation_error_mm"] = np.linalg.norm(planned[:, :3] - poses[POSE_COLUMNS[:3]].to_numpy(), axis=1)
+    moves["rotation_error_rad"] = 2.4e-5
+    moves["hexapod"] = True
+    rd.hexapod_moves.save(moves)
+    rows = [{"measurement": f"{m}-{s}", "kind": "artefact", "pose": m, "scanner": s} for m in poses.measurement
+            for s in SCANNERS]
+    rows += [{"measurement": f"{p}-{s}", "kind": "ballbar", "pose": p, "scanner": s} for p in POSITIONS
+             for s in SCANNERS]
+    acq = pd.DataFrame(rows)
+    acq["store"] = [rd.store(m).rel for m in acq.measurement]
+    acq["source"] = "simulated"
+    rd.acquisition.save(acq)
+    labels = acq[acq.kind == "artefact"][["measurement", "scanner"]].assign(
+        status="labelled", reason="", method="planned", n_candidates=4, n_labelled=4, rms_mm=0.05, message="")
     labels.loc[3, ["status", "reason", "n_labelled", "message"]] = ["refused", "too_few_spheres", 0,
                                                                     "two candidates only"]
-    write_table(labels, run / "tables/label_outcomes.csv", LabelOutcomesTable)
-    return run
+    rd.label_outcomes.save(labels.reset_index(drop=True))
+    return rd
 
 
 @pytest.fixture
-def run(base_run, tmp_path):
+def rd(base_run, tmp_path):
     dest = tmp_path / "run"
-    shutil.copytree(base_run, dest)
-    return dest
+    shutil.copytree(base_run.root, dest)
+    return RunDir(dest)
 
 
 class _Nesting(HTMLParser):
@@ -124,14 +143,29 @@ def _section(page: str, anchor: str) -> str:
     return m.group(1)
 
 
-TIMINGS = {"acquire": 120.5, "extract": 31.2, "bundle-adjustment": 0.4, "verification": 25.0, "total": 181.0}
+def _well_formed(page: str) -> None:
+    nesting = _Nesting()
+    nesting.feed(page)
+    assert nesting.errors == [] and nesting.stack == []
 
 
-def test_report_is_written_atomically_and_self_contained(run):
-    path = write_report(run, TIMINGS)
-    assert path == run / "report.html"
-    assert [p.name for p in run.iterdir() if p.name.startswith(".report")] == []
-    page = path.read_text(encoding="utf-8")
+def _verification_rows(page: str) -> dict[str, list[str]]:
+    """Position -> the text of its cells in the verification table."""
+    table = _section(page, "verification")
+    rows = re.findall(r"<tr>(<td.*?)</tr>", table, re.S)
+    out = {}
+    for r in rows:
+        cells = [re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", r, re.S)]
+        if cells and cells[0] in POSITIONS:
+            out[cells[0]] = cells
+    return out
+
+
+def test_report_is_written_atomically_and_self_contained(rd):
+    path = write_report(rd, TIMINGS)
+    assert path == rd.report.path
+    assert [p.name for p in rd.root.iterdir() if p.name.startswith(f".{rd.report.path.name}")] == []
+    page = rd.report.load()
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     links = re.findall(r'\b(?:src|href)\s*=\s*["\']?([^"\'\s>]*)', page, re.I)
     assert len(links) >= 5  # the navigation and the three images at least
@@ -140,37 +174,44 @@ def test_report_is_written_atomically_and_self_contained(run):
         assert f'id="{anchor}"' in page
     assert not re.search(r"<script|<link|<iframe|@import|url\(", page, re.I)
     assert page.count("data:image/png;base64,") == 3  # two histograms and the ball-bar plot
-    nesting = _Nesting()
-    nesting.feed(page)
-    assert nesting.errors == [] and nesting.stack == []
+    _well_formed(page)
 
 
-def test_a_failed_render_leaves_the_previous_report(run, monkeypatch):
+def test_a_path_and_a_rundir_give_the_same_page(rd):
+    a = render_report(rd, TIMINGS, generated="2026-05-06 07:08:09")
+    b = render_report(str(rd.root), TIMINGS, generated="2026-05-06 07:08:09")
+    assert a == b and "2026-05-06 07:08:09" in a
+
+
+def test_a_failed_render_leaves_the_previous_report(rd, monkeypatch):
     import fringecal.report as report
 
-    write_report(run, TIMINGS)
-    before = (run / "report.html").read_bytes()
+    write_report(rd, TIMINGS)
+    before = rd.report.path.read_bytes()
 
     def broken(*args):
         raise RuntimeError("plotting failed")
 
     monkeypatch.setattr(report, "_ballbar_png", broken)
     with pytest.raises(RuntimeError):
-        write_report(run, TIMINGS)
-    assert (run / "report.html").read_bytes() == before
-    assert not any(p.name.endswith(".tmp") for p in run.iterdir())
+        write_report(rd, TIMINGS)
+    assert rd.report.path.read_bytes() == before
+    assert not any(p.name.endswith(".tmp") for p in rd.root.iterdir())
 
 
-def test_report_shows_the_numbers_of_the_run(run):
-    page = write_report(run, TIMINGS).read_text(encoding="utf-8")
-    bs = json.loads((run / "bundle_summary.json").read_text())
+def test_report_shows_the_numbers_of_the_run(rd):
+    execution = {"created_utc": "2026-03-04T05:06:07+00:00", "command": "fringecal run --out runs/now"}
+    page = write_report(rd, TIMINGS, execution).read_text(encoding="utf-8")
+    bs = rd.bundle_summary.load()
     results = _section(page, "results")
     for key in ("rms_f_mm", "rms_eps1_mm", "rms_eps2_mm"):
         assert f"{bs['after'][key] * 1000:.1f} µm" in results
         assert f"{bs['before'][key]:.3f} mm" in results
     assert f"1 part in {bs['one_part_in_1p96_sigma']:,.0f}" in results
     assert "2872.3 mm volume diagonal" in results
-    assert "44.9 µm" in results and "160.8 µm" in results  # residual floor of truth.json
+    assert "168.0 µm" in results and "44.9 µm" in results and "160.8 µm" in results  # floor of evaluation.json
+    assert "true parameters (simulation)" in results and NO_TRUTH not in page
+    assert f"{bs['bundle_seconds']:.2f} s" in results  # the adjustment's own wall time
 
     params = _section(page, "parameters")
     assert params.count("(fixed)") == 6  # the reference camera's external parameters
@@ -181,101 +222,196 @@ def test_report_shows_the_numbers_of_the_run(run):
 
     ver = _section(page, "verification")
     assert "47.0 µm" in ver  # max |error| of CAL_ERRORS_MM
-    assert "44.0 µm" in ver  # ... and with the true parameters
+    assert "44.0 µm" in ver  # ... and with the true parameters (evaluation.json)
     assert f"calibrated / true = {0.047 / 0.044:.2f}" in ver
     assert ver.count('class="pass">PASS') == 18 and "FAIL" not in ver
     assert "k = 1.96" in ver and "1015.6500 mm" in ver
-    assert '<span class="badge pass">PASS</span>' in page.split("<nav>")[0]
+    assert "(9 positions, placed as in thesis section 6.9.3)" in ver and "9 recorded, 9 length(s) measured" in ver
+    rows = _verification_rows(page)
+    assert list(rows) == POSITIONS
+    for p, cal, true in zip(POSITIONS, CAL_ERRORS_MM, TRUE_ERRORS_MM):
+        assert rows[p][1] == "scanner1, scanner2"
+        assert rows[p][2] == f"{REFERENCE_MM + cal:.4f} mm"
+        assert rows[p][3] == f"{cal * 1000:.1f} µm" and rows[p][5] == f"{true * 1000:.1f} µm"
+    head = page.split("<nav>")[0]
+    assert '<span class="badge pass">PASS</span>' in head
+    assert execution["created_utc"] in head and CREATED not in page  # the execution passed in, not the summary's
 
     timing = _section(page, "timing")
-    assert "acquire" in timing and "120.5 s (2 min 0 s)" in timing and "31.2 s" in timing and "0.40 s" in timing
-    assert "181.0 s (3 min 1 s)" in timing and "Timings from this run" in timing
+    assert "simulate-render" in timing and "118.2 s (1 min 58 s)" in timing and "30.5 s" in timing
+    assert "0.35 s" in timing and "175.0 s (2 min 55 s)" in timing and "Timings from this run" in timing
+    assert f"{100 * 118.25 / 175.0:.0f} %" in timing
 
     rig = _section(page, "rig")
     assert "scanner1 (reference)" in rig and "1400 × 1050 px" in rig
     assert "15 (diameters" in rig and "used to move the artefact" in rig and "512 px wide" in rig
-    assert "24 from 12 artefact poses" in rig and "11 of 12 measurements labelled" not in rig
+    assert "<td>3</td>" in rig.split("Rods")[1][:30]  # rods.csv
+    assert "spheres A, B, diameters 30.002, 29.998 mm, centre distance 1015.6500 mm" in rig
+    assert "24 from 12 artefact poses and 2 scanner(s)" in rig and "18 from 9 positions" in rig
+    assert "Rendered by the simulator" in rig and "simulated rig" in rig
     assert "23 of 24 measurements labelled" in rig and "too_few_spheres" in rig
+    moves = rd.hexapod_moves.load()
+    assert f"translation error max {moves.translation_error_mm.max() * 1000:.1f} µm" in rig
 
     sphere_rows = re.findall(r"<tr><td class=\"l\">([^<]*)</td><td class=\"l\">([^<]*)</td><td class=\"l\">([^<]*)"
                              r"</td><td>\d+</td><td>[^<]*</td><td>([\d.]+) µm", _section(page, "residuals"))
     shown = [float(r[3]) for r in sphere_rows[:10]]
-    per_sphere = pd.read_csv(run / "tables/residuals_per_sphere.csv")
+    per_sphere = rd.residuals_per_sphere.load()
     assert shown == sorted(shown, reverse=True)
     assert shown[0] == pytest.approx(per_sphere["rms_eps2_mm"].max() * 1000, abs=0.06)
 
+    truth = _section(page, "truth")
+    assert "610.0 µm" in truth and "210.0 µrad" in truth and "44.0 µm" in truth  # evaluation.json
+    assert truth.count("<tr><td") == 4  # one row per sensor
+
     prov = _section(page, "provenance")
-    digest = json.loads((run / "manifest.json").read_text())["config_digest"]
-    assert digest in prov and "numpy" in prov and "ab" * 32 in prov and "camera_width_px: 512" in prov
+    man = rd.manifest.load()
+    assert man["config_digest"] in prov and "cd" * 32 in prov and "numpy" in prov
+    assert "ab" * 32 in prov and "configs/thesis/artefact_cmm2.csv" in prov and "camera_width_px: 512" in prov
+    assert execution["command"] in prov and execution["created_utc"] in prov
+    assert str(rd.root) not in page  # no absolute path of the machine that wrote it
 
 
-def test_failing_verification_is_reported_as_fail(run):
-    ver = json.loads((run / "verification.json").read_text())
+def test_true_column_is_matched_by_position_name(rd):
+    ev = rd.evaluation.load()
+    true = ev["verification_true_params"]
+    true["positions"] = [dict(p, error_mm=0.001 * (i + 1)) for i, p in enumerate(true["positions"])][::-1]
+    true["positions"] = [p for p in true["positions"] if p["measurement"] != "bb05"]  # not measured
+    rd.evaluation.save(ev)
+    rows = _verification_rows(write_report(rd, TIMINGS).read_text(encoding="utf-8"))
+    for i, p in enumerate(POSITIONS):
+        expected = "not measured" if p == "bb05" else f"{i + 1:.1f} µm"
+        assert rows[p][5] == expected, p
+
+
+def test_failing_verification_is_reported_as_fail(rd):
+    ver = rd.verification.load()
     ver["calibrated"] = _ballbar(CAL_ERRORS_MM[:8] + [0.130]).to_dict()
-    write_json_atomic(run / "verification.json", ver)
-    page = write_report(run, TIMINGS).read_text(encoding="utf-8")
+    ver["failures"] = [{"position": "bb09", "scanner": "scanner2", "sphere_id": "B", "reason": "too few points"}]
+    rd.verification.save(ver)
+    page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
     assert '<span class="badge fail">FAIL</span>' in page.split("<nav>")[0]
     section = _section(page, "verification")
     assert section.count('class="fail">FAIL') == 1 and "130.0 µm" in section
+    assert "too few points" in section and "1 problem(s)" in section
 
 
-def test_missing_optional_files_give_notes(run):
-    for name in ("truth.json", "verification.json", "tables/acquisition_poses.csv", "figures/eps2_hist.png"):
-        (run / name).unlink()
-    summary = json.loads((run / "summary.json").read_text())
-    del summary["verification"], summary["truth"]
-    write_json_atomic(run / "summary.json", summary)
-    page = write_report(run).read_text(encoding="utf-8")
-    assert "Not available: truth.json is absent" in _section(page, "truth")
-    assert "Not available: verification.json is not in the run directory" in _section(page, "verification")
-    assert "figures/eps2_hist.png is not in the run directory" in _section(page, "residuals")
-    assert "tables/acquisition_poses.csv is not in the run directory" in _section(page, "rig")
+def test_missing_optional_files_give_notes(rd):
+    for f in (rd.evaluation, rd.verification, rd.hexapod_moves, rd.histogram("eps2")):
+        f.remove()
+    page = write_report(rd).read_text(encoding="utf-8")
+    assert (f"Not available: {rd.evaluation.rel} is not in the run directory: this simulated run has not been "
+            f"evaluated") in _section(page, "truth")
+    assert f"Not available: {rd.verification.rel} is not in the run directory" in _section(page, "verification")
+    assert f"{rd.histogram('eps2').rel} is not in the run directory" in _section(page, "residuals")
+    assert f"{rd.hexapod_moves.rel} is not in the run directory" in _section(page, "rig")
+    # only verification.json decides, not what an earlier execution put in the summary
     assert '<span class="badge none">NOT VERIFIED</span>' in page
-    assert "Timings from summary.json" in _section(page, "timing")  # no timings passed in
+    timing = _section(page, "timing")  # no timings passed in: the summary's
+    assert f"Timings from {rd.summary.rel}" in timing and "120.5 s (2 min 0 s)" in timing
+    assert "181.0 s (3 min 1 s)" in timing
+    assert CREATED in page.split("<nav>")[0] and COMMAND in _section(page, "provenance")
     assert page.count("data:image/png;base64,") == 1
+    assert "Could not be shown" not in page
+    _well_formed(page)
 
 
-def test_malformed_file_is_named_and_the_rest_is_shown(run):
-    (run / "bundle_summary.json").write_text('{"before": ')
-    page = write_report(run, TIMINGS).read_text(encoding="utf-8")
-    assert "Could not be shown" in _section(page, "results") and "bundle_summary.json" in _section(page, "results")
+def test_a_run_without_ballbar_recordings_is_not_verified(rd):
+    acq = rd.acquisition.load()
+    rd.acquisition.save(acq[acq.kind == "artefact"])
+    rd.verification.remove()
+    page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
+    assert '<span class="badge none">NOT VERIFIED</span>' in page.split("<nav>")[0]
+    assert "the run has no ball-bar recordings" in _section(page, "verification")
+    assert "none (the calibration is not verified)" in _section(page, "rig")
+
+
+def test_a_dataset_run_says_there_is_no_truth(rd):
+    config = _config(dataset="/data/cell-a")
+    rd.manifest.save(_manifest(config, "dataset", {"/data/cell-a/artefact.csv": "ef" * 32}))
+    rd.evaluation.remove()
+    rd.hexapod_moves.remove()
+    acq = rd.acquisition.load()
+    acq["source"] = [f"measurements/{p}/{s}" for p, s in zip(acq.pose, acq.scanner)]
+    rd.acquisition.save(acq)
+    page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
+    assert "Traceback" not in page and "Could not be shown" not in page
+    assert f"Not available: {rd.evaluation.rel} is {NO_TRUTH}." in _section(page, "truth")
+    results = _section(page, "results")
+    assert results.count(NO_TRUTH) == 1 and 'rowspan="3"' in results
+    ver = _section(page, "verification")
+    assert ver.count(NO_TRUTH) == 2 and f'rowspan="{len(POSITIONS)}"' in ver  # the note row and the column
+    assert ver.count('class="pass">PASS') == len(POSITIONS) and "calibrated / true" not in ver
+    assert "(9 positions)" in ver  # no simulation scheme
+    rows = _verification_rows(page)
+    assert [rows[p][3] for p in POSITIONS] == [f"{e * 1000:.1f} µm" for e in CAL_ERRORS_MM]
+    rig = _section(page, "rig")
+    assert "not moved by a hexapod here" in rig and "recorded data set /data/cell-a" in rig
+    assert "Read from the data set" in rig and "42 image stacks or stores" in rig and "px wide" not in rig
+    assert "recorded data set /data/cell-a" in page.split("<nav>")[0]
+    assert '<span class="badge pass">PASS</span>' in page.split("<nav>")[0]
+    assert "ef" * 32 in _section(page, "provenance")
+    _well_formed(page)
+
+
+def test_malformed_file_is_named_and_the_rest_is_shown(rd):
+    rd.bundle_summary.path.write_text('{"before": ')
+    moves = rd.hexapod_moves.path
+    moves.write_text(moves.read_text().replace("translation_error_mm", "translation_err", 1))
+    page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
+    results = _section(page, "results")
+    assert "Could not be shown" in results and rd.bundle_summary.rel in results
+    rig = _section(page, "rig")
+    assert "Could not be shown" in rig and rd.hexapod_moves.rel in rig and "translation_error_mm" in rig
+    assert "24 from 12 artefact poses" in rig  # the acquisition table is still shown
     assert _section(page, "parameters").count("(fixed)") == 6
+    assert str(rd.root) not in page
+    _well_formed(page)
 
 
-def test_hostile_strings_are_escaped(run):
-    cal = json.loads((run / "calibration.json").read_text())
+def test_hostile_strings_are_escaped(rd):
+    cal = json.loads(rd.calibration.path.read_text())
     cal["scanners"][1]["sensors"][0]["name"] = '<script>alert("x")</script>'
-    (run / "calibration.json").write_text(json.dumps(cal))
-    man = json.loads((run / "manifest.json").read_text())
+    rd.calibration.path.write_text(json.dumps(cal))
+    man = rd.manifest.load()
     man["config"]["name"] = "<img src=x onerror=alert(1)>"
-    man["command"] = "fringecal run --out '</code><b>'"
-    write_json_atomic(run / "manifest.json", man)
-    bs = json.loads((run / "bundle_summary.json").read_text())
+    rd.manifest.save(man)
+    summary = rd.summary.load()
+    summary["command"] = "fringecal run --out '</code><b>'"
+    rd.summary.save(summary)
+    bs = rd.bundle_summary.load()
     bs["diagnostics"] = [{"kind": "single_pose", "severity": "warning", "subject": "s", "parameters": [],
                           "message": "scanner <b>scanner2</b> & friends"}]
-    write_json_atomic(run / "bundle_summary.json", bs)
-    page = write_report(run, TIMINGS).read_text(encoding="utf-8")
+    rd.bundle_summary.save(bs)
+    ver = rd.verification.load()
+    ver["failures"] = [{"position": "<i>bb01</i>", "scanner": "s", "sphere_id": "A", "reason": "<u>x</u>"}]
+    rd.verification.save(ver)
+    page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
     assert "<script" not in page and "<img src=x" not in page and "<b>scanner2" not in page
+    assert "<i>bb01" not in page and "<u>x" not in page
     assert "&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt;" in page
     assert "&lt;img src=x onerror=alert(1)&gt;" in page
     assert "scanner &lt;b&gt;scanner2&lt;/b&gt; &amp; friends" in page
     assert "&lt;/code&gt;&lt;b&gt;" in page
+    _well_formed(page)
 
 
 def test_not_a_run_directory(tmp_path):
     with pytest.raises(FileNotFoundError, match="not a run directory"):
         write_report(tmp_path)
-    assert not (tmp_path / "report.html").exists()
+    assert not RunDir(tmp_path).report.exists()
 
 
-def test_cli_rewrites_the_report(run, tmp_path):
+def test_cli_rewrites_the_report(rd, tmp_path):
     from flows.cli import app
 
     runner = CliRunner()
-    res = runner.invoke(app, ["report", "--run", str(run)])
+    res = runner.invoke(app, ["report", "--run", str(rd.root)])
     assert res.exit_code == 0, res.output
-    page = (run / "report.html").read_text(encoding="utf-8")
-    assert "Timings from summary.json" in page and "181.0 s" in page
+    page = rd.report.load()
+    timing = _section(page, "timing")
+    assert f"Timings from {rd.summary.rel}" in timing and "181.0 s" in timing and "120.5 s" in timing
+    assert CREATED in page.split("<nav>")[0] and COMMAND in _section(page, "provenance")
     res = runner.invoke(app, ["report", "--run", str(tmp_path / "nowhere")])
     assert res.exit_code == 2 and "no such run directory" in res.output
     empty = tmp_path / "empty"

@@ -1,8 +1,13 @@
-"""`fringecal run` end to end on a small simulated rig: results against truth, caching,
-what reruns when a setting changes, reproduction, Dask, and bad configs stopping early."""
+"""`fringecal run` end to end on a small simulated rig and on the same rig written as a
+recorded data set: results against truth, the two doors agreeing, no truth read by a
+data-set run, Prefect caching, reproduction, Dask, and bad configs and data sets
+stopping before any work."""
 
 import json
+import os
 import shutil
+import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -11,35 +16,9 @@ import yaml
 from typer.testing import CliRunner
 
 from flows.cli import app
+from fringecal.rundir import RunDir
 
 runner = CliRunner()
-
-
-@pytest.fixture(scope="module")
-def small_config(tmp_path_factory, thesis_dir):
-    """Four of the twelve thesis poses (four stand-offs), three ball-bar positions, 320 px
-    cameras and a short fringe sequence: the whole pipeline in well under a minute."""
-    d = tmp_path_factory.mktemp("config")
-    poses = pd.read_csv(thesis_dir / "poses_scanner1_table6-1.csv")
-    poses[poses.measurement.isin([1, 5, 9, 12])].to_csv(d / "poses.csv", index=False)
-    bb = pd.read_csv(thesis_dir / "ballbar_verification_table6-9.csv")
-    bb[bb.measurement.isin([1, 4, 9])].to_csv(d / "ballbar_positions.csv", index=False)
-    rig = yaml.safe_load((thesis_dir / "rig.yaml").read_text())
-    for k in ("sensors", "sensors_initial", "artefact", "rods", "ballbar", "materials"):
-        rig[k] = str(thesis_dir / rig[k])
-    rig["artefact_poses"] = str(d / "poses.csv")
-    (d / "rig.yaml").write_text(yaml.safe_dump(rig))
-    cfg = {
-        "name": "small",
-        "rig": str(d / "rig.yaml"),
-        "acquisition": {"camera_width_px": 320, "seed": 11,
-                        "sequence": {"fringe_counts": [32, 31, 30, 28, 24, 16], "n_steps": 5}},
-        "control_points": {"spacing_px": 1},
-        "verification": {"positions": str(d / "ballbar_positions.csv"), "camera_width_px": 320},
-    }
-    path = d / "run.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return path
 
 
 @pytest.fixture(scope="module")
@@ -54,15 +33,20 @@ def first_run(prefect_harness, small_config, tmp_path_factory):
 @pytest.mark.flow
 def test_run_writes_the_run_directory_and_meets_the_noise_floor(first_run):
     run_dir, s = first_run
-    for name in ("manifest.json", "summary.json", "report.html", "calibration.xml", "calibration.json",
-                 "verification.json", "truth.json", "tables/control_points.csv", "tables/sensors_calibrated.csv",
-                 "tables/residuals_per_sphere.csv", "figures/eps1_hist.png"):
-        assert (run_dir / name).exists(), name
-    assert len(list((run_dir / "measurements").glob("*.zarr"))) == 4 * 2 + 3 * 2
+    rd = RunDir(run_dir)
+    for f in (rd.manifest, rd.summary, rd.report, rd.calibration, rd.calibration.xml, rd.verification, rd.evaluation,
+              rd.control_points, rd.sensors_calibrated, rd.residuals_per_sphere, rd.histogram("eps1"),
+              rd.truth.sensors, rd.hexapod_moves):
+        assert f.exists(), f.rel
+    stores = rd.acquisition.load()
+    assert (stores.kind == "artefact").sum() == 4 * 2 and (stores.kind == "ballbar").sum() == 3 * 2
+    assert all(rd.store(m).exists() and rd.truth.store(m).exists() for m in stores.measurement)
+    # acquisition stores hold what a scanner delivers; the truth is kept apart
+    assert not [v for v in rd.store("1-scanner1").open().variables if v.startswith("truth")]
     for key in ("n_measurements", "n_control_points", "rms_F_mm_before", "rms_F_mm_after", "rms_eps1_mm_after",
                 "rms_eps2_mm_after", "one_part_in", "bundle_seconds", "total_seconds"):
         assert key in s
-    assert s["n_measurements"] == 8 and s["n_control_points"] > 2000
+    assert s["source"] == "simulated" and s["n_measurements"] == 8 and s["n_control_points"] > 2000
     t = s["truth"]
     # the adjustment reaches the noise floor of the same control points (issue 5: within 5 %)
     assert s["rms_eps1_mm_after"] <= 1.05 * t["rms_eps1_mm_true_params"]
@@ -71,11 +55,13 @@ def test_run_writes_the_run_directory_and_meets_the_noise_floor(first_run):
     # four poses seen with a short fringe sequence at 320 px: a weak but sound calibration
     assert t["max_position_error_mm"] < 15 and t["max_angle_error_rad"] < 0.015
     v = s["verification"]
-    assert v["reference_length_mm"] == pytest.approx(1015.65)
+    assert v["reference_length_mm"] == pytest.approx(1015.65) and v["n_lengths"] == 3 and v["n_failures"] == 0
     assert v["max_abs_error_mm"] < 0.2 and v["pass"]
-    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert t["verification_max_abs_error_true_params_mm"] < 0.2
+    manifest = rd.read_manifest()
     assert manifest["config"]["name"] == "small" and len(manifest["config_digest"]) == 64
-    assert "sha256" in manifest["inputs"]["artefact"]
+    assert all(len(d) == 64 for d in manifest["inputs"].values()) and manifest["source"] == "simulated"
+    assert len(s["steps"]) == len(s["tasks"]["ran"]) + len(s["tasks"]["cached"])
 
 
 @pytest.mark.flow
@@ -88,9 +74,13 @@ def test_rerun_is_all_cache_hits_and_bundle_weights_rerun_only_what_depends_on_t
     assert again["rms_F_mm_after"] == first["rms_F_mm_after"]
     changed = run_flow(str(small_config), str(run_dir), overrides={"bundle": {"gamma2": 0.5}})
     ran = {name.split(":")[0] for name in changed["tasks"]["ran"]}
-    assert ran == {"bundle-adjustment", "truth-evaluation", "verification", "report"}
+    assert ran == {"bundle", "verify", "evaluate", "report"}
     assert changed["rms_F_mm_after"] != first["rms_F_mm_after"]
-    run_flow(str(small_config), str(run_dir))  # back to the first settings for the tests below
+    # back to the first settings: the files on disk are the other weights', so those steps
+    # are recomputed (to the same numbers), and nothing else
+    back = run_flow(str(small_config), str(run_dir))
+    assert {name.split(":")[0] for name in back["tasks"]["ran"]} == ran
+    assert back["rms_F_mm_after"] == first["rms_F_mm_after"]
 
 
 @pytest.mark.flow
@@ -98,14 +88,34 @@ def test_deleted_output_is_recomputed(first_run, small_config):
     from flows.run_flow import run_flow
 
     run_dir, first = first_run
-    shutil.rmtree(run_dir / "measurements" / "5-scanner2.zarr")
-    (run_dir / "tables" / "control_points" / "9-scanner1.csv").unlink()
+    rd = RunDir(run_dir)
+    shutil.rmtree(rd.store("5-scanner2").path)
+    rd.control_points_of("9-scanner1").path.unlink()
     s = run_flow(str(small_config), str(run_dir))
     ran = s["tasks"]["ran"]
-    assert "acquire measurements:5-scanner2" in ran
-    assert "spheres: second pass:9-scanner1" in ran
-    assert "acquire measurements:1-scanner1" not in ran
-    assert s["rms_F_mm_after"] == pytest.approx(first["rms_F_mm_after"], rel=1e-9)
+    assert "simulate-render:5-scanner2" in ran and "spheres-second:9-scanner1" in ran
+    assert "simulate-render:1-scanner1" not in ran and "bundle" not in ran  # same content, same key
+    assert s["rms_F_mm_after"] == first["rms_F_mm_after"]
+
+
+@pytest.mark.flow
+def test_up_to_date_shortcut_redigests_the_inputs(first_run, small_config, tmp_path):
+    """Before Prefect starts: an unchanged run is recognised; a rig table edited in
+    place is not (the inputs are digested again, not trusted)."""
+    from flows.cli_run import _current
+    from fringecal.runconfig import load_run_config
+
+    run_dir, _ = first_run
+    cfg = load_run_config(small_config)
+    assert _current(cfg, run_dir) is not None
+    poses = Path(yaml.safe_load(Path(cfg.simulate.rig).read_text())["artefact_poses"])
+    text = poses.read_text()
+    try:
+        poses.write_text(text.replace(text.splitlines()[1].split(",")[1], "1234.5", 1))
+        assert _current(load_run_config(small_config), run_dir) is None
+    finally:
+        poses.write_text(text)
+    assert _current(load_run_config(small_config), run_dir) is not None
 
 
 @pytest.mark.flow
@@ -116,15 +126,144 @@ def test_reproduce_gives_the_same_summary(first_run):
     assert "reproduced" in res.output
 
 
+# -- the same rig as a recorded data set --------------------------------------------
+
+class _Unreadable:
+    """Makes every file under some folders unreadable to this process, root included:
+    permissions off, and an audit hook that refuses to open them."""
+
+    roots: tuple[str, ...] = ()
+    installed = False
+
+    @classmethod
+    def hook(cls, event, args):
+        if cls.roots and event == "open" and isinstance(args[0], (str, bytes, os.PathLike)):
+            path = os.path.abspath(os.fsdecode(args[0]))
+            if path.startswith(cls.roots):
+                raise PermissionError(f"{path}: truth is unreadable in this test")
+
+    @classmethod
+    def block(cls, folder: Path):
+        if not cls.installed:
+            sys.addaudithook(cls.hook)
+            cls.installed = True
+        cls.roots = (str(folder.resolve()),)
+        for p in folder.rglob("*"):
+            p.chmod(0)
+
+    @classmethod
+    def release(cls, folder: Path):
+        cls.roots = ()
+        for p in folder.rglob("*"):
+            p.chmod(0o644)
+
+
+@pytest.mark.flow
+def test_simulated_data_set_has_the_contract_layout(small_dataset, first_run):
+    from fringecal.dataset import DataSet
+
+    data, truth = small_dataset
+    ds = DataSet.open(data)
+    assert ds.scanners == ("scanner1", "scanner2") and ds.measurement_names() == ["1", "5", "9", "12"]
+    assert [s.id for s in ds.verification] == ["bb01-scanner1", "bb01-scanner2", "bb04-scanner1", "bb04-scanner2",
+                                               "bb09-scanner1", "bb09-scanner2"]
+    assert all(s.format == "frames" and (s.width_px, s.height_px) == (320, 320) for s in ds.measurements)
+    assert ds.config.reference_scanner == "scanner1" and ds.config.processing.control_points == {"spacing_px": 1}
+    assert str(truth) not in "".join(p.read_text() for p in data.glob("*.yaml"))
+    # the data set's prior calibration is the simulated run's
+    run_dir, _ = first_run
+    prior = pd.read_csv(data / "sensors_prior.csv")
+    assert np.array_equal(prior.filter(like="_mm").to_numpy(),
+                          RunDir(run_dir).sensors_prior.load().to_frame().filter(like="_mm").to_numpy())
+
+
+@pytest.mark.flow
+def test_data_set_run_agrees_with_the_simulated_run_and_never_reads_the_truth(first_run, small_dataset, tmp_path):
+    """The thesis rig through both doors: `fringecal simulate` + `fringecal run --dataset`
+    gives the calibration `fringecal run` gives, with the truth unreadable."""
+    run_dir, sim = first_run
+    data, truth = small_dataset
+    out = tmp_path / "from-dataset"
+    _Unreadable.block(truth)
+    try:
+        res = runner.invoke(app, ["run", "--dataset", str(data), "--out", str(out), "--json"])
+    finally:
+        _Unreadable.release(truth)
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout[res.stdout.index("{"):])
+    assert s["source"] == "dataset" and s["truth"] is None
+    assert s["n_control_points"] == sim["n_control_points"]
+    assert abs(s["verification"]["max_abs_error_mm"] - sim["verification"]["max_abs_error_mm"]) < 1e-3
+    assert s["rms_eps2_mm_after"] == pytest.approx(sim["rms_eps2_mm_after"], rel=1e-6)
+    rd = RunDir(out)
+    assert not rd.evaluation.exists() and not (out / "truth").exists() and not rd.hexapod_moves.exists()
+    assert rd.acquisition.load()["source"].str.startswith(("measurements/", "verification/")).all()
+    assert "absent" in rd.report.load()  # the report's truth section says there is none
+
+
+def _linked_copy(src: Path, dst: Path) -> Path:
+    """A copy whose frames are hard links (fast) and whose text files are real copies
+    (the tests edit those in place)."""
+    def copy(s, d):
+        return os.link(s, d) if s.endswith((".png", ".tif")) else shutil.copy2(s, d)
+
+    shutil.copytree(src, dst, copy_function=copy)
+    return dst
+
+
+def _drop(path):
+    shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def _x_fringes_only(stack: Path) -> None:
+    """A complete stack of another sequence: vertical fringes only."""
+    spec = yaml.safe_load((stack / "sequence.yaml").read_text())
+    (stack / "sequence.yaml").write_text(yaml.safe_dump({**spec, "orientations": ["x"]}))
+    for p in stack.glob("y_*"):
+        p.unlink()
+
+
+BAD_DATA_SETS = {
+    "a measurement folder misses a scanner": (lambda d: _drop(d / "measurements/5/scanner2"), "measurements/5"),
+    "frames of a scanner without prior calibration": (
+        lambda d: shutil.copytree(d / "measurements/5/scanner2", d / "measurements/5/scanner3"),
+        "measurements/5/scanner3"),
+    "a prior calibration without frames": (
+        lambda d: pd.concat([pd.read_csv(d / "sensors_prior.csv"),
+                             pd.read_csv(d / "sensors_prior.csv").iloc[2:].assign(scanner="scanner3",
+                                                                                    sensor=["C3", "P3"])])
+        .to_csv(d / "sensors_prior.csv", index=False), "sensors_prior.csv"),
+    "sequences differ between scanners": (lambda d: _x_fringes_only(d / "measurements/9/scanner2"),
+                                          "measurements/9/scanner2/sequence.yaml"),
+    "a planned pose without frames": (lambda d: _drop(d / "measurements/12"), "poses_planned.csv"),
+    "frames without a planned pose": (
+        lambda d: pd.read_csv(d / "poses_planned.csv").iloc[:-1].to_csv(d / "poses_planned.csv", index=False),
+        "measurements/12"),
+    "an empty verification folder": (
+        lambda d: [_drop(p) for p in (d / "verification").iterdir()], "verification"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_DATA_SETS))
+def test_bad_data_sets_stop_before_any_work(small_dataset, tmp_path, case):
+    mutate, named = BAD_DATA_SETS[case]
+    data = _linked_copy(small_dataset[0], tmp_path / "data")
+    mutate(data)
+    res = runner.invoke(app, ["run", "--dataset", str(data), "--out", str(tmp_path / "run")])
+    assert res.exit_code == 2, res.output
+    text = res.output.replace("\n", "")
+    assert str(data / named) in text and "Traceback" not in text
+    assert not (tmp_path / "run").exists()
+
+
+# -- runners, deployments, bad configs ------------------------------------------------
+
 @pytest.mark.flow
 def test_dask_runner_two_workers(prefect_harness, small_config, tmp_path):
     """The same flow on a two-worker local Dask cluster gives the same calibration."""
     from flows.cli_run import make_task_runner
     from flows.run_flow import run_flow
 
-    cfg = yaml.safe_load(small_config.read_text())
-    poses = pd.read_csv(yaml.safe_load(open(cfg["rig"]))["artefact_poses"])
-    assert len(poses) == 4
     flow = run_flow.with_options(task_runner=make_task_runner("dask", 2, dask_workers=2))
     s = flow(str(small_config), str(tmp_path / "dask"))
     assert s["tasks"]["cached"] == []
@@ -141,28 +280,29 @@ def test_deployment_for_a_nightly_schedule(small_config):
 
 
 @pytest.mark.parametrize("mutate, message", [
-    (lambda c, d: c.update(acquisiton={}), "acquisiton: unknown key"),
-    (lambda c, d: c["acquisition"].update(camera_width_px=5), "camera_width_px"),
+    (lambda c: c.update(acquisiton={}), "acquisiton: unknown key"),
+    (lambda c: c["simulate"]["acquisition"].update(camera_width_px=5), "camera_width_px"),
+    (lambda c: c.update(dataset="somewhere"), "not both"),
 ])
 def test_bad_configs_stop_before_any_work(small_config, tmp_path, mutate, message):
     cfg = yaml.safe_load(small_config.read_text())
-    mutate(cfg, tmp_path)
+    mutate(cfg)
     p = tmp_path / "bad.yaml"
     p.write_text(yaml.safe_dump(cfg))
     res = runner.invoke(app, ["run", "--config", str(p), "--out", str(tmp_path / "run")])
     assert res.exit_code == 2, res.output
-    assert message in res.output and str(p) in res.output
+    assert message in res.output and str(p) in res.output.replace("\n", "")
     assert not (tmp_path / "run").exists()
 
 
 def test_scanner_without_projector_and_bad_artefact_stop_early(small_config, tmp_path, thesis_dir):
     cfg = yaml.safe_load(small_config.read_text())
-    rig = yaml.safe_load(open(cfg["rig"]))
+    rig = yaml.safe_load(open(cfg["simulate"]["rig"]))
     sensors = (thesis_dir / "sensors_refined_table6-8.csv").read_text().splitlines()
     (tmp_path / "sensors.csv").write_text("\n".join(sensors[:2] + sensors[3:]) + "\n")  # P1 gone
     rig["sensors"] = str(tmp_path / "sensors.csv")
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
-    cfg["rig"] = str(tmp_path / "rig.yaml")
+    cfg["simulate"]["rig"] = str(tmp_path / "rig.yaml")
     (tmp_path / "a.yaml").write_text(yaml.safe_dump(cfg))
     res = runner.invoke(app, ["run", "--config", str(tmp_path / "a.yaml"), "--out", str(tmp_path / "run")])
     assert res.exit_code == 2 and "needs one camera and one projector" in res.output
@@ -183,9 +323,23 @@ def test_artefact_corrections_in_the_run_config(thesis_dir):
     from fringecal.runconfig import load_run_config
 
     cmm = load_artefact(thesis_dir / "artefact_cmm2.csv")
-    assert np.array_equal(load_run_config().artefact().centres, cmm.centres)
-    cfg = load_run_config(overrides={"artefact_corrections": {"thermal": {"cte_per_c": 1.9e-6}}, "temperature_c": 25.0})
-    warm = cfg.artefact()
+    assert np.array_equal(load_run_config().simulate.artefact().centres, cmm.centres)
+    cfg = load_run_config(overrides={"simulate": {"artefact_corrections": {"thermal": {"cte_per_c": 1.9e-6}},
+                                                  "temperature_c": 25.0}})
+    warm = cfg.simulate.artefact()
     d0 = np.linalg.norm(cmm.centres[0] - cmm.centres[14])
     d1 = np.linalg.norm(warm.centres[0] - warm.centres[14])
     assert d1 / d0 - 1 == pytest.approx(1.9e-6 * 5, rel=1e-9)
+
+
+def test_a_data_set_supplies_name_reference_and_processing_overrides(small_dataset, tmp_path):
+    from fringecal.runconfig import load_run_config
+
+    data, _ = small_dataset
+    cfg = load_run_config(dataset=data)
+    assert (cfg.name, cfg.reference_scanner, cfg.source) == ("small", "scanner1", "dataset")
+    assert cfg.control_points.spacing_px == 1 and cfg.simulate is None
+    own = tmp_path / "own.yaml"
+    own.write_text(yaml.safe_dump({"control_points": {"spacing_px": 2}, "bundle": {"gamma2": 0.5}}))
+    cfg = load_run_config(own, dataset=data)  # the run config's keys win over dataset.yaml's
+    assert cfg.control_points.spacing_px == 2 and cfg.bundle.gamma2 == 0.5 and cfg.dataset == data.resolve()

@@ -104,18 +104,31 @@ def test_label_pose_link_recovers_poses_and_the_scanner_frame(simulated_fits, th
     assert list(res.links_table()["scanner"]) == ["scanner1", "scanner2"]
 
 
-def test_task_writes_every_table_and_reports_bad_groups(simulated_fits, thesis_dir, tmp_path):
-    from tasks.refs import ref_for
-    from tasks.spheres import OUTPUTS, label_pose_link_task
+def test_label_step_writes_every_table_and_reports_bad_groups(simulated_fits, thesis_artefact, tmp_path):
+    from fringecal.rundir import RunDir, measurement_id
+    from fringecal.runconfig import RunConfig
+    from fringecal.steps import get_step, run_step
     from schemas import PosesTable, ScannerLinksTable
 
     fits, truth = simulated_fits
-    fits_path = write_table(fits, tmp_path / "sphere_fits.csv", SphereFitsTable)
-    out = label_pose_link_task.fn(ref_for(thesis_dir / "artefact_cmm2.csv", "table"), ref_for(fits_path, "table"),
-                                  str(tmp_path / "tables"), "scanner1", centre_u_mm=0.01)
-    assert set(OUTPUTS) <= set(out) and all((tmp_path / "tables" / n).exists() for n in OUTPUTS.values())
-    assert {(r["measurement"], r["scanner"]) for r in out["refused"]} == {("2", "scanner1"), ("5", "scanner2")}
-    assert len(read_table(out["poses"].path, PosesTable)) == 22
-    links = read_table(out["links"].path, ScannerLinksTable).set_index("scanner")
+    rd = RunDir(tmp_path / "run").create()
+    rd.artefact.save(thesis_artefact)
+    groups = list(fits.groupby(["measurement", "scanner"], sort=False))
+    ids = [measurement_id(m, s) for (m, s), _ in groups]
+    rd.acquisition.save(pd.DataFrame({"measurement": ids, "kind": "artefact", "pose": [m for (m, _), _ in groups],
+                                      "scanner": [s for (_, s), _ in groups], "store": [rd.store(i).rel for i in ids],
+                                      "source": "test"}))
+    for i, (_, g) in zip(ids, groups):
+        rd.fits_first(i).save(g.reset_index(drop=True))
+    cfg = RunConfig(reference_scanner="scanner1",
+                    extraction={"labelling": {"centre_u_mm": 0.01}, "use_planned_poses": False})
+    record = run_step(get_step("label"), rd, cfg)
+    assert set(record["outputs"]) == {f.rel for f in (rd.sphere_fits_labelled, rd.label_outcomes, rd.sphere_centres,
+                                                      rd.poses, rd.poses_skipped, rd.scanner_links)}
+    outcomes = rd.label_outcomes.load()
+    refused = outcomes[outcomes.status == "refused"]
+    assert set(zip(refused.measurement, refused.scanner)) == {("2", "scanner1"), ("5", "scanner2")}
+    assert len(read_table(rd.poses.path, PosesTable)) == 22
+    links = read_table(rd.scanner_links.path, ScannerLinksTable).set_index("scanner")
     assert abs(links.loc["scanner2", "tx_mm"] - T_S1_S2.t[0]) < 0.03
-    assert not list((tmp_path / "tables").glob(".*tmp"))  # nothing half-written left behind
+    assert not [p for p in rd.label_outcomes.path.parent.iterdir() if p.name.startswith(".")]  # nothing half-written

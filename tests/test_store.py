@@ -15,7 +15,7 @@ import xarray as xr
 from fringecal.fringe.decode import decode
 from fringecal.fringe.measurement import decode_to_store, measurement_dataset
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.store import (COMPLETE_ATTR, StoreError, add_variables, is_complete, open_store, write_store)
+from fringecal.store import COMPLETE_ATTR, StoreError, copy_store, is_complete, open_store, write_store
 from tasks.refs import digest_path
 
 SEQ = FringeSequence((8, 7, 6, 4), 3)
@@ -143,35 +143,29 @@ def test_verify_reads_every_chunk(tmp_path):
         open_store(out, verify=True)
 
 
-def test_add_variables_is_atomic_and_leaves_the_original_untouched(tmp_path, monkeypatch):
+def test_copy_store_links_chunks_and_is_atomic(tmp_path, monkeypatch):
     import fringecal.store as store
 
     frames, *_ = frames_for()
-    out = tmp_path / "m.zarr"
-    decode_to_store(frames, SEQ, out, attrs={"scanner": "s1"}, full_scale=4095)
-    before = digest_path(out)
-    xyz = {n: xr.DataArray(np.full((24, 40), i, np.float32), dims=("v", "u"), attrs={"units": "mm"})
-           for i, n in enumerate(["x", "y", "z", "eps1"])}
-
-    real = store._finalise
-    monkeypatch.setattr(store, "_finalise", lambda tmp: (_ for _ in ()).throw(RuntimeError("crash")))
+    src = tmp_path / "m.zarr"
+    decode_to_store(frames, SEQ, src, attrs={"scanner": "s1"}, full_scale=4095)
+    (src / ".m.zarr.tmp-leftover").mkdir()  # hidden entries are not copied
+    dst = tmp_path / "run" / "m.zarr"
+    dst.parent.mkdir()
+    real = store._swap_in
+    monkeypatch.setattr(store, "_swap_in", lambda tmp, path: (_ for _ in ()).throw(RuntimeError("crash")))
     with pytest.raises(RuntimeError):
-        add_variables(out, xyz, attrs={"calibration": "c.xml"})
-    assert digest_path(out) == before and is_complete(out)
-    assert [p.name for p in tmp_path.iterdir()] == ["m.zarr"]
-
-    monkeypatch.setattr(store, "_finalise", real)
-    add_variables(out, xyz, attrs={"calibration": "c.xml"})
-    ds = open_store(out, verify=True)
-    assert {"x", "y", "z", "eps1", "tau_x", "valid"} <= set(ds.data_vars)
-    assert ds.z.attrs["units"] == "mm" and float(ds.eps1[0, 0]) == 3.0
-    assert ds.attrs["scanner"] == "s1" and ds.attrs["calibration"] == "c.xml"
-
-    # replacing an existing variable
-    add_variables(out, {"valid": xr.DataArray(np.zeros((24, 40), bool), dims=("v", "u"))})
-    assert not open_store(out, verify=True).valid.values.any()
-    with pytest.raises(StoreError, match=r"variable 'w' has v = 5, the store has 24"):
-        add_variables(out, {"w": xr.DataArray(np.zeros((5, 40)), dims=("v", "u"))})
+        copy_store(src, dst)
+    assert list(dst.parent.iterdir()) == []  # nothing half-copied
+    monkeypatch.setattr(store, "_swap_in", real)
+    copy_store(src, dst)
+    assert digest_path(dst) == digest_path(src) and is_complete(dst)
+    assert open_store(dst, verify=True).attrs["scanner"] == "s1"
+    chunk = next(p for p in (src / "tau_x").rglob("*") if p.is_file() and p.name != "zarr.json")
+    assert os.stat(chunk).st_ino == os.stat(dst / chunk.relative_to(src)).st_ino  # a hard link
+    assert not [p for p in dst.iterdir() if p.name.startswith(".")]
+    with pytest.raises(StoreError, match="no such store"):
+        copy_store(tmp_path / "nothing.zarr", tmp_path / "x.zarr")
 
 
 def test_overwrite_replaces_a_complete_store(tmp_path):

@@ -78,3 +78,13 @@ def test_bad_ballbar_tables(tmp_path):
     assert "c.csv" in msg and "measurement '2' has no row(s) for sphere 'B'" in msg and "['C'] are not ball-bar spheres" in msg
     res = runner.invoke(app, ["verify", "ballbar", "--centres", str(p), "--reference-length-mm", "1000"])
     assert res.exit_code == 2 and "measurement '2'" in res.output
+
+
+def test_position_tables_name_their_problems_by_position():
+    rows = pd.DataFrame({"position": ["p1", "p1", "p2"], "scanner": ["s1", "s2", "s1"], "sphere_id": ["A", "B", "A"],
+                         "x_mm": [0.0, 1000.0, 0.0], "y_mm": [0.0] * 3, "z_mm": [0.0] * 3})
+    with pytest.raises(TableError) as info:
+        ballbar_lengths(rows, "centres.csv")
+    assert "position 'p2' has no row(s) for sphere 'B'" in str(info.value)
+    lengths = ballbar_lengths(rows[rows.position == "p1"])
+    assert lengths.measurement.tolist() == ["p1"] and lengths.length_mm[0] == pytest.approx(1000.0)

@@ -1,24 +1,24 @@
-"""Simulated acquisition: plan the measurements of a run, move the hexapod, render,
-decode and store each measurement with its ground truth.
+"""Simulated acquisition: the simulated rig, the hexapod moves, and each measurement
+rendered, decoded and stored with its ground truth kept apart.
 
-Typical use (what ``fringecal acquire`` does, one task per measurement)::
+Typical use (what the simulated steps of ``fringecal run`` and ``fringecal simulate`` do)::
 
-    inputs = AcquisitionInputs.from_run_config(cfg)
-    plans = plan_acquisition(cfg, inputs)                       # one per (pose, scanner)
-    moves = move_hexapod(planned_poses(plans), cfg)              # reached T_world_artefact per pose
-    reached = {m.pose: m.reached for m in moves}
-    for p in plans:
-        acquire_measurement(p, reached[p.pose], cfg, run_dir.store(p.measurement), inputs)
+    sr = load_simulated_rig(cfg.simulate)                        # truth, prior, artefact, plan
+    moves = move_hexapod(sr.planned, cfg.simulate.acquisition.hexapod)   # reached poses
+    scene = artefact_scene(sr.artefact, sr.rods, moves[0].reached, sr.hardware)
+    simulate_measurement("1-scanner1", sr.truth.scanners[0], scene, cfg.simulate.acquisition,
+                         cfg.decode, "1-scanner1.zarr", truth_out="truth/1-scanner1.zarr")
 """
 
-from .measure import (TRUTH_VARIABLES, AcquiredMeasurement, acquire_measurement, measurement_rng, store_summary,
-                      truth_from_store, truth_variables)
-from .plan import (POSE_COLUMNS, AcquisitionInputs, MeasurementPlan, PoseMove, measurement_digest, move_hexapod,
-                   plan_acquisition, planned_poses, poses_table)
+from .measure import (TRUTH_VARIABLES, AcquiredMeasurement, camera_format_attr, measurement_rng, render_frames,
+                      simulate_measurement, truth_from_store, truth_variables)
+from .plan import POSE_COLUMNS, PoseMove, move_hexapod, poses_table
+from .simulated import (SimulatedRig, acquisition_table, frame_rows, frames_from_rows, input_files,
+                        load_simulated_rig, scanners_seeing)
 
 __all__ = [
-    "AcquisitionInputs", "MeasurementPlan", "PoseMove", "plan_acquisition", "planned_poses", "move_hexapod",
-    "poses_table", "measurement_digest", "POSE_COLUMNS",
-    "AcquiredMeasurement", "acquire_measurement", "measurement_rng", "truth_variables", "truth_from_store",
-    "store_summary", "TRUTH_VARIABLES",
+    "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "acquisition_table", "frame_rows",
+    "frames_from_rows", "PoseMove", "move_hexapod", "poses_table", "POSE_COLUMNS",
+    "AcquiredMeasurement", "simulate_measurement", "render_frames", "measurement_rng", "truth_variables",
+    "truth_from_store", "camera_format_attr", "TRUTH_VARIABLES",
 ]

@@ -1,16 +1,14 @@
-"""One simulated measurement: render the scanner's frames of the artefact where the
-hexapod put it, decode them, and write the measurement store with the renderer's
-ground truth beside the decoded maps.
+"""One simulated measurement: render a scanner's frames of a scene, decode them into
+the measurement store a real scanner's data would give, and keep the renderer's
+ground truth in a store of its own (:func:`simulate_measurement`).
 
-Store contents (beyond the decoder's ``tau_x``, ``tau_y``, ``modulation_*``,
-``phase_error_*``, ``texture``, ``valid``): the truth maps of
-:class:`~fringecal.simulate.GroundTruth` prefixed ``truth_`` (see
-:data:`TRUTH_VARIABLES`; the world point becomes ``truth_x``, ``truth_y``,
-``truth_z``), and the attributes ``measurement``, ``pose``, ``scanner``,
-``camera_format``, ``truth_sensors``, ``T_world_artefact`` (the reached pose the
-frames were rendered at), ``T_world_artefact_planned``, ``config_digest``,
-``object_names``, ``object_kinds``, ``sphere_ids``, ``render``, ``seed`` and
-``source = "simulated"`` (the decoder adds ``sequence``, ``decoder``, ``summary``).
+The acquisition store holds the decoder's ``tau_x``, ``tau_y``, ``modulation_*``,
+``phase_error_*``, ``texture``, ``valid`` and provenance attributes
+(``measurement``, ``scanner``, ``camera_format``, ``bit_depth``, ``seed``,
+``source = "simulated"``; the decoder adds ``sequence``, ``decoder``, ``summary``).
+The truth store holds the maps of :class:`~fringecal.simulate.GroundTruth` prefixed
+``truth_`` (:data:`TRUTH_VARIABLES`; the world point becomes ``truth_x``,
+``truth_y``, ``truth_z``) and the true sensors, object names, kinds and sphere ids.
 """
 
 from __future__ import annotations
@@ -25,14 +23,14 @@ import xarray as xr
 
 from ..fringe.decode import DecodedPhase
 from ..fringe.measurement import decode_to_store
-from ..frames import Frame
+from ..rig import Scanner
 from ..sensor import Sensor
-from ..simulate import GroundTruth, artefact_scene, backdrop, render_measurement, scaled_scanner
+from ..simulate import GroundTruth, Measurement, Scene, SceneObject, backdrop, render_measurement
 from ..simulate.evaluation import pure_mask
-from .plan import POSE_COLUMNS, AcquisitionInputs, MeasurementPlan, measurement_digest
+from ..store import write_store
 
-__all__ = ["AcquiredMeasurement", "acquire_measurement", "measurement_rng", "truth_variables", "truth_from_store",
-           "store_summary", "TRUTH_VARIABLES"]
+__all__ = ["AcquiredMeasurement", "simulate_measurement", "render_frames", "measurement_rng", "truth_variables",
+           "truth_from_store", "camera_format_attr", "TRUTH_VARIABLES"]
 
 #: GroundTruth field -> (store variable, dtype). Points and the averaged projector
 #: coordinates stay float64: they are what tests compare decoded values against.
@@ -95,79 +93,62 @@ def truth_from_store(ds: xr.Dataset) -> GroundTruth:
     return GroundTruth(**kw)
 
 
-def _pose_attr(T: Frame) -> dict[str, float]:
-    return dict(zip(POSE_COLUMNS, map(float, T.params)))
+def camera_format_attr(fmt) -> dict:
+    return {"width_px": fmt.width_px, "height_px": fmt.height_px, "width_mm": fmt.width_mm, "height_mm": fmt.height_mm}
 
 
 def _sensor_attr(s: Sensor) -> dict:
-    f = s.format
-    return {"name": s.name, "role": s.role, "params": s.as_dict(),
-            "format": {"width_px": f.width_px, "height_px": f.height_px, "width_mm": f.width_mm,
-                       "height_mm": f.height_mm}}
+    return {"name": s.name, "role": s.role, "params": s.as_dict(), "format": camera_format_attr(s.format)}
 
 
-def acquire_measurement(plan: MeasurementPlan, reached: Frame, run_config, out_path,
-                        inputs: AcquisitionInputs | None = None) -> AcquiredMeasurement:
-    """Render ``plan``'s scanner looking at the artefact at ``reached``, decode the
-    frames and write the measurement store at ``out_path`` (atomically).
+def render_frames(measurement: str, scanner: Scanner, scene: Scene, acquisition) -> Measurement:
+    """The fringe frames ``scanner`` records of ``scene`` (and the renderer's truth).
 
-    The camera is resampled to ``acquisition.camera_width_px`` (same field of view);
-    the scene is the artefact with rods and end caps (plus a backdrop plane
-    ``acquisition.backdrop_mm`` in front of the camera, if set); the noise comes from
-    :func:`measurement_rng` (``acquisition.seed``, measurement id).
+    ``acquisition`` is an :class:`~fringecal.runconfig.AcquisitionConfig` (render
+    settings, sequence, seed, optional backdrop ``backdrop_mm`` in front of the
+    camera); the noise comes from :func:`measurement_rng` (seed, measurement id), so a
+    measurement renders the same whatever else is rendered and in whatever order.
     """
-    acq = run_config.acquisition
-    inputs = inputs or AcquisitionInputs.from_run_config(run_config)
-    scanner = scaled_scanner(inputs.rig.scanner(plan.scanner), acq.camera_width_px)
-    background = backdrop(scanner, acq.backdrop_mm) if acq.backdrop_mm is not None else None
-    scene = artefact_scene(inputs.artefact, inputs.rods, reached, inputs.hardware, background)
-    sequence = acq.sequence.build()
+    if acquisition.backdrop_mm is not None:
+        bg = SceneObject("background", "background", "background", (backdrop(scanner, acquisition.backdrop_mm),))
+        scene = Scene(scene.objects + (bg,))
+    return render_measurement(scanner, scene, acquisition.render, measurement_rng(acquisition.seed, measurement),
+                              acquisition.sequence.build())
+
+
+def simulate_measurement(measurement: str, scanner: Scanner, scene: Scene, acquisition, decode_settings, out,
+                         truth_out=None, attrs: dict | None = None) -> AcquiredMeasurement:
+    """Render, decode and write one measurement store at ``out`` (atomically), and its
+    ground truth as a separate store at ``truth_out`` (if given).
+
+    The acquisition store holds what a real scanner would deliver (decoded maps and
+    provenance: ``measurement``, ``scanner``, ``camera_format``, ``bit_depth``,
+    ``source = "simulated"`` plus ``attrs``); the truth store holds the renderer's
+    per-pixel truth (:data:`TRUTH_VARIABLES`; the world point as ``truth_x``,
+    ``truth_y``, ``truth_z``) and, as attributes, the true sensors and the scene's
+    object names, kinds and sphere ids.
+    """
     t0 = time.perf_counter()
-    rendered = render_measurement(scanner, scene, acq.render, measurement_rng(acq.seed, plan.measurement), sequence)
+    rendered = render_frames(measurement, scanner, scene, acquisition)
     t1 = time.perf_counter()
     truth = rendered.truth
     fmt = scanner.camera.format
-    attrs = {
-        "source": "simulated",
-        "measurement": plan.measurement,
-        "pose": plan.pose,
-        "scanner": plan.scanner,
-        "camera_format": {"width_px": fmt.width_px, "height_px": fmt.height_px, "width_mm": fmt.width_mm,
-                          "height_mm": fmt.height_mm},
-        "truth_sensors": {"camera": _sensor_attr(scanner.camera), "projector": _sensor_attr(scanner.projector)},
-        "T_world_artefact": _pose_attr(reached),
-        "T_world_artefact_planned": _pose_attr(plan.T_world_artefact),
-        "config_digest": measurement_digest(run_config),
-        "object_names": list(truth.object_names),
-        "object_kinds": list(truth.object_kinds),
-        "sphere_ids": list(truth.sphere_ids),
-        "render": acq.render.model_dump(mode="json"),
-        "seed": {"run": acq.seed, "measurement": plan.measurement},
-        "bit_depth": acq.render.bit_depth,
-    }
-    decoded = decode_to_store(rendered.frames, sequence, Path(out_path), attrs, truth_variables(truth),
-                              settings=run_config.decode, full_scale=acq.render.max_dn,
-                              store_frames=acq.store_frames, source=f"measurement {plan.measurement}")
+    base = {"source": "simulated", "measurement": measurement, "scanner": scanner.name,
+            "camera_format": camera_format_attr(fmt), "bit_depth": acquisition.render.bit_depth,
+            "seed": {"run": acquisition.seed, "measurement": measurement}, **(attrs or {})}
+    decoded = decode_to_store(rendered.frames, rendered.sequence, Path(out), base, settings=decode_settings,
+                              full_scale=acquisition.render.max_dn, store_frames=acquisition.store_frames,
+                              source=f"measurement {measurement}")
+    if truth_out is not None:
+        truth_attrs = {"measurement": measurement, "truth_sensors": {"camera": _sensor_attr(scanner.camera),
+                                                                     "projector": _sensor_attr(scanner.projector)},
+                       "object_names": list(truth.object_names), "object_kinds": list(truth.object_kinds),
+                       "sphere_ids": list(truth.sphere_ids), "render": acquisition.render.model_dump(mode="json")}
+        ds = xr.Dataset({k: (("v", "u"), v) for k, v in truth_variables(truth).items()}, attrs=truth_attrs)
+        write_store(truth_out, ds)
     t2 = time.perf_counter()
     spheres = pure_mask(truth, ("sphere",), decoded.valid)
-    summary = {"measurement": plan.measurement, "pose": plan.pose, "scanner": plan.scanner, "store": str(out_path),
+    summary = {"measurement": measurement, "scanner": scanner.name, "store": str(out),
                "valid_fraction": float(decoded.valid.mean()), "sphere_pixels": int(spheres.sum()),
                "render_s": t1 - t0, "decode_store_s": t2 - t1}
     return AcquiredMeasurement(decoded, summary)
-
-
-def store_summary(path) -> dict:
-    """Measurement, pose, scanner, valid fraction and the number of valid pixels wholly
-    on a lit sphere, read from a simulated measurement's store."""
-    from types import SimpleNamespace
-
-    from ..store import open_store
-
-    with open_store(path) as ds:
-        fields = ("object_index", "purity", "lit_fraction", "tau_x")
-        truth = SimpleNamespace(object_kinds=tuple(ds.attrs["object_kinds"]),
-                                **{f: ds[TRUTH_VARIABLES[f][0]].values for f in fields})
-        valid = ds["valid"].values
-        a = ds.attrs
-        return {"measurement": a["measurement"], "pose": a["pose"], "scanner": a["scanner"],
-                "valid_fraction": float(valid.mean()), "sphere_pixels": int(pure_mask(truth, ("sphere",), valid).sum())}

@@ -8,11 +8,10 @@ from .dlt import DLTError, DLTEstimate, dlt
 from .initial import initial_rig_from_dlt
 from .model import BundleProblem
 from .results import residual_tables, summary, write_outputs
-from .run import CalibrateConfig, calibrate_run, load_problem
 
 __all__ = [
-    "BundleOptions", "BundleProblem", "BundleResult", "CalibrateConfig", "DLTError", "DLTEstimate",
+    "BundleOptions", "BundleProblem", "BundleResult", "DLTError", "DLTEstimate",
     "DegenerateCalibrationError", "Diagnosis", "ResidualStatistics", "StartValueError", "bundle_adjust",
-    "calibrate_run", "dlt", "incidence_map", "initial_rig_from_dlt", "load_problem", "residual_tables",
+    "dlt", "incidence_map", "initial_rig_from_dlt", "residual_tables",
     "select_control_points", "summary", "write_outputs",
 ]

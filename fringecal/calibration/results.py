@@ -11,38 +11,21 @@ parameters (a lower bound of the volume actually calibrated).
 from __future__ import annotations
 
 import json
-import os
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from schemas import (CalibratedPosesTable, CalibratedSensorsTable, MeasurementResidualsTable,
-                     SphereResidualsTable, validate_table, write_table)
+from schemas import MeasurementResidualsTable, SphereResidualsTable, validate_table
 
-from ..calibration_file import write_calibration_json, write_calibration_xml
+from ..atomic import atomic_paths
+from ..calibration_file import rig_to_dict, xml_text
 from ..triangulation import closest_approach
 from .bundle import BundleResult
 from .model import BundleProblem
 
-__all__ = ["triangulated_points", "residual_tables", "volume_diagonal_mm", "plot_histograms", "summary", "write_outputs", "OUTPUT_FILES"]
-
-#: files written by :func:`write_outputs`, relative to the run directory
-OUTPUT_FILES = {
-    "calibration_xml": "calibration.xml",
-    "calibration_json": "calibration.json",
-    "sensors": "tables/sensors_calibrated.csv",
-    "poses": "tables/poses_calibrated.csv",
-    "residuals_per_sphere": "tables/residuals_per_sphere.csv",
-    "residuals_per_measurement": "tables/residuals_per_measurement.csv",
-    "eps1_hist": "figures/eps1_hist.png",
-    "eps2_hist": "figures/eps2_hist.png",
-    "summary": "bundle_summary.json",
-}
-
+__all__ = ["triangulated_points", "residual_tables", "volume_diagonal_mm", "plot_histograms", "summary", "write_outputs"]
 
 def _frame(result: BundleResult) -> pd.DataFrame:
     pr = result.problem
@@ -155,39 +138,36 @@ def summary(result: BundleResult, diagonal_mm: float | None = None) -> dict:
     }
 
 
-def write_outputs(result: BundleResult, run_dir, diagonal_mm: float | None = None) -> dict[str, Path]:
-    """Write every output of :data:`OUTPUT_FILES` under ``run_dir``, all or nothing.
+def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, extra: dict | None = None) -> list:
+    """Write the calibration files, tables, histograms and summary of ``result`` into the
+    run directory ``rd`` (:class:`fringecal.rundir.RunDir`), all or nothing.
 
-    Everything is first written to a hidden staging folder in ``run_dir``; only when all
-    files are complete are they moved into place (each move is an atomic rename).
+    Every file is first written under a temporary name; only when all are complete
+    are they renamed into place. ``extra`` is merged into the summary (e.g. the
+    adjustment's wall time). Returns the files written.
     """
-    run_dir = Path(run_dir)
-    staging = run_dir / f".calibrate-staging-{os.getpid()}"
-    if staging.exists():
-        shutil.rmtree(staging)
-    try:
-        for rel in OUTPUT_FILES.values():
-            (staging / rel).parent.mkdir(parents=True, exist_ok=True)
-        st = {k: staging / v for k, v in OUTPUT_FILES.items()}
-        doc = summary(result, diagonal_mm)
-        meta = {"after": doc["after"], "before": doc["before"], "one_part_in_1p96_sigma": doc["one_part_in_1p96_sigma"],
-                "volume_diagonal_mm": doc["volume_diagonal_mm"], "n_control_points": doc["n_control_points"],
-                "iterations": doc["iterations"], "converged": doc["converged"]}
-        write_calibration_xml(result.rig, st["calibration_xml"], meta)
-        write_calibration_json(result.rig, st["calibration_json"], meta)
-        write_table(result.sensors_frame(), st["sensors"], CalibratedSensorsTable)
-        write_table(result.poses_frame(), st["poses"], CalibratedPosesTable)
-        per_sphere, per_meas = residual_tables(result)
-        write_table(per_sphere, st["residuals_per_sphere"], SphereResidualsTable)
-        write_table(per_meas, st["residuals_per_measurement"], MeasurementResidualsTable)
-        plot_histograms(result, st["eps1_hist"], st["eps2_hist"])
-        st["summary"].write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
-        out = {}
-        for key, rel in OUTPUT_FILES.items():
-            dest = run_dir / rel
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(st[key], dest)
-            out[key] = dest
-        return out
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    import io
+
+    doc = {**summary(result, diagonal_mm), **(extra or {})}
+    meta = {"after": doc["after"], "before": doc["before"], "one_part_in_1p96_sigma": doc["one_part_in_1p96_sigma"],
+            "volume_diagonal_mm": doc["volume_diagonal_mm"], "n_control_points": doc["n_control_points"],
+            "iterations": doc["iterations"], "converged": doc["converged"]}
+    per_sphere, per_meas = residual_tables(result)
+    tables = {rd.sensors_calibrated: result.sensors_frame(), rd.poses_calibrated: result.poses_frame(),
+              rd.residuals_per_sphere: per_sphere, rd.residuals_per_measurement: per_meas}
+    tables = {f: validate_table(df, f.schema, str(f.path)) for f, df in tables.items()}
+    figures = {}
+    for term, path in zip(("eps1", "eps2"), (io.BytesIO(), io.BytesIO())):
+        figures[rd.histogram(term)] = path
+    plot_histograms(result, *figures.values())
+    files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary]
+    with atomic_paths([f.path for f in files]) as tmps:
+        tmp = dict(zip([f.rel for f in files], tmps))
+        tmp[rd.calibration.rel].write_text(json.dumps(rig_to_dict(result.rig, meta), indent=2) + "\n")
+        tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta))
+        for f, df in tables.items():
+            df.to_csv(tmp[f.rel], index=False, float_format="%.10g")
+        for f, buf in figures.items():
+            tmp[f.rel].write_bytes(buf.getvalue())
+        tmp[rd.bundle_summary.rel].write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
+    return files

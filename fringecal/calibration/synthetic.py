@@ -410,27 +410,11 @@ def dlt_start(sim: SimulatedControlPoints, rng, centre_noise_mm: float = 0.05,
     return rig, res.poses[["measurement", *POSE_COLUMNS]].reset_index(drop=True)
 
 
-def write_run_inputs(run_dir, sim: SimulatedControlPoints, start_rig: Rig, start_poses: pd.DataFrame,
-                     config: dict | None = None) -> dict:
-    """Write a calibration run directory's inputs (README: RUN_DIR contract) from a simulation."""
-    from pathlib import Path
-
-    import yaml
-
-    from schemas import ArtefactTable, ControlPointsTable, PosePlanTable, SensorParametersTable, write_table
-
-    run_dir = Path(run_dir)
-    out = {
-        "artefact": write_table(sim.artefact.to_frame(), run_dir / "artefact.csv", ArtefactTable),
-        "control_points": write_table(sim.control_points, run_dir / "tables" / "control_points.csv",
-                                      ControlPointsTable),
-        "poses": write_table(start_poses[["measurement", *POSE_COLUMNS]], run_dir / "tables" / "poses_initial.csv",
-                             PosePlanTable),
-        "sensors": write_table(start_rig.to_frame(), run_dir / "tables" / "sensors_initial.csv",
-                               SensorParametersTable),
-    }
-    if config is not None:
-        path = run_dir / "calibrate.yaml"
-        path.write_text(yaml.safe_dump(config))
-        out["config"] = path
-    return out
+def write_run_inputs(rd, sim: SimulatedControlPoints, start_rig: Rig, start_poses: pd.DataFrame) -> None:
+    """Write the bundle adjustment's inputs into a run directory
+    (:class:`fringecal.rundir.RunDir`) from a simulation: artefact, control points,
+    start poses and start sensors."""
+    rd.artefact.save(sim.artefact)
+    rd.control_points.save(sim.control_points)
+    rd.poses_initial.save(start_poses[["measurement", *POSE_COLUMNS]])
+    rd.sensors_initial.save(start_rig)

@@ -8,7 +8,6 @@ everywhere) or without a single valid pixel, naming the source.
 
 from __future__ import annotations
 
-import datetime as _dt
 from pathlib import Path
 from typing import Mapping
 
@@ -99,7 +98,6 @@ def measurement_dataset(result: DecodedPhase, attrs: Mapping | None = None, fram
     base = {
         "software": "fringecal",
         "software_version": __version__,
-        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "sequence": seq.to_dict(),
         "contract": "I = A + B cos(t * w + 2 pi k / N); tau = w (eq. 2-22 projector coordinate, rad)",
         "decoder": {**result.settings.model_dump(), "full_scale_dn": _finite_or_none(result.full_scale),

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import serial
 
+from ..atomic import write_text
 from .config import HexapodConfig
 from .kinematics import ForwardKinematicsError, forward_kinematics, inverse_kinematics
 from .planning import counts_from_lengths, lengths_from_counts
@@ -85,11 +86,7 @@ def write_command_file(path, counts_rows, comments=None) -> Path:
         if comments is not None:
             lines.append(f"# {comments[i]}")
         lines.append(format_command("MOVEALL", *row))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n", encoding="ascii")
-    tmp.replace(path)
-    return path
+    return write_text(path, "\n".join(lines) + "\n")
 
 
 class HexapodDriver:

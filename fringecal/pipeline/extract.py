@@ -1,9 +1,11 @@
 """Per-measurement point clouds, sphere fits and control points (issues 4 and 5).
 
 :func:`first_pass` triangulates a measurement store with its scanner's current
-parameters, writes ``x, y, z, eps1`` and the candidate regions into the store, and
-fits every candidate. After labelling, :func:`second_pass` refits the labelled
-candidates with rod cones and selects the control points from the clean pixels.
+parameters, writes ``x, y, z, eps1`` and the candidate regions to a maps store of
+their own (the acquisition store stays as recorded), and fits every candidate. After
+labelling, :func:`second_pass` refits the labelled candidates with rod cones, writes
+each pixel's sphere label to a labels store and selects the control points from the
+clean pixels.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from ..frames import Frame
 from ..pointcloud import PointMaps, provenance, triangulate_maps
 from ..rig import Scanner
 from ..spheres.robust import rod_directions
-from ..store import add_variables, open_store
+from ..store import open_store, write_store
 
 __all__ = ["measurement_maps", "first_pass", "second_pass", "ExtractionResult"]
 
@@ -36,23 +38,24 @@ def measurement_maps(store, scanner: Scanner) -> tuple[xr.Dataset, PointMaps, np
     return ds, maps, valid
 
 
-def first_pass(store, scanner: Scanner, radius_mm: float, extraction_config, measurement: str) -> pd.DataFrame:
-    """Triangulate, write the point maps and candidate regions into the store, fit candidates.
+def first_pass(store, scanner: Scanner, radius_mm: float, candidate_config, rejection_config, measurement: str,
+               maps_out) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Triangulate, write the point maps and candidate regions to ``maps_out``, fit candidates.
 
-    Returns the sphere-fits rows (``sphere_id`` empty) plus failed candidates as rows
-    with a ``failure`` reason and no centre (dropped before labelling).
+    Returns the sphere-fits rows (``sphere_id`` empty) and the candidates that could
+    not be fitted (``measurement, scanner, candidate, sphere_id, reason``).
     """
     ds, maps, valid = measurement_maps(store, scanner)
     fits = fit_candidates(maps, valid, scanner.camera, scanner.projector, radius_mm, measurement, scanner.name,
-                          candidate_config=extraction_config.candidate_config(),
-                          rejection_config=extraction_config.rejection_config())
+                          candidate_config=candidate_config, rejection_config=rejection_config)
     ds.close()
     dims = ("v", "u")
     f32 = lambda a: xr.DataArray(np.where(maps.valid, a, np.nan).astype(np.float32), dims=dims)  # noqa: E731
-    add_variables(store, {"x": f32(maps.x), "y": f32(maps.y), "z": f32(maps.z), "eps1": f32(maps.eps1),
-                          "candidate": xr.DataArray(fits.regions, dims=dims)},
-                  attrs={"points": {**provenance(scanner.camera, scanner.projector),
-                                    "frame": f"scanner {scanner.name}"}})
+    write_store(maps_out, xr.Dataset({"x": f32(maps.x), "y": f32(maps.y), "z": f32(maps.z), "eps1": f32(maps.eps1),
+                                      "candidate": xr.DataArray(fits.regions, dims=dims)},
+                                     attrs={"measurement": measurement, "scanner": scanner.name,
+                                            "points": {**provenance(scanner.camera, scanner.projector),
+                                                       "frame": f"scanner {scanner.name}"}}))
     rows = pd.DataFrame(fits.rows)
     failures = pd.DataFrame(fits.failures, columns=["measurement", "scanner", "candidate", "sphere_id", "reason"])
     return rows, failures
@@ -67,31 +70,39 @@ class ExtractionResult:
     control_points: pd.DataFrame
 
 
-def second_pass(store, scanner: Scanner, artefact, rods: pd.DataFrame | None, labelled: pd.DataFrame,
-                pose: Frame | None, extraction_config, control_point_config, measurement: str) -> ExtractionResult:
+def second_pass(store, candidates, scanner: Scanner, artefact, rods: pd.DataFrame | None, labelled: pd.DataFrame,
+                pose: Frame | None, rejection_config, control_point_config, measurement: str, labels_out,
+                rod_cones: bool = True) -> ExtractionResult:
     """Refit the labelled candidates of one measurement and select its control points.
 
     Parameters
     ----------
+    store : path
+        The acquisition store.
+    candidates : path
+        The maps store of :func:`first_pass` (its ``candidate`` regions).
     labelled : DataFrame
         This measurement's rows of the labelled sphere-fits table.
     pose : Frame or None
-        ``T_scanner_artefact`` from the labelling step; with rods, each sphere's rod
-        directions become cones to mask (end caps and tubes).
+        ``T_scanner_artefact`` from the labelling step; with rods (and ``rod_cones``),
+        each sphere's rod directions become cones to mask (end caps and tubes).
+    labels_out : path
+        Store to write ``sphere_label`` (artefact sphere index per pixel, -1: none) to.
     """
     ds, maps, valid = measurement_maps(store, scanner)
-    regions = ds["candidate"].values.astype(np.int16)
     tau_x, tau_y = ds["tau_x"].values, ds["tau_y"].values
     ds.close()
+    with open_store(candidates) as cands:
+        regions = cands["candidate"].values.astype(np.int16)
     labelled = labelled[labelled["sphere_id"].astype(str) != ""]
     sids = {int(r.candidate): str(r.sphere_id) for r in labelled.itertuples()}
-    use_cones = extraction_config.second_pass_rod_cones and rods is not None and pose is not None
+    use_cones = rod_cones and rods is not None and pose is not None
     axes = {c: rod_directions(artefact, rods, s, pose) for c, s in sids.items()} if use_cones else None
     radius = {c: float(artefact.radii[artefact.index([s])[0]]) for c, s in sids.items()}
     keep = np.where(np.isin(regions, list(sids)), regions, -1).astype(np.int16)
     fits = fit_candidates(maps, valid, scanner.camera, scanner.projector, float(np.median(artefact.radii)),
                           measurement, scanner.name, regions=keep, rod_axes=axes, sphere_ids=sids,
-                          fixed_radius=radius, rejection_config=extraction_config.rejection_config())
+                          fixed_radius=radius, rejection_config=rejection_config)
     fitted = [int(r["candidate"]) for r in fits.rows]
     labels = np.where(np.isin(fits.kept, fitted), fits.kept, -1)
     incidence = None
@@ -113,8 +124,9 @@ def second_pass(store, scanner: Scanner, artefact, rods: pd.DataFrame | None, la
     sphere_index = np.full(labels.shape, -1, np.int16)
     for c in fitted:
         sphere_index[labels == c] = artefact.index([sids[c]])[0]
-    add_variables(store, {"sphere_label": xr.DataArray(sphere_index, dims=dims)},
-                  attrs={"sphere_label_ids": list(artefact.ids)})
+    write_store(labels_out, xr.Dataset({"sphere_label": xr.DataArray(sphere_index, dims=dims)},
+                                       attrs={"measurement": measurement, "scanner": scanner.name,
+                                              "sphere_label_ids": list(artefact.ids)}))
     rows = pd.DataFrame(fits.rows)
     failures = pd.DataFrame(fits.failures, columns=["measurement", "scanner", "candidate", "sphere_id", "reason"])
     return ExtractionResult(rows, failures, cps)

@@ -1,10 +1,19 @@
-"""Simulated ball-bar verification of a calibration (thesis 6.9.3, VDI/VDE 2634).
+"""Ball-bar verification of a calibration (thesis 6.9.3, VDI/VDE 2634).
 
-The bar is rendered at each position by every scanner that sees one of its spheres
-(:func:`fringecal.ballbar.thesis_positions` or :func:`fringecal.ballbar.vdi7_positions`);
-each store is triangulated twice, with the calibrated sensors and with the true ones,
-and the sphere is fitted with its certified radius. The true-parameter lengths give
-the floor set by noise, against which the calibration is judged.
+Two ways to measure the bar's sphere centres in the stores of its positions:
+
+* from the data alone (:func:`measure_position`, :func:`measure_positions`): every
+  scanner's store of a position is searched for bar spheres, the sightings of all
+  scanners are grouped into the two spheres and named, and each sighting is refitted
+  with its certified radius and the rod masked. This is what a real cell has: the
+  recorded ``verification/<position>/<scanner>/`` measurements and nothing else.
+* from the simulation's plan (:func:`ballbar_centres`, to be retired): the bar is
+  rendered at each position by the scanner that sees one of its spheres
+  (:func:`fringecal.ballbar.thesis_positions` or :func:`fringecal.ballbar.vdi7_positions`),
+  and the plan says which sphere that is and where the rod points. Each store is
+  triangulated twice, with the calibrated sensors and with the true ones; the
+  true-parameter lengths give the floor set by noise, against which the calibration
+  is judged.
 """
 
 from __future__ import annotations
@@ -14,12 +23,20 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
-from ..ballbar import BallBarPosition, measure_sphere
-from ..rig import Rig
+from ..ballbar import (BallBarPosition, Sighting, SightingConfig, cluster_centres, find_sightings, measure_sphere,
+                       name_clusters, refit_sighting)
+from ..rig import Rig, Scanner
+from ..simulate.resolution import scaled_scanner
 from ..spheres.fit import FitError
+from ..store import open_store
 from .extract import measurement_maps
 
-__all__ = ["measure_ballbar_store", "ballbar_centres"]
+__all__ = ["measure_ballbar_store", "ballbar_centres", "measure_position", "measure_positions", "store_sightings",
+           "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
+
+#: Columns of the centres and failures tables of :func:`measure_position`.
+CENTRE_COLUMNS = ["position", "scanner", "sphere_id", "x_mm", "y_mm", "z_mm", "radius_mm", "rms_mm", "n_points"]
+FAILURE_COLUMNS = ["position", "scanner", "sphere_id", "reason"]
 
 
 def measure_ballbar_store(store, scanner, radius_mm: float, rod_axis, rejection_config) -> dict:
@@ -75,3 +92,178 @@ def ballbar_centres(stores: dict, positions: list[BallBarPosition], ballbar, rig
                 failures.append(failure)
     frames = {label: pd.DataFrame(rows) for label, rows in out.items()}
     return frames, pd.DataFrame(failures, columns=["rig", "measurement", "sphere_id", "reason"])
+
+
+# -- measuring a position from its stores alone --------------------------------------------
+
+
+def _store_scanner(ds, scanner: Scanner) -> Scanner:
+    """``scanner`` with its camera resampled to the store's image size (dims ``v, u``)
+    if that differs from its format: the same sensor binned, as a real scanner can."""
+    rows, cols = int(ds.sizes["v"]), int(ds.sizes["u"])
+    fmt = scanner.camera.format
+    if (fmt.height_px, fmt.width_px) == (rows, cols):
+        return scanner
+    return scaled_scanner(scanner, cols, rows)
+
+
+def store_sightings(store, scanner: Scanner, ballbar, rejection_config,
+                    config: SightingConfig | None = None) -> tuple[list[Sighting], list[str]]:
+    """The bar spheres one store shows (:func:`fringecal.ballbar.find_sightings`),
+    triangulated with ``scanner`` (world frame) at the store's image size."""
+    with open_store(store) as ds:
+        scanner = _store_scanner(ds, scanner)
+    ds, maps, valid = measurement_maps(store, scanner)
+    ds.close()
+    return find_sightings(maps, valid, scanner, ballbar, rejection_config, config)
+
+
+def _check_scanners(position: str, names, rig: Rig) -> None:
+    known = [s.name for s in rig.scanners]
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"ball-bar position {position!r}: store(s) of scanner(s) {unknown} not in the rig "
+                         f"(scanners: {known})")
+
+
+def _count_text(n: int, scanners_per_sphere: list[list[str]]) -> str:
+    seen = " | ".join(", ".join(dict.fromkeys(g)) for g in scanners_per_sphere)
+    what = f"{n} sphere" + ("" if n == 1 else "s")
+    return f"{what} found" + (f", seen by {seen}" if n else "") + "; a ball-bar position needs 2"
+
+
+def _failure(position: str, scanner: str, sphere_id: str, reason: str) -> dict:
+    return {"position": position, "scanner": scanner, "sphere_id": sphere_id, "reason": reason}
+
+
+def _refit_all(position: str, sightings: list[Sighting], labels, names: dict, ballbar,
+               rejection_config) -> tuple[list[dict], list[dict]]:
+    """Refit every sighting with its sphere's certified radius and the rod towards the
+    other sphere (mean free-fit centre of its sightings) masked."""
+    radii = dict(zip(ballbar.ids[:2], ballbar.radii[:2]))
+    means = {k: np.mean([s.centre for s, lab in zip(sightings, labels) if lab == k], axis=0) for k in names}
+    rows, failures = [], []
+    for s, lab in zip(sightings, labels):
+        sid = names[int(lab)]
+        axis = means[1 - int(lab)] - s.centre
+        try:
+            m = refit_sighting(s, float(radii[sid]), axis / np.linalg.norm(axis), rejection_config)
+        except FitError as err:
+            failures.append(_failure(position, s.scanner, sid, str(err)))
+            continue
+        rows.append({"position": position, "scanner": s.scanner, "sphere_id": sid, "x_mm": m.centre[0],
+                     "y_mm": m.centre[1], "z_mm": m.centre[2], "radius_mm": m.radius_mm, "rms_mm": m.rms_mm,
+                     "n_points": m.n_points})
+    return rows, failures
+
+
+def _assemble(position: str, found: dict, scanner_order: list[str], ballbar, rejection_config,
+              config: SightingConfig | None) -> tuple[list[dict], list[dict]]:
+    """Cluster, name and refit one position's sightings (``found``: scanner ->
+    (sightings, notes)); rows only if both spheres were measured."""
+    failures = [_failure(position, sc, "", note) for sc in scanner_order if sc in found for note in found[sc][1]]
+    sightings = [s for sc in scanner_order if sc in found for s in found[sc][0]]
+    labels = cluster_centres([s.centre for s in sightings], float(ballbar.radii[:2].min()))
+    groups = [[s.scanner for s, lab in zip(sightings, labels) if lab == k] for k in sorted(set(labels.tolist()))]
+    if len(groups) != 2:
+        return [], failures + [_failure(position, "", "", f"position {position!r}: {_count_text(len(groups), groups)}")]
+    names = name_clusters(sightings, labels, ballbar, scanner_order, config)
+    rows, refit_failures = _refit_all(position, sightings, labels, names, ballbar, rejection_config)
+    failures += refit_failures
+    missing = [sid for sid in ballbar.ids[:2] if sid not in {r["sphere_id"] for r in rows}]
+    if missing:
+        return [], failures + [_failure(position, "", missing[0], f"position {position!r}: sphere {missing[0]!r} "
+                                        "could not be measured, so the position has no length")]
+    rows.sort(key=lambda r: (ballbar.ids.index(r["sphere_id"]), scanner_order.index(r["scanner"])))
+    return rows, failures
+
+
+def _frames(rows: list[dict], failures: list[dict]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    out = pd.DataFrame(rows, columns=CENTRE_COLUMNS)
+    out["n_points"] = out["n_points"].astype(int)
+    return out, pd.DataFrame(failures, columns=FAILURE_COLUMNS)
+
+
+def measure_position(stores: dict, rig: Rig, ballbar, rejection_config, position: str,
+                     config: SightingConfig | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Sphere centres of one ball-bar position from its stores alone: no plan, no truth.
+
+    Decisions (settings in :class:`fringecal.ballbar.SightingConfig`):
+
+    1. Every store is triangulated with its scanner's sensors (world frame); a store
+       whose image (dims ``v, u``) is smaller or larger than the camera's format is a
+       binned readout of the same sensor, so the camera is rescaled to it
+       (:func:`fringecal.simulate.resolution.scaled_scanner`). Sphere candidates of the
+       bar's radius are fitted robustly with a free radius; a fit is a sighting if its
+       radius is within ``radius_tolerance`` (10 %) of a certified radius and it kept
+       at least ``min_disc_fraction`` (25 %) of the pixels of the sphere's image disc.
+       A scanner gives 0, 1 or 2 sightings.
+    2. The sightings of all scanners are clustered by centre distance: two closer than
+       the bar's (smaller) radius are the same sphere (single linkage). Exactly two
+       clusters make a position; otherwise one failure row names the position, how
+       many spheres were found and which scanners saw them, and it gets no rows.
+    3. The clusters are named with the bar's ids (:func:`fringecal.ballbar.name_clusters`):
+       by fitted radius if the certified diameters differ by more than
+       ``distinct_diameter_mm`` (1 mm); else the first id goes to the sphere seen first
+       in rig order, and if that scanner sees both, to the one with the smaller mean
+       camera column (further left in its image). A length does not depend on the
+       names; they only say which certified radius is fixed and label the rows.
+    4. Every sighting is refitted with its sphere's certified radius fixed and the rod
+       masked by a cone about the axis from its free-fit centre to the mean free-fit
+       centre of the other sphere (as :func:`fringecal.ballbar.measure_sphere` with
+       the planned axis).
+
+    Parameters
+    ----------
+    stores : dict scanner name -> store path
+        The position's measurements, one per scanner that recorded it.
+    rig : Rig
+        Sensors in the world frame (e.g. the calibration); any camera resolution.
+    ballbar : Artefact
+        The bar; its first two sphere ids name the spheres (``A``, ``B``).
+    rejection_config : RejectionConfig or None
+    position : str
+    config : SightingConfig, optional
+
+    Returns
+    -------
+    rows : DataFrame
+        ``position, scanner, sphere_id, x_mm, y_mm, z_mm, radius_mm, rms_mm, n_points``,
+        one per sighting (a sphere seen by two scanners has two rows), ordered by
+        sphere then rig order; both spheres or none.
+    failures : DataFrame
+        ``position, scanner, sphere_id ('' if unknown), reason``: candidates that were
+        no sightings, a store with no sphere, refits that failed, and the position
+        itself when it does not give a length (``scanner`` empty).
+
+    Raises
+    ------
+    ValueError
+        A store's scanner is not in the rig.
+    StoreError
+        An incomplete or corrupt store.
+    """
+    _check_scanners(position, stores, rig)
+    order = [s.name for s in rig.scanners]
+    found = {name: store_sightings(stores[name], rig.scanner(name), ballbar, rejection_config, config)
+             for name in order if name in stores}
+    return _frames(*_assemble(position, found, order, ballbar, rejection_config, config))
+
+
+def measure_positions(stores: dict, rig: Rig, ballbar, rejection_config, workers: int = 2,
+                      config: SightingConfig | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """:func:`measure_position` for every position (``stores``: position -> scanner ->
+    store path); the stores are searched ``workers`` at a time in a thread pool, then
+    each position is assembled. Returns the concatenated tables in ``stores`` order."""
+    for position, by_scanner in stores.items():
+        _check_scanners(position, by_scanner, rig)
+    order = [s.name for s in rig.scanners]
+    jobs = [(pos, name) for pos, by_scanner in stores.items() for name in order if name in by_scanner]
+    search = lambda job: store_sightings(stores[job[0]][job[1]], rig.scanner(job[1]), ballbar,  # noqa: E731
+                                         rejection_config, config)
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # numpy and zarr release the GIL
+        found = dict(zip(jobs, pool.map(search, jobs)))
+        per_position = {pos: {name: found[(pos, name)] for (p, name) in jobs if p == pos} for pos in stores}
+        done = list(pool.map(lambda pos: _assemble(pos, per_position[pos], order, ballbar, rejection_config, config),
+                             stores))
+    return _frames([r for rows, _ in done for r in rows], [f for _, fails in done for f in fails])

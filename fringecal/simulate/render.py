@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fringe.sequence import FringeSequence
+from ..atomic import atomic_path
 from ..rig import Scanner
 from . import geometry as g
 from .config import RenderConfig
@@ -114,11 +115,10 @@ class GroundTruth:
     def save(self, path) -> Path:
         """Write to ``path`` (.npz), atomically."""
         path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp.npz")
         arrays = {k: v for k, v in self.to_dict().items() if k not in self._LABELS}
         labels = {k: np.array(getattr(self, k), dtype=str) for k in self._LABELS}
-        np.savez_compressed(tmp, **arrays, **labels)
-        tmp.replace(path)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays, **labels)
         return path
 
     @classmethod

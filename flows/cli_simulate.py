@@ -1,0 +1,48 @@
+"""``fringecal simulate``: a simulated rig written as a recorded data set."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from .common import UserInputError, console, guarded
+
+
+@guarded
+def simulate_command(
+    out: Path = typer.Option(..., "--out", "-o", help="Data set folder to write (must not exist)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML with a simulate section "
+                                          "(default: configs/run_thesis.yaml, the thesis rig)."),
+    fmt: str = typer.Option("png", "--format", "-f", help="Frame files: png (16-bit, lossless) or tif."),
+    truth: Optional[Path] = typer.Option(None, "--truth", help="Folder for the truth (default: <out>-truth); the "
+                                         "data set does not reference it."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Stacks rendered at a time."),
+):
+    """Render the simulated rig's measurements and write them as a recorded data set
+    (the layout `fringecal run --dataset` reads, as a real cell would fill it)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from fringecal.acquisition import acquisition_table, load_simulated_rig
+    from fringecal.acquisition.export import write_dataset
+
+    from .cli_run import check_simulation, validate_run_config
+
+    if fmt not in ("png", "tif"):
+        raise UserInputError(f"--format must be png or tif, not {fmt!r}")
+    truth = truth or out.with_name(out.name + "-truth")
+    for p in (out, truth):
+        if p.exists():
+            raise UserInputError(f"{p}: already exists; choose a new folder (nothing is overwritten)")
+    cfg = validate_run_config(config)
+    if cfg.source != "simulated":
+        raise UserInputError(f"{config}: has no simulate section (it names a data set)")
+    check_simulation(cfg.simulate)
+    n = len(acquisition_table(load_simulated_rig(cfg.simulate)))
+    with Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console) as progress:
+        task = progress.add_task("render image stacks", total=n)
+        write_dataset(cfg, out, truth, fmt, workers, on_stack=lambda _: progress.advance(task))
+    console.print(f"data set: {out}\ntruth (not part of the data set): {truth}\n"
+                  f"calibrate it with: fringecal run --dataset {out} --out runs/{out.name}")

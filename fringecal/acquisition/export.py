@@ -1,0 +1,141 @@
+"""A simulated rig written as a recorded data set (``fringecal simulate``).
+
+The data set is exactly what a real cell would deliver (:mod:`fringecal.dataset`):
+the CMM table (with the artefact corrections and temperature in ``dataset.yaml``),
+rods, each scanner's prior calibration, the planned poses, one image stack per
+(measurement, scanner) rendered at the pose the hexapod reached, the ball-bar's CMM
+table and its image stacks. ``dataset.yaml`` carries the simulation config's
+processing settings, so ``fringecal run --dataset`` processes it as ``fringecal run``
+processes the simulation. The truth goes to a separate folder that the data set
+does not reference (true sensors, scanner frames, reached poses, hexapod moves,
+ball-bar positions), laid out as a run directory's ``truth/``
+(:class:`~fringecal.rundir.TruthDir`).
+
+Both doors render with the same functions, the same measurement ids and noise
+seeds, and the frames are integers written losslessly, so the data set decodes to
+the very maps the simulated run stores.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import yaml
+
+from .. import dataset as layout
+from ..artefact import load_artefact, load_rods
+from ..atomic import temporary_sibling
+from ..ballbar import ballbar_rods
+from ..fringe.importer import write_frames
+from ..rundir import TruthDir, measurement_id
+from ..simulate.resolution import scaled_scanner
+from ..simulate.scenes import artefact_scene
+from .measure import render_frames
+from .plan import move_hexapod, poses_table
+from .simulated import frame_rows, frames_from_rows, load_simulated_rig
+
+__all__ = ["write_dataset", "PROCESSING_SECTIONS"]
+
+PROCESSING_SECTIONS = ("decode", "extraction", "control_points", "bundle", "verification")
+
+
+class _VerificationAcquisition:
+    def __init__(self, acq, seed: int):
+        self.render, self.sequence, self.backdrop_mm, self.seed = acq.render, acq.sequence, acq.backdrop_mm, seed
+
+
+def _dataset_yaml(cfg) -> dict:
+    sim = cfg.simulate
+    doc = {"name": cfg.name, "reference_scanner": cfg.reference_scanner,
+           "description": f"simulated by fringecal from rig {sim.rig}"}
+    if sim.temperature_c is not None:
+        doc["temperature_c"] = sim.temperature_c
+    if sim.artefact_corrections is not None:
+        doc["artefact_corrections"] = sim.artefact_corrections.model_dump(mode="json", exclude_none=True)
+    processing = {k: getattr(cfg, k).model_dump(mode="json", exclude_defaults=True) for k in PROCESSING_SECTIONS}
+    processing = {k: v for k, v in processing.items() if v}
+    if processing:
+        doc["processing"] = processing
+    return doc
+
+
+def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_stack=None) -> Path:
+    """Render the simulated rig of ``cfg`` (a resolved RunConfig with ``simulate``) into
+    the data set folder ``out`` and its truth into ``truth_out``.
+
+    Both are written under temporary names and renamed when complete, so an
+    interrupted export leaves no half data set. ``on_stack(id)`` is called after each
+    image stack is written. Refuses to overwrite an existing ``out`` or ``truth_out``.
+    """
+    from schemas import ArtefactTable, PosePlanTable, RodsTable, SensorParametersTable, read_table, write_table
+
+    out, truth_out = Path(out), Path(truth_out)
+    for p in (out, truth_out):
+        if p.exists():
+            raise FileExistsError(f"{p}: already exists; choose a new folder (nothing is overwritten)")
+    sim = cfg.simulate
+    sr = load_simulated_rig(sim)
+    rc = sim.rig_config()
+    tmp, tmp_truth = temporary_sibling(out), temporary_sibling(truth_out)
+    try:
+        tmp.mkdir(parents=True)
+        tmp_truth.mkdir(parents=True)
+        (tmp / layout.DATASET_FILE).write_text(yaml.safe_dump(_dataset_yaml(cfg), sort_keys=False))
+        write_table(read_table(rc.artefact, ArtefactTable), tmp / layout.ARTEFACT_FILE)
+        if rc.rods is not None:
+            write_table(read_table(rc.rods, RodsTable), tmp / layout.RODS_FILE)
+        write_table(sr.prior.to_frame(), tmp / layout.SENSORS_PRIOR_FILE, SensorParametersTable)
+        write_table(frame_rows(sr.planned), tmp / layout.POSES_PLANNED_FILE)
+        verification = tmp / layout.VERIFICATION_DIR
+        write_table(sr.ballbar.to_frame(), verification / layout.BALLBAR_FILE, ArtefactTable)
+        # the truth as a simulated run keeps it; everything is rendered from these tables
+        # as read back, as the simulated run's steps do, so both doors render alike
+        planned = frames_from_rows(read_table(tmp / layout.POSES_PLANNED_FILE, PosePlanTable))
+        moves = move_hexapod(planned, sim.acquisition.hexapod)
+        known = TruthDir(tmp_truth, prefix="")
+        known.sensors.save(sr.truth)
+        known.artefact.save(sr.artefact)
+        known.scanner_frames.save(frame_rows(sr.scanner_frames, key="scanner"))
+        known.poses.save(frame_rows({m.pose: m.reached for m in moves}))
+        known.hexapod_moves.save(poses_table(moves))
+        known.ballbar_positions.save(frame_rows({p.name: p.T_world_ballbar for p in sr.positions}))
+        truth = known.sensors.load()
+        built = known.artefact.load()
+        rods = load_rods(tmp / layout.RODS_FILE, built) if rc.rods is not None else None
+        bar = load_artefact(verification / layout.BALLBAR_FILE)
+        reached = frames_from_rows(known.poses.load())
+        positions = frames_from_rows(known.ballbar_positions.load())
+
+        acq = sim.acquisition
+        v_acq = _VerificationAcquisition(acq, sim.verification.seed)
+        jobs = []
+        for m, T in reached.items():
+            scene = artefact_scene(built, rods, T, sr.hardware)
+            for s in truth.scanners:
+                jobs.append((measurement_id(m, s.name), s, scene, acq, tmp / layout.MEASUREMENTS_DIR / m / s.name))
+        for name, T in positions.items():
+            scene = artefact_scene(bar, ballbar_rods(bar), T, sr.hardware)
+            for scanner in sr.recorders[name]:
+                s = truth.scanner(scanner)
+                if sim.verification.camera_width_px is not None:
+                    s = scaled_scanner(s, sim.verification.camera_width_px)
+                jobs.append((measurement_id(name, scanner), s, scene, v_acq, verification / name / scanner))
+
+        def render(job):
+            mid, scanner, scene, settings, folder = job
+            m = render_frames(mid, scanner, scene, settings)
+            write_frames(folder, m.frames, m.sequence, acq.render.bit_depth, fmt, scanner=scanner.name)
+            if on_stack is not None:
+                on_stack(mid)
+
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(render, jobs))
+        os.rename(tmp, out)
+        os.rename(tmp_truth, truth_out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp_truth, ignore_errors=True)
+    return out

@@ -1,0 +1,167 @@
+"""The simulated data source: what the simulator knows before it renders.
+
+:func:`load_simulated_rig` turns a :class:`~fringecal.runconfig.SimulationConfig`
+into a :class:`SimulatedRig`: the true sensors (cameras at the simulated
+resolution), each scanner's prior calibration in its own frame, the artefact (CMM
+table with the configured corrections), its rods and hardware, the planned artefact
+poses, the verification ball-bar and its positions. The simulated pipeline steps
+(:mod:`fringecal.steps.simulate_prepare` and friends) and ``fringecal simulate``
+(which writes the same measurements as a recorded data set) both start from it, so
+both doors see the same rig.
+
+Which scanners record a ball-bar position is decided by visibility, as an operator
+would: a scanner records the position when the centre of at least one bar sphere
+lies in front of its camera and inside its image. On the thesis rig this gives
+thesis table 6-9's arrangement (sphere A seen by scanner one, B by scanner two).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..artefact import Artefact, load_artefact, load_rods
+from ..ballbar import BallBarPosition, thesis_positions, vdi7_positions
+from ..config import ConfigError
+from ..frames import Frame
+from ..pipeline.prior import simulate_prior_rig
+from ..rig import Rig, load_rig
+from ..rundir import measurement_id
+from ..simulate.resolution import scaled_rig
+from ..simulate.scenes import ArtefactHardware
+from .plan import POSE_COLUMNS
+
+__all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "acquisition_table",
+           "frame_rows", "frames_from_rows"]
+
+
+@dataclass(frozen=True)
+class SimulatedRig:
+    """Everything a simulated acquisition starts from.
+
+    Attributes
+    ----------
+    truth : Rig
+        True sensors in the world frame, cameras resampled to the acquisition width.
+    prior : Rig
+        Each scanner's prior calibration in its own frame (with errors).
+    scanner_frames : dict scanner -> Frame
+        ``T_world_scanner`` of each scanner's own frame (truth, for evaluation).
+    planned : dict measurement -> Frame
+        Planned ``T_world_artefact`` of every measurement, in table order.
+    positions : list of BallBarPosition
+        Verification positions; ``scanner_of`` maps each visible sphere to the first
+        scanner that sees it.
+    recorders : dict position -> list of scanner names
+        The scanners that record each position.
+    """
+
+    truth: Rig
+    prior: Rig
+    scanner_frames: dict
+    artefact: Artefact
+    rods: pd.DataFrame | None
+    hardware: ArtefactHardware
+    planned: dict
+    ballbar: Artefact
+    positions: list
+    recorders: dict
+
+
+def input_files(sim) -> list[Path]:
+    """Every file a simulated rig is built from (rig YAML, the tables it names, the
+    verification positions, files named by the artefact corrections)."""
+    rc = sim.rig_config()
+    files = [sim.rig, sim.ballbar_path(), sim.positions_path()]
+    files += [p for p in (rc.sensors, rc.artefact, rc.rods, rc.artefact_poses, rc.materials) if p is not None]
+    sag = sim.artefact_corrections.sag if sim.artefact_corrections is not None else None
+    if sag is not None:
+        files += [p for p in (sag.rods, sag.materials) if p is not None]
+    return sorted(set(Path(p).resolve() for p in files))
+
+
+def scanners_seeing(rig: Rig, points_world: np.ndarray) -> list[list[str]]:
+    """For each point (n, 3), the scanners whose camera sees it (in front, inside the image)."""
+    out = [[] for _ in range(len(points_world))]
+    for s in rig.scanners:
+        cam = s.camera
+        depth = cam.to_sensor(points_world)[:, 2]
+        inside = cam.format.contains_mm(cam.project(points_world))
+        for i in np.flatnonzero((depth > 0) & inside):
+            out[i].append(s.name)
+    return out
+
+
+def _positions(sim, truth: Rig, ballbar: Artefact) -> tuple[list[BallBarPosition], dict]:
+    table = pd.read_csv(sim.positions_path(), dtype={"measurement": str})
+    positions = thesis_positions(table, scanners=("", ""))
+    if sim.verification.scheme == "vdi7":
+        positions = vdi7_positions(positions, float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0])))
+    placed, recorders = [], {}
+    for p in positions:
+        seen = scanners_seeing(truth, p.T_world_ballbar.to_world(ballbar.centres[:2]))
+        scanner_of = {sid: names[0] for sid, names in zip(ballbar.ids[:2], seen) if names}
+        placed.append(BallBarPosition(p.name, p.T_world_ballbar, scanner_of))
+        recorders[p.name] = [s.name for s in truth.scanners if any(s.name in names for names in seen)]
+    return placed, recorders
+
+
+def load_simulated_rig(sim) -> SimulatedRig:
+    """Build the :class:`SimulatedRig` of a simulation config; errors name the file."""
+    from schemas import PosePlanTable, TableError, read_table
+
+    rc = sim.rig_config()
+    if rc.artefact_poses is None:
+        raise ConfigError(f"{sim.rig}: artefact_poses is not set; a simulated acquisition needs the "
+                          "planned T_world_artefact of every pose (e.g. poses_scanner1_table6-1.csv)")
+    try:
+        true_rig = load_rig(rc.sensors, reference=rc.reference_scanner)
+    except TableError:
+        raise
+    except ValueError as err:  # e.g. the reference scanner is not in the sensors file
+        raise ConfigError(f"{sim.rig}: {rc.sensors}: {err}") from None
+    truth = scaled_rig(true_rig, sim.acquisition.camera_width_px)
+    prior, frames = simulate_prior_rig(truth, sim.prior)
+    artefact = sim.artefact()
+    if len(artefact) < 3:
+        raise ConfigError(f"{rc.artefact}: an artefact needs at least three spheres for a pose")
+    rods = load_rods(rc.rods, artefact) if rc.rods is not None else None
+    try:
+        hardware = ArtefactHardware.from_materials(rc.materials)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    table = read_table(rc.artefact_poses, PosePlanTable)
+    if table.empty:
+        raise ConfigError(f"{rc.artefact_poses}: no artefact poses")
+    planned = frames_from_rows(table)
+    ballbar = load_artefact(sim.ballbar_path())
+    if len(ballbar) != 2:
+        raise ConfigError(f"{sim.ballbar_path()}: a ball-bar has two spheres, found {len(ballbar)}")
+    positions, recorders = _positions(sim, truth, ballbar)
+    return SimulatedRig(truth, prior, frames, artefact, rods, hardware, planned, ballbar, positions, recorders)
+
+
+def frame_rows(frames: dict, key: str = "measurement") -> pd.DataFrame:
+    """A pose table (``key``, tx_mm .. kappa_rad) of name -> Frame."""
+    return pd.DataFrame([{key: name, **dict(zip(POSE_COLUMNS, map(float, T.params)))} for name, T in frames.items()],
+                        columns=[key, *POSE_COLUMNS])
+
+
+def frames_from_rows(table: pd.DataFrame, key: str = "measurement") -> dict:
+    """name -> Frame of a pose table (inverse of :func:`frame_rows`)."""
+    return {str(r[key]): Frame.from_params([float(r[c]) for c in POSE_COLUMNS]) for _, r in table.iterrows()}
+
+
+def acquisition_table(sr: SimulatedRig) -> pd.DataFrame:
+    """Every store the simulation records (``schemas.AcquisitionTable``): each planned
+    measurement seen by every scanner, then each ball-bar position by its recorders."""
+    rows = [{"measurement": measurement_id(m, s.name), "kind": "artefact", "pose": m, "scanner": s.name}
+            for m in sr.planned for s in sr.truth.scanners]
+    rows += [{"measurement": measurement_id(p, s), "kind": "ballbar", "pose": p, "scanner": s}
+             for p, scanners in sr.recorders.items() for s in scanners]
+    df = pd.DataFrame(rows, columns=["measurement", "kind", "pose", "scanner"])
+    df["source"] = "simulated"
+    return df

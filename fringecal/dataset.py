@@ -1,0 +1,438 @@
+"""The recorded data set: a folder a metrologist fills from real scanners.
+
+A recorded data set is the input of a real calibration cell. :meth:`DataSet.open`
+checks it completely and cheaply -- it reads YAML, CSV, folder listings and zarr
+metadata only, never an image or a chunk -- so that a broken data set stops with one
+clear message before any heavy work starts. The layout is the contract::
+
+    DATASET/
+      dataset.yaml            name, reference_scanner; optional description, temperature_c,
+                              artefact_corrections, processing (unknown keys are errors)
+      artefact.csv            CMM table: sphere_id, x_mm, y_mm, z_mm, diameter_mm[, u_mm]
+                              (at least 3 spheres)
+      rods.csv                optional: rod_id, sphere_a, sphere_b, length_mm (rods masked
+                              in the second pass; every sphere must be in artefact.csv)
+      sensors_prior.csv       each scanner's own calibration in its own frame (sensor-parameter
+                              table with width_px, height_px, width_mm, height_mm per sensor)
+      poses_planned.csv       optional: measurement, tx_mm, ty_mm, tz_mm, omega_rad, phi_rad,
+                              kappa_rad (one row per measurement folder, no more, no fewer)
+      measurements/<measurement>/<scanner>/        image stack: sequence.yaml + frames
+                                                   (see :mod:`fringecal.fringe.importer`)
+      measurements/<measurement>/<scanner>.zarr    or a decoded store with tau_x, tau_y, valid
+                                                   and attrs["sequence"] (see :mod:`fringecal.store`)
+      verification/ballbar.csv                     optional folder: the ball-bar's CMM table
+                                                   (artefact table, exactly spheres A and B)
+      verification/<position>/<scanner>/           image stacks (or <scanner>.zarr) of the ball-bar
+                                                   at each position; any subset of the scanners
+
+A *measurement* is one artefact pose seen by every scanner: every measurement folder
+holds a stack for every scanner of ``sensors_prior.csv``. The stack of (measurement
+``m``, scanner ``s``) has the id ``f"{m}-{s}"`` (:attr:`StackSource.id`).
+
+Decisions
+---------
+- Entries whose name starts with ``.`` are ignored everywhere (editor and OS files, and
+  the hidden temporary folders that :mod:`fringecal.store` writes before a rename).
+- Regular files in ``measurements/``, in a measurement or position folder and in
+  ``verification/`` (besides ``ballbar.csv``) are ignored: notes and logs may sit next
+  to the data. Every sub-folder, in contrast, must be a measurement, position or
+  scanner stack.
+- Measurement and position names sort naturally (``"2"`` before ``"10"``); stacks within
+  one are in the order of the scanners in ``sensors_prior.csv``.
+- Every stack (calibration and verification) must use the same fringe sequence.
+- A calibration stack must have its camera's format of ``sensors_prior.csv``. A
+  verification stack may have another pixel count over the same sensor (binning), but
+  must keep the camera's aspect ratio within one pixel.
+- ``dataset.yaml`` problems raise :class:`DataSetError` with the message of
+  :func:`fringecal.config.load_yaml_model` (file and key path). Table problems
+  (:class:`schemas.TableError`), frame-folder problems
+  (:class:`~fringecal.fringe.importer.FrameStackError`) and store problems
+  (:class:`~fringecal.store.StoreError`) propagate unchanged: they already name the
+  file, line and column. All of them are ``ValueError``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Literal, Optional
+
+from fringecal.artefact import load_artefact, load_rods
+from fringecal.config import ConfigError, StrictModel, load_yaml_model
+from fringecal.engineering.corrections import ArtefactCorrections
+from fringecal.fringe.importer import SEQUENCE_FILE, read_stack_spec
+from fringecal.fringe.sequence import FringeSequence, SequenceError
+from fringecal.rig import Rig, load_rig
+from fringecal.store import store_attributes
+from schemas import PosePlanTable, TableError, read_table
+
+__all__ = [
+    "DATASET_FILE", "ARTEFACT_FILE", "RODS_FILE", "SENSORS_PRIOR_FILE", "POSES_PLANNED_FILE",
+    "MEASUREMENTS_DIR", "VERIFICATION_DIR", "BALLBAR_FILE", "STORE_SUFFIX", "STORE_VARIABLES",
+    "BALLBAR_SPHERES", "DataSetError", "ProcessingOverrides", "DatasetConfig", "StackSource", "DataSet",
+    "natural_key",
+]
+
+DATASET_FILE = "dataset.yaml"
+ARTEFACT_FILE = "artefact.csv"
+RODS_FILE = "rods.csv"
+SENSORS_PRIOR_FILE = "sensors_prior.csv"
+POSES_PLANNED_FILE = "poses_planned.csv"
+MEASUREMENTS_DIR = "measurements"
+VERIFICATION_DIR = "verification"
+BALLBAR_FILE = "ballbar.csv"
+STORE_SUFFIX = ".zarr"
+#: variables a decoded store must hold
+STORE_VARIABLES = ("tau_x", "tau_y", "valid")
+#: sphere ids of the ball-bar
+BALLBAR_SPHERES = ("A", "B")
+MIN_SPHERES = 3
+
+
+class DataSetError(ValueError):
+    """A data set that cannot be processed; the message starts with the offending file or folder."""
+
+
+class ProcessingOverrides(StrictModel):
+    """Per-data-set settings, kept as plain mappings here; they are validated when
+    merged into the run configuration."""
+
+    decode: Optional[dict] = None
+    extraction: Optional[dict] = None
+    control_points: Optional[dict] = None
+    bundle: Optional[dict] = None
+    verification: Optional[dict] = None
+
+
+class DatasetConfig(StrictModel):
+    """The contents of ``dataset.yaml``."""
+
+    name: str
+    reference_scanner: str
+    description: Optional[str] = None
+    temperature_c: Optional[float] = None
+    artefact_corrections: Optional[ArtefactCorrections] = None
+    processing: ProcessingOverrides = ProcessingOverrides()
+
+
+@dataclass(frozen=True)
+class StackSource:
+    """One stack: a (measurement or verification position, scanner) pair.
+
+    Attributes
+    ----------
+    kind : {"artefact", "ballbar"}
+        Calibration measurement or verification position.
+    group : str
+        Measurement name (its folder) or position name.
+    scanner : str
+    path : Path
+        The frame folder or the ``.zarr`` store.
+    format : {"frames", "store"}
+    width_px, height_px : int
+        Image size (from ``sequence.yaml`` or the store's array metadata).
+    sequence : FringeSequence
+    """
+
+    kind: Literal["artefact", "ballbar"]
+    group: str
+    scanner: str
+    path: Path
+    format: Literal["frames", "store"]
+    width_px: int
+    height_px: int
+    sequence: FringeSequence
+
+    @property
+    def id(self) -> str:
+        """Store id ``"<group>-<scanner>"``."""
+        return f"{self.group}-{self.scanner}"
+
+    @property
+    def sequence_source(self) -> Path:
+        """The file that defines the sequence and size: ``sequence.yaml`` or the store."""
+        return self.path / SEQUENCE_FILE if self.format == "frames" else self.path
+
+
+@dataclass(frozen=True)
+class DataSet:
+    """A validated recorded data set (see the module notes for the layout)."""
+
+    root: Path
+    config: DatasetConfig
+    artefact: Path
+    rods: Optional[Path]
+    sensors_prior: Path
+    poses_planned: Optional[Path]
+    ballbar: Optional[Path]
+    scanners: tuple[str, ...]
+    measurements: tuple[StackSource, ...]
+    verification: tuple[StackSource, ...]
+
+    @classmethod
+    def open(cls, root) -> "DataSet":
+        """Open and validate the data set in ``root`` without reading any image.
+
+        Raises
+        ------
+        DataSetError, schemas.TableError, FrameStackError, StoreError
+            All ``ValueError``; the message starts with the offending file or folder.
+        """
+        root = Path(root).expanduser().absolute()
+        config = _load_config(root)
+        artefact_path = _required_file(root / ARTEFACT_FILE, "the artefact's CMM table")
+        artefact = load_artefact(artefact_path)
+        if len(artefact) < MIN_SPHERES:
+            raise DataSetError(f"{artefact_path}: {len(artefact)} sphere(s); an artefact needs at least "
+                               f"{MIN_SPHERES}")
+        rods = _optional_file(root / RODS_FILE)
+        if rods is not None:
+            load_rods(rods, artefact)
+        prior = _required_file(root / SENSORS_PRIOR_FILE, "each scanner's prior calibration")
+        rig = _load_prior(prior, root / DATASET_FILE, config.reference_scanner)
+        measurements = _open_measurements(root / MEASUREMENTS_DIR, rig, prior)
+        poses = _optional_file(root / POSES_PLANNED_FILE)
+        if poses is not None:
+            _check_planned(poses, root / MEASUREMENTS_DIR, measurements)
+        ballbar, verification = _open_verification(root / VERIFICATION_DIR, rig, prior)
+        _check_sequences(measurements + verification)
+        return cls(root, config, artefact_path, rods, prior, poses, ballbar,
+                   tuple(s.name for s in rig.scanners), measurements, verification)
+
+    def measurement_names(self) -> list[str]:
+        """Measurement names in natural order."""
+        return _groups(self.measurements)
+
+    def position_names(self) -> list[str]:
+        """Verification position names in natural order (empty without verification)."""
+        return _groups(self.verification)
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key ordering digit runs by value: ``"2"`` before ``"10"``.
+
+    >>> sorted(["10", "2", "b1", "1", "a10", "a9"], key=natural_key)
+    ['1', '2', '10', 'a9', 'a10', 'b1']
+    """
+    parts = re.split(r"(\d+)", name)
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in parts if p), name
+
+
+# -- files -------------------------------------------------------------------
+
+def _load_config(root: Path) -> DatasetConfig:
+    if not root.exists():
+        raise DataSetError(f"{root}: no such data set folder")
+    if not root.is_dir():
+        raise DataSetError(f"{root}: not a folder; a data set is a folder holding {DATASET_FILE}")
+    path = root / DATASET_FILE
+    if not path.is_file():
+        raise DataSetError(f"{path}: missing; a data set folder needs {DATASET_FILE} (name, reference_scanner)")
+    try:
+        return load_yaml_model(path, DatasetConfig)
+    except ConfigError as err:
+        raise DataSetError(str(err)) from err
+
+
+def _required_file(path: Path, what: str) -> Path:
+    if not path.is_file():
+        raise DataSetError(f"{path}: missing; a data set needs {path.name} ({what})")
+    return path
+
+
+def _optional_file(path: Path) -> Optional[Path]:
+    if path.exists() and not path.is_file():
+        raise DataSetError(f"{path}: not a file")
+    return path if path.exists() else None
+
+
+def _load_prior(path: Path, config_path: Path, reference: str) -> Rig:
+    try:
+        rig = load_rig(path)
+    except TableError:
+        raise
+    except ValueError as err:
+        raise DataSetError(f"{path}: {err}") from None
+    names = [s.name for s in rig.scanners]
+    if reference not in names:
+        raise DataSetError(f"{config_path}: reference_scanner {reference!r} is not a scanner of {path} "
+                           f"(scanners: {', '.join(names)})")
+    return rig
+
+
+def _entries(folder: Path) -> list[Path]:
+    """Visible sub-folders in natural order (hidden entries and regular files ignored)."""
+    return sorted((p for p in folder.iterdir() if not p.name.startswith(".") and p.is_dir()),
+                  key=lambda p: natural_key(p.name))
+
+
+def _groups(sources: Iterable[StackSource]) -> list[str]:
+    return list(dict.fromkeys(s.group for s in sources))
+
+
+# -- stacks ------------------------------------------------------------------
+
+def _scan_group(folder: Path, rig: Rig, prior: Path) -> dict[str, tuple[Path, str]]:
+    """Stacks of one measurement or position folder: scanner -> (path, format), rig order."""
+    known = [s.name for s in rig.scanners]
+    found: dict[str, tuple[Path, str]] = {}
+    for entry in _entries(folder):
+        is_store = entry.name.endswith(STORE_SUFFIX)
+        scanner = entry.name[: -len(STORE_SUFFIX)] if is_store else entry.name
+        if scanner not in known:
+            kind = "a decoded store" if is_store else "frames"
+            raise DataSetError(f"{entry}: {kind} but no prior calibration: scanner {scanner!r} is not in {prior} "
+                               f"(scanners: {', '.join(known)})")
+        if scanner in found:
+            names = sorted([found[scanner][0].name, entry.name], key=len)
+            raise DataSetError(f"{folder}: ambiguous: scanner {scanner!r} is given both as frame folder "
+                               f"{names[0]}/ and as store {names[1]}; keep one")
+        found[scanner] = (entry, "store" if is_store else "frames")
+    return {s: found[s] for s in known if s in found}
+
+
+def _read_source(kind: str, group: str, scanner: str, path: Path, fmt: str) -> StackSource:
+    if fmt == "frames":
+        spec, _, _ = read_stack_spec(path)
+        return StackSource(kind, group, scanner, path, "frames", spec.width_px, spec.height_px, spec.sequence)
+    width, height, sequence = _store_metadata(path)
+    return StackSource(kind, group, scanner, path, "store", width, height, sequence)
+
+
+def _store_metadata(path: Path) -> tuple[int, int, FringeSequence]:
+    """Image width, height and sequence of a decoded store, from its metadata alone."""
+    attrs = store_attributes(path)
+    missing = [v for v in STORE_VARIABLES if not (path / v / "zarr.json").is_file()]
+    if missing:
+        raise DataSetError(f"{path}: decoded store without variable(s) {missing}; a data set store needs "
+                           f"{list(STORE_VARIABLES)}")
+    sizes = {v: _array_size(path, v) for v in STORE_VARIABLES}
+    if len(set(sizes.values())) > 1:
+        shown = ", ".join(f"{v} {w}x{h}" for v, (w, h) in sizes.items())
+        raise DataSetError(f"{path}: variables of different sizes ({shown})")
+    try:
+        sequence = FringeSequence.from_dict(attrs["sequence"])
+    except KeyError:
+        raise DataSetError(f"{path}: no 'sequence' attribute (orientations, fringe_counts, n_steps)") from None
+    except (SequenceError, TypeError, ValueError) as err:
+        raise DataSetError(f"{path}: invalid 'sequence' attribute ({err})") from None
+    return (*sizes[STORE_VARIABLES[0]], sequence)
+
+
+def _array_size(store: Path, name: str) -> tuple[int, int]:
+    """(width, height) of a 2-D array of a store: dims ("v", "u") or (rows, columns)."""
+    meta_path = store / name / "zarr.json"
+    try:
+        meta = json.loads(meta_path.read_text())
+        shape = [int(n) for n in meta["shape"]]
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as err:
+        raise DataSetError(f"{meta_path}: corrupt array metadata ({err})") from None
+    if len(shape) != 2:
+        raise DataSetError(f"{store}: variable {name!r} has shape {shape}; expected an image (v, u)")
+    dims = meta.get("dimension_names") or ["v", "u"]
+    size = dict(zip(dims, shape))
+    return size.get("u", shape[1]), size.get("v", shape[0])
+
+
+# -- measurements ------------------------------------------------------------
+
+def _open_measurements(folder: Path, rig: Rig, prior: Path) -> tuple[StackSource, ...]:
+    if not folder.is_dir():
+        raise DataSetError(f"{folder}: missing; a data set needs {MEASUREMENTS_DIR}/<measurement>/<scanner>/")
+    groups = {m.name: _scan_group(m, rig, prior) for m in _entries(folder)}
+    if not groups:
+        raise DataSetError(f"{folder}: no measurement folder; expected {MEASUREMENTS_DIR}/<measurement>/<scanner>/")
+    _check_complete(folder, groups, rig, prior)
+    sources = tuple(_read_source("artefact", m, s, path, fmt)
+                    for m, stacks in groups.items() for s, (path, fmt) in stacks.items())
+    for src in sources:
+        _check_size(src, rig, prior)
+    return sources
+
+
+def _check_complete(folder: Path, groups: dict, rig: Rig, prior: Path) -> None:
+    """Every measurement holds a stack of every scanner (rule: one pose seen by all)."""
+    seen: dict[str, Path] = {}
+    for stacks in groups.values():
+        for s, (path, _) in stacks.items():
+            seen.setdefault(s, path)
+    for m, stacks in groups.items():
+        if not stacks:
+            raise DataSetError(f"{folder / m}: measurement folder without scanner stacks (expected folders or "
+                               f"{STORE_SUFFIX} stores named after the scanners of {prior.name})")
+        for s in seen:
+            if s not in stacks:
+                raise DataSetError(f"{folder / m}: no stack of scanner {s!r}, which other measurements have "
+                                   f"(e.g. {seen[s]}); every measurement needs every scanner")
+    for s in rig.scanners:
+        if s.name not in seen:
+            raise DataSetError(f"{prior}: scanner {s.name!r} has no frames in any measurement folder of {folder}")
+
+
+def _check_size(src: StackSource, rig: Rig, prior: Path) -> None:
+    camera = rig.scanner(src.scanner).camera
+    W, H = camera.format.width_px, camera.format.height_px
+    w, h = src.width_px, src.height_px
+    where = f"{src.sequence_source}: image is {w}x{h} px"
+    cam = f"camera {camera.name!r} of scanner {src.scanner!r} in {prior} is {W}x{H} px"
+    if src.kind == "artefact":
+        if (w, h) != (W, H):
+            raise DataSetError(f"{where}, but {cam}")
+    elif abs(w - h * W / H) > 1 and abs(h - w * H / W) > 1:
+        raise DataSetError(f"{where}, not the aspect ratio of the sensor within one pixel: {cam} "
+                           f"(binning keeps the aspect ratio: {W}x{H} / 2 = {W // 2}x{H // 2})")
+
+
+def _check_sequences(sources: tuple[StackSource, ...]) -> None:
+    first = sources[0]
+    for src in sources[1:]:
+        a, b = first.sequence, src.sequence
+        if a != b:
+            diff = [f"{what} {x} vs {y}" for what, x, y in (
+                ("fringe counts", a.fringe_counts, b.fringe_counts), ("steps", a.n_steps, b.n_steps),
+                ("orientations", a.orientations, b.orientations)) if x != y]
+            raise DataSetError(f"{src.sequence_source}: fringe sequence differs from {first.sequence_source} "
+                               f"({'; '.join(diff)}); every stack must use the same sequence")
+
+
+def _check_planned(path: Path, folder: Path, sources: tuple[StackSource, ...]) -> None:
+    planned = list(read_table(path, PosePlanTable)["measurement"])
+    names = _groups(sources)
+    for m in planned:
+        if m not in names:
+            raise DataSetError(f"{path}: planned measurement {m!r} has no measurement folder {folder / m}")
+    for m in names:
+        if m not in planned:
+            raise DataSetError(f"{folder / m}: measurement folder has no planned pose in {path}")
+
+
+# -- verification --------------------------------------------------------------
+
+def _open_verification(folder: Path, rig: Rig, prior: Path) -> tuple[Optional[Path], tuple[StackSource, ...]]:
+    if not folder.exists():
+        return None, ()
+    if not folder.is_dir():
+        raise DataSetError(f"{folder}: not a folder")
+    visible = [p for p in folder.iterdir() if not p.name.startswith(".")]
+    if not visible:
+        raise DataSetError(f"{folder}: empty verification folder; it needs {BALLBAR_FILE} and at least one "
+                           "position folder (remove it when there is no verification)")
+    ballbar = _required_file(folder / BALLBAR_FILE, "the ball-bar's CMM table, spheres A and B")
+    spheres = load_artefact(ballbar)
+    if sorted(spheres.ids) != list(BALLBAR_SPHERES):
+        raise DataSetError(f"{ballbar}: a ball-bar has exactly two spheres with ids "
+                           f"{' and '.join(BALLBAR_SPHERES)}; found {list(spheres.ids)}")
+    groups = {p.name: _scan_group(p, rig, prior) for p in _entries(folder)}
+    if not groups:
+        raise DataSetError(f"{folder}: no position folder; expected {VERIFICATION_DIR}/<position>/<scanner>/")
+    for p, stacks in groups.items():
+        if not stacks:
+            raise DataSetError(f"{folder / p}: position folder without scanner stacks (expected folders or "
+                               f"{STORE_SUFFIX} stores named after the scanners of {prior.name})")
+    sources = tuple(_read_source("ballbar", p, s, path, fmt)
+                    for p, stacks in groups.items() for s, (path, fmt) in stacks.items())
+    for src in sources:
+        _check_size(src, rig, prior)
+    return ballbar, sources

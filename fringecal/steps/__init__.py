@@ -1,0 +1,80 @@
+"""The pipeline's named steps, one module each, and their order.
+
+A run is a data source's steps followed by the common ones; every step is an object
+with one entry point over the run directory and its typed settings
+(:class:`~fringecal.steps.base.Step`), so the Prefect flow, ``fringecal step``,
+``fringecal calibrate`` and the benchmarks all call the same code:
+
+=====================  ====================================================================
+simulated source       ``simulate-prepare`` -> ``simulate-hexapod`` -> ``simulate-render``
+                       -> ``simulate-ballbar``
+recorded data set      ``ingest`` -> ``decode``
+every run              ``spheres-first`` -> ``label`` -> ``spheres-second`` -> ``initialise``
+                       -> ``bundle`` -> ``verify`` -> (simulated: ``evaluate``) -> ``report``
+=====================  ====================================================================
+"""
+
+from __future__ import annotations
+
+from .base import Rows, Settings, Step, StepError, Value
+from .bundle import Bundle
+from .decode import Decode
+from .evaluate import Evaluate
+from .ingest import Ingest
+from .initialise import Initialise
+from .keys import current_record, run_step, step_key
+from .label import Label
+from .report import Report
+from .simulate_ballbar import SimulateBallbar
+from .simulate_hexapod import SimulateHexapod
+from .simulate_prepare import SimulatePrepare
+from .simulate_render import SimulateRender
+from .spheres_first import SpheresFirst
+from .spheres_second import SpheresSecond
+from .verify import Verify
+
+__all__ = ["STEPS", "SIMULATED_SOURCE", "DATASET_SOURCE", "COMMON", "pipeline", "get_step", "run_pipeline", "Step",
+           "Settings", "Rows", "Value", "StepError", "run_step", "step_key", "current_record"]
+
+SIMULATED_SOURCE = (SimulatePrepare(), SimulateHexapod(), SimulateRender(), SimulateBallbar())
+DATASET_SOURCE = (Ingest(), Decode())
+COMMON = (SpheresFirst(), Label(), SpheresSecond(), Initialise(), Bundle(), Verify())
+EVALUATION = (Evaluate(),)
+REPORT = (Report(),)
+
+STEPS = {s.name: s for s in SIMULATED_SOURCE + DATASET_SOURCE + COMMON + EVALUATION + REPORT}
+
+
+def pipeline(config) -> list[Step]:
+    """The steps of a run of ``config`` (a :class:`~fringecal.runconfig.RunConfig`), in order."""
+    source = SIMULATED_SOURCE if config.source == "simulated" else DATASET_SOURCE
+    evaluation = EVALUATION if config.source == "simulated" else ()
+    return list(source + COMMON + evaluation + REPORT)
+
+
+def get_step(name: str) -> Step:
+    try:
+        return STEPS[name]
+    except KeyError:
+        raise KeyError(f"no step {name!r}; the steps are {', '.join(STEPS)}") from None
+
+
+def run_pipeline(rd, config, workers: int = 1, until: str | None = None, force: bool = False,
+                 context: dict | None = None) -> dict[str, dict[str, dict]]:
+    """Run every step of ``config`` over ``rd`` without Prefect (tests, benchmarks,
+    ``fringecal step``): the instances of a step in a pool of ``workers`` threads, one
+    step after the other. Returns step name -> item -> record (``reused`` says whether
+    it had to run). ``context`` goes to the report step.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    out: dict[str, dict[str, dict]] = {}
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for step in pipeline(config):
+            items = step.items(rd, step.view(config))
+            ctx = context if step.name == "report" else None
+            records = pool.map(lambda item: run_step(step, rd, config, item, ctx, force), items)
+            out[step.name] = dict(zip(items, records))
+            if step.name == until:
+                break
+    return out

@@ -1,0 +1,145 @@
+"""What a pipeline step is: a declaration and one entry point over the run directory.
+
+A step (one module in :mod:`fringecal.steps`, after OpenSfM's ``actions``) is a
+subclass of :class:`Step` that declares
+
+* ``name``: how the flow, the command line and the records call it;
+* ``settings``: the parts of the run configuration it uses, as dotted paths
+  (``"extraction"``, ``"simulate.acquisition.render"``); the step sees only these
+  (:class:`Settings`), so an undeclared setting is an error, not a silent cache bug;
+* ``locations``: settings that say *where* inputs are (a data set folder, a rig
+  file): the step may read them, but they are not keyed, because the files they
+  point at are keyed by content through :meth:`Step.reads`;
+* ``modules``: fringecal modules whose source it runs besides its own (imports are
+  followed automatically, :func:`fringecal.digests.module_files`);
+* :meth:`Step.items`: the instances it runs (one per measurement, or the single
+  ``""``);
+* :meth:`Step.reads` and :meth:`Step.writes`: the files of one instance, run
+  directory files (:class:`fringecal.rundir.RunFile`), external files (``Path``),
+  rows of a table (:class:`Rows`) or plain values (:class:`Value`);
+
+and implements :meth:`Step.run`. Its cache key (:mod:`fringecal.steps.keys`) is
+built from exactly these declarations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Union
+
+from ..rundir import RunDir, RunFile, TableFile
+
+__all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read"]
+
+
+class StepError(RuntimeError):
+    """A step broke its declaration (an output it promised is missing)."""
+
+
+@dataclass(frozen=True)
+class Rows:
+    """The rows of a table whose columns equal ``where`` (keyed by those rows only).
+
+    A per-measurement step that needs one row of a run-wide table (the pose its
+    measurement was rendered at) declares ``Rows(rd.truth.poses, {"measurement": "3"})``
+    and reruns only when that row changes.
+    """
+
+    table: TableFile
+    where: dict = field(default_factory=dict)
+
+    def load(self):
+        df = self.table.load()
+        for col, value in self.where.items():
+            df = df[df[col].astype(str) == str(value)]
+        return df.reset_index(drop=True)
+
+
+@dataclass(frozen=True)
+class Value:
+    """Something a step reads that is not a file, keyed by its JSON value (e.g. the
+    list of stacks a data set holds, which no single file records)."""
+
+    label: str
+    value: Any
+
+
+Read = Union[RunFile, Path, Rows, Value]
+
+
+class Settings:
+    """The declared parts of a run configuration; anything else raises AttributeError.
+
+    >>> from fringecal.runconfig import RunConfig
+    >>> s = Settings(RunConfig(), ("bundle.gamma1", "extraction"))
+    >>> s.bundle.gamma1, type(s.extraction).__name__
+    (1.0, 'ExtractionConfig')
+    >>> s.bundle.gamma2
+    Traceback (most recent call last):
+    ...
+    AttributeError: setting 'bundle.gamma2' was not declared by the step
+    """
+
+    def __init__(self, obj, paths, locations=(), _prefix: tuple[str, ...] = ()):
+        self._obj = obj
+        self._paths = tuple(tuple(p.split(".")) for p in paths)
+        self._locations = tuple(tuple(p.split(".")) for p in locations)
+        self._prefix = _prefix
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        path = self._prefix + (name,)
+        declared = self._paths + self._locations
+        if path in declared:
+            return getattr(self._obj, name)
+        if any(p[:len(path)] == path for p in declared):
+            return Settings(getattr(self._obj, name), [".".join(p) for p in self._paths],
+                            [".".join(p) for p in self._locations], path)
+        raise AttributeError(f"setting {'.'.join(path)!r} was not declared by the step")
+
+    def keyed(self) -> dict[str, Any]:
+        """Declared path -> value (JSON), the settings part of a cache key."""
+        out = {}
+        for path in self._paths:
+            value = self._obj
+            for part in path[len(self._prefix):]:
+                value = getattr(value, part)
+            out[".".join(path)] = value.model_dump(mode="json") if hasattr(value, "model_dump") else \
+                (str(value) if isinstance(value, Path) else value)
+        return out
+
+
+class Step:
+    """Base class of a pipeline step (see the module notes)."""
+
+    name: ClassVar[str]
+    title: ClassVar[str] = ""  # progress and report label; defaults to the name
+    settings: ClassVar[tuple[str, ...]] = ()
+    locations: ClassVar[tuple[str, ...]] = ()
+    modules: ClassVar[tuple[str, ...]] = ()
+
+    def view(self, cfg) -> Settings:
+        return Settings(cfg, self.settings, self.locations)
+
+    def items(self, rd: RunDir, cfg: Settings) -> list[str]:
+        """Instances of the step; ``[""]`` for a step that runs once."""
+        return [""]
+
+    def reads(self, rd: RunDir, cfg: Settings, item: str) -> list[Read]:
+        raise NotImplementedError
+
+    def writes(self, rd: RunDir, cfg: Settings, item: str) -> list[RunFile]:
+        raise NotImplementedError
+
+    def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        raise NotImplementedError
+
+    @property
+    def label(self) -> str:
+        return self.title or self.name
+
+    @classmethod
+    def module_names(cls) -> tuple[str, ...]:
+        return (cls.__module__,) + tuple(cls.modules)

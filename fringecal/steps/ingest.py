@@ -1,0 +1,71 @@
+"""Recorded data set, step 1: take the data set's tables into the run directory.
+
+The run keeps its own copy of every input table, so it can be reproduced and
+reported on without the data set: the artefact (the CMM table with the corrections
+of ``dataset.yaml``, if any), its rods, each scanner's prior calibration, the
+planned poses, the ball-bar, and the list of stacks to decode
+(:class:`~fringecal.dataset.DataSet` validates all of it first).
+
+The reference scanner's frame is the world (the data-set contract), so its camera's
+six external parameters are fixed whatever ``sensors_prior.csv`` says.
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from ..artefact import load_artefact, load_rods
+from ..dataset import DataSet
+from ..rig import load_rig
+from ..rundir import RunDir
+from .base import Settings, Step, Value
+
+__all__ = ["Ingest"]
+
+
+def _stacks(ds: DataSet) -> list[dict]:
+    return [{"measurement": s.id, "kind": s.kind, "pose": s.group, "scanner": s.scanner,
+             "source": str(s.path.relative_to(ds.root)), "format": s.format}
+            for s in ds.measurements + ds.verification]
+
+
+class Ingest(Step):
+    name = "ingest"
+    title = "data set"
+    settings = ("reference_scanner",)
+    locations = ("dataset",)
+    modules = ("fringecal.dataset", "fringecal.engineering.corrections")
+
+    def reads(self, rd: RunDir, cfg: Settings, item: str):
+        ds = DataSet.open(cfg.dataset)
+        files = [ds.root / "dataset.yaml", ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned, ds.ballbar]
+        sag = ds.config.artefact_corrections.sag if ds.config.artefact_corrections else None
+        if sag is not None:
+            files += [p for p in (sag.rods, sag.materials) if p is not None]
+        return [f for f in files if f is not None] + [Value("stacks", _stacks(ds))]
+
+    def writes(self, rd: RunDir, cfg: Settings, item: str):
+        return [rd.artefact, rd.rods, rd.ballbar, rd.sensors_prior, rd.poses_planned, rd.acquisition]
+
+    def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        from ..engineering.corrections import apply_corrections
+
+        ds = DataSet.open(cfg.dataset)
+        artefact = apply_corrections(load_artefact(ds.artefact), ds.config.artefact_corrections,
+                                     ds.config.temperature_c)
+        rd.artefact.save(artefact)
+        rd.rods.save(load_rods(ds.rods, artefact)) if ds.rods else rd.rods.remove()
+        rd.ballbar.save(load_artefact(ds.ballbar)) if ds.ballbar else rd.ballbar.remove()
+        prior = load_rig(ds.sensors_prior, reference=cfg.reference_scanner)
+        free = prior.free.copy()
+        free[[s.name for s in prior.sensors].index(prior.scanner(prior.reference).camera.name), :6] = False
+        rd.sensors_prior.save(prior.__class__(prior.scanners, prior.reference, free, prior.uncertainty))
+        if ds.poses_planned:
+            from schemas import PosePlanTable, read_table
+
+            rd.poses_planned.save(read_table(ds.poses_planned, PosePlanTable))
+        else:
+            rd.poses_planned.remove()
+        table = pd.DataFrame(_stacks(ds)).drop(columns="format")
+        table.insert(4, "store", [rd.store(m).rel for m in table["measurement"]])
+        rd.acquisition.save(table)

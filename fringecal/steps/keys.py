@@ -1,0 +1,129 @@
+"""Cache keys, records and the one validity check of pipeline steps.
+
+A step instance's key is the SHA-256 of
+
+* the step's name and item,
+* the values of its declared settings,
+* the source digest of its module and declared modules with everything they import,
+* the content digest of every file it reads (absent optional files count as absent;
+  :class:`~fringecal.steps.base.Rows` by the selected rows only).
+
+After an instance runs, :func:`run_step` writes its *record* (``RunDir.step_record``):
+the key and the digest of every output it declares (``None`` for an optional output
+it did not write). An instance is *current* when its record has today's key and
+every declared output is on disk with the recorded digest -- the one validity
+check, used by the flow (to recompute stale cached results), by
+``fringecal run``'s up-to-date shortcut (before Prefect starts) and by
+:func:`run_step` itself (which then returns the record without running). Digests
+come from the run directory's :class:`~fringecal.digests.DigestCache`, so checking
+an unchanged run costs file-system stats, not hashing.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from ..digests import DigestCache, digest_value, source_digest
+from ..rundir import RunDir, RunFile
+from .base import Rows, Settings, Step, StepError, Value
+
+__all__ = ["step_key", "current_record", "run_step", "digests_of"]
+
+log = logging.getLogger(__name__)
+
+_caches: dict[Path, DigestCache] = {}
+
+
+def digest_cache(rd: RunDir) -> DigestCache:
+    """The (per-process) digest cache of a run directory."""
+    root = rd.root.resolve()
+    if root not in _caches:
+        _caches[root] = DigestCache(rd.digest_cache_dir)
+    return _caches[root]
+
+
+def _digest(rd: RunDir, read) -> str | None:
+    if isinstance(read, Value):
+        return digest_value(read.value)
+    if isinstance(read, Rows):
+        if not read.table.exists():
+            return None
+        return digest_value(read.load().to_dict("records"))
+    path = read.path if isinstance(read, RunFile) else Path(read)
+    if isinstance(read, RunFile) and not read.exists():  # a store only counts once complete
+        return None
+    if not path.exists():
+        return None
+    return digest_cache(rd).digest(path)
+
+
+def _label(rd: RunDir, read) -> str:
+    if isinstance(read, Value):
+        return f"value:{read.label}"
+    if isinstance(read, Rows):
+        return f"{read.table.rel}?{'&'.join(f'{k}={v}' for k, v in sorted(read.where.items()))}"
+    if isinstance(read, RunFile):
+        return read.rel
+    return str(Path(read).resolve())
+
+
+def digests_of(rd: RunDir, files) -> dict[str, str | None]:
+    """Label (run-relative path, or absolute for external files) -> content digest."""
+    return {_label(rd, f): _digest(rd, f) for f in files}
+
+
+def step_key(step: Step, rd: RunDir, cfg: Settings, item: str) -> str:
+    """The cache key of one instance of ``step`` (see the module notes)."""
+    doc = {"step": step.name, "item": item, "settings": cfg.keyed(),
+           "code": source_digest(step.module_names()),
+           "inputs": digests_of(rd, step.reads(rd, cfg, item))}
+    return f"{step.name}-{digest_value(doc)[:40]}"
+
+
+def current_record(step: Step, rd: RunDir, cfg: Settings, item: str, key: str) -> dict | None:
+    """The instance's record if it was computed with ``key`` and every declared output
+    is unchanged since; None otherwise."""
+    rec_file = rd.step_record(step.name, item)
+    if not rec_file.exists():
+        return None
+    try:
+        rec = rec_file.load()
+    except ValueError:
+        return None
+    if rec.get("key") != key:
+        return None
+    outputs = step.writes(rd, cfg, item)
+    if sorted(rec.get("outputs", {})) != sorted(f.rel for f in outputs):
+        return None
+    for f in outputs:
+        if _digest(rd, f) != rec["outputs"][f.rel]:
+            return None
+    return rec
+
+
+def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | None = None,
+             force: bool = False) -> dict:
+    """Run one instance of ``step`` over ``rd`` unless it is current; return its record.
+
+    ``config`` is the resolved :class:`~fringecal.runconfig.RunConfig`; the step sees
+    only its declared part. ``context`` holds values that do not change what a step
+    computes (the report's step timings) and are not keyed. The record gains
+    ``"reused": True`` when nothing had to run, and ``"seconds"`` otherwise.
+    """
+    cfg = step.view(config)
+    key = step_key(step, rd, cfg, item)
+    if not force and (rec := current_record(step, rd, cfg, item, key)) is not None:
+        return {**rec, "reused": True}
+    t0 = time.perf_counter()
+    step.run(rd, cfg, item, **(context or {}))
+    seconds = time.perf_counter() - t0
+    outputs = step.writes(rd, cfg, item)
+    missing = [f.rel for f in outputs if not f.optional and not f.exists()]
+    if missing:
+        raise StepError(f"step {step.name} ({item or 'run'}) did not write {', '.join(missing)}")
+    rec = {"step": step.name, "item": item, "key": key, "outputs": {f.rel: _digest(rd, f) for f in outputs},
+           "seconds": seconds}
+    rd.step_record(step.name, item).save(rec)
+    return {**rec, "reused": False}

@@ -1,0 +1,60 @@
+"""Label, pose, link: which artefact sphere each fitted candidate is (inter-sphere
+distances, and the planned poses where distances alone are ambiguous), one artefact
+pose per (measurement, scanner) by SVD, and each scanner's frame linked to the
+reference scanner's through the measurements they share (thesis 6.2-6.3).
+
+Groups that cannot be labelled or posed are reported in ``label_outcomes`` and
+``poses_skipped`` (and logged); the others go on.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import pandas as pd
+
+from ..acquisition import frames_from_rows
+from ..rundir import RunDir
+from .base import Settings, Step
+from .spheres_first import artefact_items
+
+__all__ = ["Label"]
+
+log = logging.getLogger(__name__)
+
+
+class Label(Step):
+    name = "label"
+    title = "label, pose, link"
+    settings = ("extraction.labelling", "extraction.use_planned_poses", "reference_scanner")
+    modules = ("fringecal.spheres.steps",)
+
+    def reads(self, rd: RunDir, cfg: Settings, item: str):
+        planned = [rd.poses_planned] if cfg.extraction.use_planned_poses else []
+        return [rd.fits_first(m) for m in artefact_items(rd)] + [rd.artefact] + planned
+
+    def writes(self, rd: RunDir, cfg: Settings, item: str):
+        return [rd.sphere_fits_labelled, rd.label_outcomes, rd.sphere_centres, rd.poses, rd.poses_skipped,
+                rd.scanner_links]
+
+    def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        from ..spheres.labelling import LabellingConfig
+        from ..spheres.steps import label_pose_link
+
+        fits = [rd.fits_first(m).load() for m in artefact_items(rd)]
+        table = pd.concat([f for f in fits if len(f)], ignore_index=True)
+        planned = None
+        if cfg.extraction.use_planned_poses and rd.poses_planned.exists():
+            planned = frames_from_rows(rd.poses_planned.load())
+        res = label_pose_link(table, rd.artefact.load(), cfg.reference_scanner,
+                              LabellingConfig(**cfg.extraction.labelling), planned=planned)
+        for r in res.poses.skipped.itertuples():
+            log.warning("measurement %s, scanner %s: no pose (%s)", r.measurement, r.scanner, r.reason)
+        if res.links_error:
+            log.warning("scanner links: %s", res.links_error)
+        rd.sphere_fits_labelled.save(res.fits)
+        rd.label_outcomes.save(res.labels)
+        rd.sphere_centres.save(res.centres)
+        rd.poses.save(res.poses.poses)
+        rd.poses_skipped.save(res.poses.skipped)
+        rd.scanner_links.save(res.links_table())

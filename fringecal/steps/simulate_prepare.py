@@ -1,0 +1,59 @@
+"""Simulated source, step 1: the run's inputs and the simulator's truth.
+
+Writes what a recorded data set would bring (the artefact with its corrections, its
+rods, each scanner's prior calibration, the planned poses, the ball-bar, the list of
+measurements) and, apart in ``truth/``, what only the simulator knows (the true
+sensors at the simulated resolution, each scanner frame's true placement, the
+ball-bar positions). See :mod:`fringecal.acquisition.simulated`.
+"""
+
+from __future__ import annotations
+
+from ..acquisition import acquisition_table, frame_rows, input_files, load_simulated_rig
+from ..rundir import RunDir
+from ..runconfig import AcquisitionConfig, SimulatedVerificationConfig, SimulationConfig
+from .base import Settings, Step
+
+__all__ = ["SimulatePrepare", "simulation_of"]
+
+
+def simulation_of(cfg: Settings) -> SimulationConfig:
+    """The simulation config rebuilt from what :class:`SimulatePrepare` declares (render
+    and decoding settings, which it does not use, at their defaults)."""
+    s = cfg.simulate
+    v = s.verification
+    return SimulationConfig(rig=s.rig, artefact_corrections=s.artefact_corrections, temperature_c=s.temperature_c,
+                            prior=s.prior, acquisition=AcquisitionConfig(camera_width_px=s.acquisition.camera_width_px),
+                            verification=SimulatedVerificationConfig(ballbar=v.ballbar, positions=v.positions,
+                                                                     scheme=v.scheme))
+
+
+class SimulatePrepare(Step):
+    name = "simulate-prepare"
+    title = "simulated rig"
+    settings = ("simulate.artefact_corrections", "simulate.temperature_c", "simulate.prior",
+                "simulate.acquisition.camera_width_px", "simulate.verification.scheme")
+    locations = ("simulate.rig", "simulate.verification.ballbar", "simulate.verification.positions")
+    modules = ("fringecal.acquisition.simulated",)
+
+    def reads(self, rd: RunDir, cfg: Settings, item: str):
+        return input_files(simulation_of(cfg))
+
+    def writes(self, rd: RunDir, cfg: Settings, item: str):
+        return [rd.artefact, rd.rods, rd.ballbar, rd.sensors_prior, rd.poses_planned, rd.acquisition,
+                rd.truth.sensors, rd.truth.artefact, rd.truth.scanner_frames, rd.truth.ballbar_positions]
+
+    def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        sr = load_simulated_rig(simulation_of(cfg))
+        rd.artefact.save(sr.artefact)
+        rd.rods.save(sr.rods) if sr.rods is not None else rd.rods.remove()
+        rd.ballbar.save(sr.ballbar)
+        rd.sensors_prior.save(sr.prior)
+        rd.poses_planned.save(frame_rows(sr.planned))
+        table = acquisition_table(sr)
+        table.insert(4, "store", [rd.store(m).rel for m in table["measurement"]])
+        rd.acquisition.save(table)
+        rd.truth.sensors.save(sr.truth)
+        rd.truth.artefact.save(sr.artefact)
+        rd.truth.scanner_frames.save(frame_rows(sr.scanner_frames, key="scanner"))
+        rd.truth.ballbar_positions.save(frame_rows({p.name: p.T_world_ballbar for p in sr.positions}))

@@ -1,0 +1,78 @@
+"""Ball-bar verification (thesis 6.9.3, VDI/VDE 2634): measure the bar in every
+position's stores with the calibrated sensors, which sphere each scanner sees found
+from the data alone, and compare every measured length with the certified one.
+
+Writes ``verification.json`` (lengths, errors, pass/fail against the MPE, the GUM
+statement, positions that could not be measured) and the measured centres. A run
+without ball-bar measurements is not verified: both files are then absent.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from ..rundir import RunDir
+from .base import Settings, Step
+
+__all__ = ["Verify", "ballbar_stores", "measure_ballbar"]
+
+log = logging.getLogger(__name__)
+
+
+def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
+    """position -> scanner -> store path of the run's ball-bar measurements."""
+    table = rd.acquisition.load()
+    out: dict[str, dict[str, str]] = {}
+    for r in table[table["kind"] == "ballbar"].itertuples():
+        out.setdefault(str(r.pose), {})[str(r.scanner)] = str(rd.store(r.measurement).path)
+    return out
+
+
+def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm: float):
+    """Centres, failures and the evaluated lengths of the run's ball-bar with ``rig``."""
+    from ..pipeline.verify import measure_positions
+    from ..spheres.robust import RejectionConfig
+    from ..verification import ballbar_lengths, evaluate_ballbar
+
+    bar = rd.ballbar.load()
+    centres, failures = measure_positions(ballbar_stores(rd), rig, bar, RejectionConfig(**rejection))
+    lengths = ballbar_lengths(centres, "ball-bar centres")
+    reference_length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
+    result = evaluate_ballbar(lengths.length_mm, reference_length, lengths.measurement, verification.mpe_mm,
+                              diagonal_mm, verification.certificate_u_mm, verification.certificate_k,
+                              verification.coverage_factor)
+    return centres, failures, result
+
+
+class Verify(Step):
+    name = "verify"
+    title = "verification"
+    settings = ("verification", "extraction.rejection")
+    modules = ("fringecal.pipeline.verify", "fringecal.verification")
+
+    def reads(self, rd: RunDir, cfg: Settings, item: str):
+        stores = [rd.store(m) for m in _ballbar_items(rd)]
+        return [rd.calibration, rd.ballbar, rd.bundle_summary, rd.acquisition] + stores
+
+    def writes(self, rd: RunDir, cfg: Settings, item: str):
+        return [rd.verification, rd.ballbar_centres]
+
+    def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        if not _ballbar_items(rd) or not rd.ballbar.exists():
+            rd.verification.remove()
+            rd.ballbar_centres.remove()
+            log.warning("no ball-bar measurements: the calibration is not verified")
+            return
+        diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
+        centres, failures, result = measure_ballbar(rd, rd.calibration.load(), cfg.extraction.rejection,
+                                                    cfg.verification, diagonal)
+        for f in failures.itertuples():
+            log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner, f.reason)
+        rd.ballbar_centres.save(centres)
+        rd.verification.save({"calibrated": result.to_dict(), "failures": failures.to_dict("records"),
+                              "recorded_by": {p: list(s) for p, s in ballbar_stores(rd).items()}})
+
+
+def _ballbar_items(rd: RunDir) -> list[str]:
+    table = rd.acquisition.load()
+    return list(table.loc[table["kind"] == "ballbar", "measurement"])

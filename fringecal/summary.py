@@ -1,0 +1,95 @@
+"""What a run records about itself: the manifest (what it was asked to compute, from
+what) and the summary (what came out), plus the check that a run directory is
+already up to date with a configuration.
+
+The manifest is deterministic -- resolved configuration, its digest, the digest of
+fringecal's source, package versions, the digests of the source's input files -- so
+writing it again for the same run changes nothing. What describes one execution
+(when, which command, step timings, which steps ran) goes to the summary.
+"""
+
+from __future__ import annotations
+
+from .digests import code_digest, digest_path
+from .rundir import RunDir, package_versions
+from .steps import current_record, pipeline, step_key
+
+__all__ = ["manifest", "run_summary", "pipeline_status", "source_files"]
+
+
+def source_files(cfg) -> list:
+    """The files the run's data source is described by (not its image stacks)."""
+    if cfg.source == "simulated":
+        from .acquisition import input_files
+
+        return input_files(cfg.simulate)
+    from .dataset import DataSet
+
+    ds = DataSet.open(cfg.dataset)
+    return [p for p in (ds.root / "dataset.yaml", ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned,
+                        ds.ballbar) if p is not None]
+
+
+def manifest(cfg) -> dict:
+    """The manifest of a run of ``cfg`` (a resolved :class:`~fringecal.runconfig.RunConfig`)."""
+    doc = cfg.model_dump(mode="json")
+    return {"config": doc, "config_digest": RunDir.config_digest(doc), "source": cfg.source,
+            "code_digest": code_digest(), "versions": package_versions(),
+            "inputs": {str(p): digest_path(p) for p in source_files(cfg)}}
+
+
+def pipeline_status(rd: RunDir, cfg) -> str | None:
+    """None if every step of a run of ``cfg`` in ``rd`` is current (its record has
+    today's key and its outputs are unchanged), else the first step instance that is
+    not (or why the run directory cannot be checked)."""
+    try:
+        if rd.read_manifest() != manifest(cfg):
+            return "manifest.json (configuration, inputs or code changed)"
+        for step in pipeline(cfg):
+            view = step.view(cfg)
+            for item in step.items(rd, view):
+                if current_record(step, rd, view, item, step_key(step, rd, view, item)) is None:
+                    return f"{step.name}:{item}" if item else step.name
+    except (FileNotFoundError, ValueError, KeyError) as err:
+        return f"{type(err).__name__}: {err}"
+    return None
+
+
+def _maybe(f) -> dict | None:
+    return f.load() if f.exists() else None
+
+
+def run_summary(rd: RunDir, cfg) -> dict:
+    """The figures of a finished run, from its files (missing parts are None)."""
+    b = rd.bundle_summary.load()
+    v = _maybe(rd.verification)
+    t = _maybe(rd.evaluation)
+    n_measurements = int((rd.acquisition.load()["kind"] == "artefact").sum())
+    out = {
+        "name": cfg.name, "source": cfg.source, "dataset": None if cfg.dataset is None else str(cfg.dataset),
+        "n_measurements": n_measurements,
+        "n_control_points": b["n_control_points"],
+        "rms_F_mm_before": b["before"]["rms_f_mm"], "rms_F_mm_after": b["after"]["rms_f_mm"],
+        "rms_eps1_mm_before": b["before"]["rms_eps1_mm"], "rms_eps2_mm_before": b["before"]["rms_eps2_mm"],
+        "rms_eps1_mm_after": b["after"]["rms_eps1_mm"], "rms_eps2_mm_after": b["after"]["rms_eps2_mm"],
+        "one_part_in": b["one_part_in_1p96_sigma"], "volume_diagonal_mm": b["volume_diagonal_mm"],
+        "bundle_seconds": b.get("bundle_seconds", b.get("elapsed_s")),
+        "verification": None, "truth": None,
+    }
+    if v is not None:
+        cal = v["calibrated"]
+        out["verification"] = {
+            "reference_length_mm": cal["reference_length_mm"], "mean_length_mm": cal["mean_length_mm"],
+            "max_abs_error_mm": cal["max_abs_error_mm"], "volume_diagonal_mm": cal["volume_diagonal_mm"],
+            "one_part_in": cal["one_part_in"], "mpe_mm": cal["mpe_mm"], "pass": cal["pass"],
+            "n_lengths": len(cal["positions"]), "n_failures": len(v["failures"]),
+            "expanded_uncertainty_mm": cal["uncertainty"]["expanded_mm"],
+            "coverage_factor": cal["uncertainty"]["coverage_factor"]}
+    if t is not None:
+        out["truth"] = {
+            "max_position_error_mm": t["max_position_error_mm"], "max_angle_error_rad": t["max_angle_error_rad"],
+            "rms_eps1_mm_true_params": t["rms_eps1_mm_true_params"],
+            "rms_eps2_mm_true_params": t["rms_eps2_mm_true_params"],
+            "verification_max_abs_error_true_params_mm": (t.get("verification_true_params") or {}).get(
+                "max_abs_error_mm")}
+    return out

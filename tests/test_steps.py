@@ -1,0 +1,162 @@
+"""Named steps and their declared keys: a step sees only the settings it declares; a
+changed input file (edited in place), setting or module reruns exactly the steps that
+read it; a step's record is the one validity check. Runs the pipeline without Prefect
+(`fringecal.steps.run_pipeline`) on the small data set made by `fringecal simulate`."""
+
+import shutil
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from fringecal import digests
+from fringecal.digests import DigestCache, digest_path, module_files, source_digest
+from fringecal.rundir import RunDir
+from fringecal.runconfig import RunConfig, load_run_config
+from fringecal.steps import STEPS, current_record, get_step, pipeline, run_pipeline, run_step, step_key
+
+
+def ran(records: dict) -> set[str]:
+    """step:item of every instance that had to run."""
+    return {f"{s}:{i}" if i else s for s, items in records.items() for i, r in items.items() if not r["reused"]}
+
+
+def steps_that_ran(records: dict) -> set[str]:
+    return {name.split(":")[0] for name in ran(records)}
+
+
+@pytest.fixture(scope="module")
+def data_run(small_dataset, tmp_path_factory):
+    """A run of a private copy of the small data set (the tests edit it)."""
+    data = shutil.copytree(small_dataset[0], tmp_path_factory.mktemp("data") / "small")
+    rd = RunDir(tmp_path_factory.mktemp("run") / "run").create()
+    cfg = load_run_config(dataset=data)
+    first = run_pipeline(rd, cfg, workers=2)
+    return data, rd, first
+
+
+def test_every_step_ran_once_and_a_second_run_reuses_everything(data_run):
+    data, rd, first = data_run
+    cfg = load_run_config(dataset=data)
+    assert list(first) == [s.name for s in pipeline(cfg)]
+    assert len(first["decode"]) == 14 and len(first["spheres-first"]) == 8
+    assert ran(first) == {f"{s}:{i}" if i else s for s, items in first.items() for i in items}
+    again = run_pipeline(rd, cfg, workers=2)
+    assert ran(again) == set()
+    assert rd.verification.load()["calibrated"]["max_abs_error_mm"] < 0.2
+
+
+def test_an_input_table_edited_in_place_reruns_the_steps_that_read_it(data_run):
+    """rods.csv is read by the data set's ingest step, then (as the run's copy) by the
+    second pass and the report. A rod length is not used for masking, so the second
+    pass gives the same control points and nothing after it reruns."""
+    data, rd, _ = data_run
+    rods = data / "rods.csv"
+    text = rods.read_text()
+    try:
+        rods.write_text(text.replace(text.splitlines()[1].split(",")[-1], "600.5", 1))
+        records = run_pipeline(rd, load_run_config(dataset=data), workers=2)
+        assert steps_that_ran(records) == {"ingest", "spheres-second", "report"}
+        assert len([i for i, r in records["spheres-second"].items() if not r["reused"]]) == 8
+    finally:
+        rods.write_text(text)
+    restored = run_pipeline(rd, load_run_config(dataset=data), workers=2)
+    assert steps_that_ran(restored) == {"ingest", "spheres-second", "report"}
+
+
+def test_planned_poses_edited_in_place_rerun_ingest_and_labelling_only(data_run):
+    data, rd, _ = data_run
+    poses = data / "poses_planned.csv"
+    original = poses.read_text()
+    try:
+        df = pd.read_csv(poses)
+        df.loc[0, "tx_mm"] += 1.0  # a plan 1 mm off still singles out the same labels
+        df.to_csv(poses, index=False)
+        assert steps_that_ran(run_pipeline(rd, load_run_config(dataset=data))) == {"ingest", "label"}
+    finally:
+        poses.write_text(original)
+    run_pipeline(rd, load_run_config(dataset=data))
+
+
+def test_one_setting_reruns_the_steps_that_declare_it(data_run, tmp_path):
+    data, rd, _ = data_run
+    own = tmp_path / "run.yaml"
+    own.write_text("bundle:\n  gamma2: 0.5\n")
+    records = run_pipeline(rd, load_run_config(own, dataset=data))
+    assert steps_that_ran(records) == {"bundle", "verify", "report"}
+    back = run_pipeline(rd, load_run_config(dataset=data))
+    assert steps_that_ran(back) == {"bundle", "verify", "report"}
+
+
+@pytest.mark.parametrize("module, expected", [
+    ("fringecal.report", {"report"}),
+    ("fringecal.verification", {"verify"}),  # same numbers, so the report stays current
+])
+def test_a_changed_module_reruns_only_the_steps_that_run_it(data_run, tmp_path, monkeypatch, module, expected):
+    data, rd, _ = data_run
+    original = digests._module_file(module)
+    edited = tmp_path / original.name
+    edited.write_text(original.read_text() + "\n# an edit\n")
+    real = digests._module_file
+    monkeypatch.setattr(digests, "_module_file", lambda name: edited if name == module else real(name))
+    assert steps_that_ran(run_pipeline(rd, load_run_config(dataset=data))) == expected
+    monkeypatch.undo()
+    assert steps_that_ran(run_pipeline(rd, load_run_config(dataset=data))) == expected
+
+
+def test_a_changed_output_is_recomputed_and_the_record_is_the_one_check(data_run):
+    data, rd, _ = data_run
+    cfg = load_run_config(dataset=data)
+    step = get_step("label")
+    view = step.view(cfg)
+    key = step_key(step, rd, view, "")
+    assert current_record(step, rd, view, "", key)["key"] == key
+    good = rd.scanner_links.path.read_text()
+    rd.scanner_links.path.write_text(good.replace("scanner2", "scanner2 "))
+    assert current_record(step, rd, view, "", key) is None
+    rec = run_step(step, rd, cfg)
+    assert not rec["reused"] and rd.scanner_links.path.read_text() == good
+    assert current_record(step, rd, view, "", key) is not None
+
+
+def test_a_step_sees_only_what_it_declares():
+    cfg = RunConfig()
+    view = STEPS["bundle"].view(cfg)
+    assert view.bundle.gamma1 == 1.0 and "bundle" in view.keyed()
+    with pytest.raises(AttributeError, match="'extraction' was not declared"):
+        view.extraction
+    first = STEPS["spheres-first"].view(cfg)
+    assert set(first.keyed()) == {"extraction.candidates", "extraction.rejection"}
+    with pytest.raises(AttributeError, match="extraction.labelling"):
+        first.extraction.labelling
+    # a location (where a data set is) is readable but not keyed
+    assert "dataset" not in STEPS["decode"].view(RunConfig(dataset=Path("."))).keyed()
+
+
+def test_steps_keys_include_their_own_code_only():
+    report = module_files(["fringecal.steps.report"])
+    assert "fringecal.report" in report and "fringecal.calibration.bundle" not in report
+    assert "fringecal.rundir" not in report  # infrastructure: where files go, not what is computed
+    bundle = module_files(["fringecal.steps.bundle"])
+    assert "fringecal.calibration.kernels" in bundle and "fringecal.report" not in bundle
+    assert source_digest(["fringecal.steps.report"]) != source_digest(["fringecal.steps.bundle"])
+
+
+def test_digest_cache_rehashes_only_changed_files(tmp_path, monkeypatch):
+    folder = tmp_path / "store"
+    folder.mkdir()
+    (folder / "a").write_bytes(b"1" * 1000)
+    (folder / "b").write_bytes(b"2" * 1000)
+    old = 1_000_000_000_000_000_000  # files last modified long ago: cacheable
+    for p in folder.iterdir():
+        import os
+
+        os.utime(p, ns=(old, old))
+    cache = DigestCache(tmp_path / ".digests")
+    first = cache.digest(folder)
+    assert first == digest_path(folder)
+    calls = []
+    monkeypatch.setattr(digests, "digest_path", lambda p: calls.append(p) or digest_path(p))
+    assert DigestCache(tmp_path / ".digests").digest(folder) == first and calls == []  # from disk, no hashing
+    (folder / "b").write_bytes(b"3" * 1000)  # edited in place: new mtime
+    assert cache.digest(folder) != first and len(calls) == 1
