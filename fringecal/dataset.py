@@ -37,6 +37,9 @@ Decisions
   ``verification/`` (besides ``ballbar.csv``) are ignored: notes and logs may sit next
   to the data. Every sub-folder, in contrast, must be a measurement, position or
   scanner stack.
+- A stack becomes the run's store ``<measurement>-<scanner>`` (or ``<position>-<scanner>``),
+  so a position may not share a measurement's name (``1`` and ``1``; name positions
+  e.g. ``bb1``); such collisions are refused with both folders named.
 - Measurement and position names sort naturally (``"2"`` before ``"10"``); stacks within
   one are in the order of the scanners in ``sensors_prior.csv``.
 - Every stack (calibration and verification) must use the same fringe sequence.
@@ -198,6 +201,7 @@ class DataSet:
             _check_planned(poses, root / MEASUREMENTS_DIR, measurements)
         ballbar, verification = _open_verification(root / VERIFICATION_DIR, rig, prior)
         _check_sequences(measurements + verification)
+        _check_unique_ids(measurements + verification)
         return cls(root, config, artefact_path, rods, prior, poses, ballbar,
                    tuple(s.name for s in rig.scanners), measurements, verification)
 
@@ -395,6 +399,17 @@ def _check_sequences(sources: tuple[StackSource, ...]) -> None:
                 ("orientations", a.orientations, b.orientations)) if x != y]
             raise DataSetError(f"{src.sequence_source}: fringe sequence differs from {first.sequence_source} "
                                f"({'; '.join(diff)}); every stack must use the same sequence")
+
+
+def _check_unique_ids(sources: tuple[StackSource, ...]) -> None:
+    """Every stack becomes the store ``<group>-<scanner>`` of a run: no two may share it
+    (a position named like a measurement, or names whose hyphens make them collide)."""
+    seen: dict[str, StackSource] = {}
+    for src in sources:
+        other = seen.setdefault(src.id, src)
+        if other is not src:
+            raise DataSetError(f"{src.path}: its store id {src.id!r} is also that of {other.path}; rename the "
+                               "measurement or position folder")
 
 
 def _check_planned(path: Path, folder: Path, sources: tuple[StackSource, ...]) -> None:

@@ -167,11 +167,13 @@ class DigestCache:
 
 # -- source code ----------------------------------------------------------------------
 
+@lru_cache(maxsize=None)
 def _package_roots() -> dict[str, Path]:
     here = Path(__file__).resolve().parent
     return {"fringecal": here, "schemas": here.parent / "schemas"}
 
 
+@lru_cache(maxsize=None)
 def _module_file(name: str) -> Path | None:
     top, _, rest = name.partition(".")
     root = _package_roots().get(top)
@@ -233,9 +235,14 @@ def source_digest(modules: Iterable[str]) -> str:
     """SHA-256 over the source files of :func:`module_files` ``(modules)``."""
     h = hashlib.sha256()
     for name, path in module_files(modules).items():
-        h.update(name.encode() + b"\0")
-        _hash_file(h, path)
+        st = path.stat()
+        h.update(name.encode() + b"\0" + _source_file_digest(str(path), st.st_size, st.st_mtime_ns).encode())
     return h.hexdigest()
+
+
+@lru_cache(maxsize=None)
+def _source_file_digest(path: str, size: int, mtime_ns: int) -> str:
+    return digest_path(path)
 
 
 def code_digest() -> str:

@@ -26,4 +26,4 @@ def step_task(step: str, run_dir: str, config: dict, item: str, key: str, contex
     The steps log through the ``fringecal`` logger, which the flow registers with
     Prefect (``PREFECT_LOGGING_EXTRA_LOGGERS``), so their messages belong to the task run.
     """
-    return run_step(get_step(step), RunDir(run_dir), RunConfig.model_validate(config), item, context)
+    return run_step(get_step(step), RunDir(run_dir), RunConfig.model_validate(config), item, context, key=key)

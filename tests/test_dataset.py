@@ -70,7 +70,7 @@ def prior_table() -> pd.DataFrame:
 
 def build(root: Path) -> Path:
     """The good data set: measurements 1, 2, 10 (10 has scanner2 as a store), ball-bar
-    positions 1 (scanner1 binned 8x8, scanner2) and 2 (scanner2 store, binned), plus
+    positions p1 (scanner1 binned 8x8, scanner2) and p2 (scanner2 store, binned), plus
     hidden and stray entries that must be ignored."""
     root.mkdir(parents=True)
     write_yaml(root / "dataset.yaml", CONFIG)
@@ -93,9 +93,9 @@ def build(root: Path) -> Path:
     v = root / "verification"
     v.mkdir()
     shutil.copy(THESIS / "ballbar.csv", v / "ballbar.csv")
-    stack(v / "1" / "scanner1", 8, 8)
-    stack(v / "1" / "scanner2")
-    store(v / "2" / "scanner2.zarr", 8, 8)
+    stack(v / "p1" / "scanner1", 8, 8)
+    stack(v / "p1" / "scanner2")
+    store(v / "p2" / "scanner2.zarr", 8, 8)
     (v / "readme.md").write_text("stray file, ignored")
     return root
 
@@ -122,10 +122,10 @@ def test_good_data_set_lists_stacks_in_natural_and_rig_order(root):
     assert ds.measurements[-1].path == root / "measurements" / "10" / "scanner2.zarr"
     assert ds.measurements[0].path == root / "measurements" / "1" / "scanner1"
     assert {(s.kind, s.width_px, s.height_px, s.sequence) for s in ds.measurements} == {("artefact", 16, 16, SEQ)}
-    assert ds.position_names() == ["1", "2"]
+    assert ds.position_names() == ["p1", "p2"]
     assert [(s.id, s.kind, s.format, s.width_px, s.height_px) for s in ds.verification] == [
-        ("1-scanner1", "ballbar", "frames", 8, 8), ("1-scanner2", "ballbar", "frames", 16, 16),
-        ("2-scanner2", "ballbar", "store", 8, 8)]
+        ("p1-scanner1", "ballbar", "frames", 8, 8), ("p1-scanner2", "ballbar", "frames", 16, 16),
+        ("p2-scanner2", "ballbar", "store", 8, 8)]
     assert (ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned, ds.ballbar) == (
         root / "artefact.csv", root / "rods.csv", root / "sensors_prior.csv", root / "poses_planned.csv",
         root / "verification" / "ballbar.csv")
@@ -170,10 +170,10 @@ def test_validation_reads_no_image(root, monkeypatch):
                                       (8, 6, False), (32, 32, True)])
 def test_verification_binning_keeps_the_aspect_ratio_within_one_pixel(root, w, h, ok):
     """Camera 16x16: a verification stack may have any pixel count within one pixel of square."""
-    stack(root / "verification" / "1" / "scanner1", h, w)
+    stack(root / "verification" / "p1" / "scanner1", h, w)
     if ok:
         src = DataSet.open(root).verification[0]
-        assert (src.id, src.width_px, src.height_px) == ("1-scanner1", w, h)
+        assert (src.id, src.width_px, src.height_px) == ("p1-scanner1", w, h)
     else:
         with pytest.raises(DataSetError, match=f"{w}x{h} px, not the aspect ratio"):
             DataSet.open(root)
@@ -327,8 +327,8 @@ def sequence_steps_differ(r):
 
 
 def sequence_counts_differ(r):
-    stack(r / "verification" / "1" / "scanner2", seq=FringeSequence((16, 15, 14, 12), 3))
-    return (r / "verification" / "1" / "scanner2" / "sequence.yaml",
+    stack(r / "verification" / "p1" / "scanner2", seq=FringeSequence((16, 15, 14, 12), 3))
+    return (r / "verification" / "p1" / "scanner2" / "sequence.yaml",
             ("measurements/1/scanner1/sequence.yaml", "fringe counts (8, 7, 6) vs (16, 15, 14, 12)"))
 
 
@@ -349,8 +349,8 @@ def store_wrong_size(r):
 
 
 def verification_wrong_aspect(r):
-    stack(r / "verification" / "1" / "scanner1", 6, 8)
-    return r / "verification" / "1" / "scanner1" / "sequence.yaml", ("8x6 px", "aspect ratio", "16x16 px")
+    stack(r / "verification" / "p1" / "scanner1", 6, 8)
+    return r / "verification" / "p1" / "scanner1" / "sequence.yaml", ("8x6 px", "aspect ratio", "16x16 px")
 
 
 def planned_without_folder(r):
@@ -391,7 +391,7 @@ def ballbar_bad_table(r):
 
 
 def no_position(r):
-    for p in ("1", "2"):
+    for p in ("p1", "p2"):
         shutil.rmtree(r / "verification" / p)
     return r / "verification", ("no position folder",)
 
@@ -402,8 +402,8 @@ def empty_position(r):
 
 
 def position_unknown_scanner(r):
-    shutil.copytree(r / "verification" / "1" / "scanner2", r / "verification" / "2" / "scanner7")
-    return r / "verification" / "2" / "scanner7", ("no prior calibration", "'scanner7'")
+    shutil.copytree(r / "verification" / "p1" / "scanner2", r / "verification" / "p2" / "scanner7")
+    return r / "verification" / "p2" / "scanner7", ("no prior calibration", "'scanner7'")
 
 
 def store_incomplete(r):
@@ -426,8 +426,8 @@ def store_without_valid(r):
 
 
 def store_without_sequence(r):
-    store(r / "verification" / "2" / "scanner2.zarr", 8, 8, attrs={"scanner": "scanner2"})
-    return r / "verification" / "2" / "scanner2.zarr", ("no 'sequence' attribute",)
+    store(r / "verification" / "p2" / "scanner2.zarr", 8, 8, attrs={"scanner": "scanner2"})
+    return r / "verification" / "p2" / "scanner2.zarr", ("no 'sequence' attribute",)
 
 
 def frame_missing(r):
@@ -480,3 +480,13 @@ def test_broken_data_set_names_the_offending_path(root, breaker, error):
     assert message.startswith(f"{where}:"), message
     for fragment in fragments:
         assert fragment in message, (fragment, message)
+
+
+def test_stacks_whose_store_ids_collide_are_refused(root):
+    """Position "1" next to measurement "1": both would become the store 1-scanner1."""
+    shutil.move(str(root / "verification" / "p1"), str(root / "verification" / "1"))
+    with pytest.raises(DataSetError) as err:
+        DataSet.open(root)
+    message = str(err.value)
+    assert message.startswith(str(root / "verification" / "1" / "scanner1")) and "'1-scanner1'" in message
+    assert str(root / "measurements" / "1" / "scanner1") in str(err.value)

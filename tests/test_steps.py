@@ -13,6 +13,7 @@ from fringecal import digests
 from fringecal.digests import DigestCache, digest_path, module_files, source_digest
 from fringecal.rundir import RunDir
 from fringecal.runconfig import RunConfig, load_run_config
+from fringecal.summary import manifest
 from fringecal.steps import STEPS, current_record, get_step, pipeline, run_pipeline, run_step, step_key
 
 
@@ -31,6 +32,7 @@ def data_run(small_dataset, tmp_path_factory):
     data = shutil.copytree(small_dataset[0], tmp_path_factory.mktemp("data") / "small")
     rd = RunDir(tmp_path_factory.mktemp("run") / "run").create()
     cfg = load_run_config(dataset=data)
+    rd.manifest.save(manifest(cfg))  # as the flow does: step commands take their settings from it
     first = run_pipeline(rd, cfg, workers=2)
     return data, rd, first
 
@@ -160,3 +162,24 @@ def test_digest_cache_rehashes_only_changed_files(tmp_path, monkeypatch):
     assert DigestCache(tmp_path / ".digests").digest(folder) == first and calls == []  # from disk, no hashing
     (folder / "b").write_bytes(b"3" * 1000)  # edited in place: new mtime
     assert cache.digest(folder) != first and len(calls) == 1
+
+
+def test_step_command_shares_the_records_of_the_pipeline(data_run, tmp_path):
+    """`fringecal step NAME --run RUN_DIR`: the same step objects and records, no Prefect."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from flows.cli import app
+
+    data, rd, _ = data_run
+    runner = CliRunner()
+    res = runner.invoke(app, ["step", "spheres-first", "--run", str(rd.root), "--json"])
+    assert res.exit_code == 0, res.output
+    records = json.loads(res.stdout)
+    assert len(records) == 8 and all(r["reused"] for r in records)
+    res = runner.invoke(app, ["step", "label", "--run", str(rd.root), "--force"])
+    assert res.exit_code == 0 and "label: 1 ran, 0 current already" in res.output
+    assert steps_that_ran(run_pipeline(rd, load_run_config(dataset=data))) == set()  # same content, same keys
+    res = runner.invoke(app, ["step", "nosuch", "--run", str(rd.root)])
+    assert res.exit_code == 2 and "no step 'nosuch'" in res.output

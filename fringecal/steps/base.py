@@ -25,12 +25,13 @@ built from exactly these declarations.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, ClassVar, Union
 
 from ..rundir import RunDir, RunFile, TableFile
 
-__all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read"]
+__all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read", "store_row", "store_fields", "stores_of_kind"]
 
 
 class StepError(RuntimeError):
@@ -50,10 +51,30 @@ class Rows:
     where: dict = field(default_factory=dict)
 
     def load(self):
-        df = self.table.load()
+        """The selected rows, validated by the table's schema."""
+        return self._select(self.table.load())
+
+    def text(self) -> list[dict]:
+        """The selected rows as the file's text (what a key digests: no parsing, no
+        validation, so keys stay cheap)."""
+        return self._select(_raw_table(self.table.path)).to_dict("records")
+
+    def _select(self, df):
         for col, value in self.where.items():
             df = df[df[col].astype(str) == str(value)]
         return df.reset_index(drop=True)
+
+
+@lru_cache(maxsize=64)
+def _raw_csv(path: str, size: int, mtime_ns: int):
+    from schemas import read_csv_text
+
+    return read_csv_text(path)
+
+
+def _raw_table(path: Path):
+    st = Path(path).stat()
+    return _raw_csv(str(path), st.st_size, st.st_mtime_ns)
 
 
 @dataclass(frozen=True)
@@ -143,3 +164,21 @@ class Step:
     @classmethod
     def module_names(cls) -> tuple[str, ...]:
         return (cls.__module__,) + tuple(cls.modules)
+
+
+# -- the acquisition table, which every per-store step starts from ------------------------
+
+def store_row(rd: RunDir, measurement: str) -> Rows:
+    """The acquisition-table row of one store (what a per-store step reads of the table)."""
+    return Rows(rd.acquisition, {"measurement": measurement})
+
+
+def store_fields(rd: RunDir, measurement: str) -> dict[str, str]:
+    """That row as text: ``measurement, kind, pose, scanner, store, source``."""
+    return store_row(rd, measurement).text()[0]
+
+
+def stores_of_kind(rd: RunDir, kind: str) -> list[str]:
+    """Ids of the run's ``artefact`` (calibration) or ``ballbar`` stores, in table order."""
+    table = _raw_table(rd.acquisition.path)
+    return list(table.loc[table["kind"] == kind, "measurement"])

@@ -13,7 +13,7 @@ import logging
 from pathlib import Path
 
 from ..rundir import RunDir
-from .base import Rows, Settings, Step
+from .base import Settings, Step, store_fields, store_row, stores_of_kind
 
 __all__ = ["Decode"]
 
@@ -28,16 +28,13 @@ class Decode(Step):
     modules = ("fringecal.fringe.measurement",)
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
-        return list(rd.acquisition.load()["measurement"])
-
-    def _row(self, rd: RunDir, item: str):
-        return Rows(rd.acquisition, {"measurement": item})
+        return stores_of_kind(rd, "artefact") + stores_of_kind(rd, "ballbar")
 
     def _source(self, rd: RunDir, cfg: Settings, item: str) -> Path:
-        return Path(cfg.dataset) / self._row(rd, item).load().iloc[0]["source"]
+        return Path(cfg.dataset) / store_fields(rd, item)["source"]
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        return [self._row(rd, item), self._source(rd, cfg, item)]
+        return [store_row(rd, item), self._source(rd, cfg, item)]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.store(item)]
@@ -46,7 +43,7 @@ class Decode(Step):
         from ..fringe.measurement import decode_folder
         from ..store import copy_store
 
-        row = self._row(rd, item).load().iloc[0]
+        row = store_fields(rd, item)
         source = self._source(rd, cfg, item)
         if source.suffix == ".zarr":
             copy_store(source, rd.store(item).path)

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..rundir import RunDir
-from .base import Settings, Step
-from .verify import _ballbar_items, measure_ballbar
+from .base import Settings, Step, stores_of_kind
+from .verify import measure_ballbar
 
 __all__ = ["Evaluate", "parameter_errors"]
 
@@ -44,7 +44,7 @@ class Evaluate(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.truth.sensors, rd.truth.poses, rd.calibration, rd.control_points, rd.artefact, rd.ballbar,
-                rd.bundle_summary, rd.acquisition] + [rd.store(m) for m in _ballbar_items(rd)]
+                rd.bundle_summary, rd.acquisition] + [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.evaluation, rd.ballbar_centres_true]
@@ -63,7 +63,7 @@ class Evaluate(Step):
         doc = {"max_position_error_mm": pos, "max_angle_error_rad": ang, "sensors": per_sensor,
                "rms_f_mm_true_params": floor.rms_f_mm, "rms_eps1_mm_true_params": floor.rms_eps1_mm,
                "rms_eps2_mm_true_params": floor.rms_eps2_mm}
-        if _ballbar_items(rd) and rd.ballbar.exists():
+        if stores_of_kind(rd, "ballbar") and rd.ballbar.exists():
             diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
             centres, failures, result = measure_ballbar(rd, truth, cfg.extraction.rejection, cfg.verification,
                                                         diagonal)

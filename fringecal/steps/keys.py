@@ -50,7 +50,7 @@ def _digest(rd: RunDir, read) -> str | None:
     if isinstance(read, Rows):
         if not read.table.exists():
             return None
-        return digest_value(read.load().to_dict("records"))
+        return digest_value(read.text())
     path = read.path if isinstance(read, RunFile) else Path(read)
     if isinstance(read, RunFile) and not read.exists():  # a store only counts once complete
         return None
@@ -104,16 +104,18 @@ def current_record(step: Step, rd: RunDir, cfg: Settings, item: str, key: str) -
 
 
 def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | None = None,
-             force: bool = False) -> dict:
+             force: bool = False, key: str | None = None) -> dict:
     """Run one instance of ``step`` over ``rd`` unless it is current; return its record.
 
     ``config`` is the resolved :class:`~fringecal.runconfig.RunConfig`; the step sees
     only its declared part. ``context`` holds values that do not change what a step
-    computes (the report's step timings) and are not keyed. The record gains
-    ``"reused": True`` when nothing had to run, and ``"seconds"`` otherwise.
+    computes (the report's step timings) and are not keyed. ``key`` is the
+    instance's key when the caller has just computed it (the flow does, to submit the
+    task). The record gains ``"reused": True`` when nothing had to run, and
+    ``"seconds"`` otherwise.
     """
     cfg = step.view(config)
-    key = step_key(step, rd, cfg, item)
+    key = key or step_key(step, rd, cfg, item)
     if not force and (rec := current_record(step, rd, cfg, item, key)) is not None:
         return {**rec, "reused": True}
     t0 = time.perf_counter()

@@ -13,8 +13,8 @@ from ..ballbar import ballbar_rods
 from ..rundir import RunDir
 from ..simulate.resolution import scaled_scanner
 from ..simulate.scenes import ArtefactHardware, artefact_scene
-from .base import Rows, Settings, Step
-from .simulate_render import ACQUISITION_SETTINGS, hardware_file, items_of_kind, log_summary, store_row
+from .base import Rows, Settings, Step, store_fields, store_row, stores_of_kind
+from .simulate_render import ACQUISITION_SETTINGS, hardware_file, log_summary
 
 __all__ = ["SimulateBallbar"]
 
@@ -27,10 +27,10 @@ class SimulateBallbar(Step):
     modules = ("fringecal.acquisition.measure", "fringecal.simulate")
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
-        return items_of_kind(rd, "ballbar")
+        return stores_of_kind(rd, "ballbar")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        row = store_row(rd, item).load().iloc[0]
+        row = store_fields(rd, item)
         return [store_row(rd, item), Rows(rd.truth.ballbar_positions, {"measurement": row["pose"]}),
                 rd.truth.sensors, rd.ballbar, hardware_file(cfg)]
 
@@ -38,7 +38,7 @@ class SimulateBallbar(Step):
         return [rd.store(item), rd.truth.store(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        row = store_row(rd, item).load().iloc[0]
+        row = store_fields(rd, item)
         T = frames_from_rows(Rows(rd.truth.ballbar_positions, {"measurement": row["pose"]}).load())[row["pose"]]
         bar = rd.ballbar.load()
         scene = artefact_scene(bar, ballbar_rods(bar), T, ArtefactHardware.from_materials(hardware_file(cfg)))

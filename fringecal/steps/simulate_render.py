@@ -15,9 +15,9 @@ from ..acquisition import frames_from_rows, simulate_measurement
 from ..artefact import Artefact
 from ..rundir import RunDir
 from ..simulate.scenes import ArtefactHardware, artefact_scene
-from .base import Rows, Settings, Step
+from .base import Rows, Settings, Step, store_fields, store_row, stores_of_kind
 
-__all__ = ["SimulateRender", "ACQUISITION_SETTINGS", "hardware_file", "store_row"]
+__all__ = ["SimulateRender", "ACQUISITION_SETTINGS", "hardware_file", "log_summary"]
 
 log = logging.getLogger(__name__)
 
@@ -34,15 +34,6 @@ def hardware_file(cfg: Settings):
     return load_yaml_model(cfg.simulate.rig, RigConfig).materials or thesis_dir() / "materials.yaml"
 
 
-def store_row(rd: RunDir, measurement: str) -> Rows:
-    return Rows(rd.acquisition, {"measurement": measurement})
-
-
-def items_of_kind(rd: RunDir, kind: str) -> list[str]:
-    table = rd.acquisition.load()
-    return list(table.loc[table["kind"] == kind, "measurement"])
-
-
 def log_summary(summary: dict) -> None:
     log.info("%s: render %.1f s, decode + store %.1f s, %.1f %% valid", summary["measurement"], summary["render_s"],
              summary["decode_store_s"], 100 * summary["valid_fraction"])
@@ -56,10 +47,10 @@ class SimulateRender(Step):
     modules = ("fringecal.acquisition.measure", "fringecal.simulate")
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
-        return items_of_kind(rd, "artefact")
+        return stores_of_kind(rd, "artefact")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        row = store_row(rd, item).load().iloc[0]
+        row = store_fields(rd, item)
         return [store_row(rd, item), Rows(rd.truth.poses, {"measurement": row["pose"]}), rd.truth.sensors,
                 rd.truth.artefact, rd.rods, hardware_file(cfg)]
 
@@ -67,7 +58,7 @@ class SimulateRender(Step):
         return [rd.store(item), rd.truth.store(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        row = store_row(rd, item).load().iloc[0]
+        row = store_fields(rd, item)
         T = frames_from_rows(Rows(rd.truth.poses, {"measurement": row["pose"]}).load())[row["pose"]]
         artefact: Artefact = rd.truth.artefact.load()
         rods = rd.rods.load(artefact) if rd.rods.exists() else None

@@ -14,22 +14,16 @@ import numpy as np
 
 from ..pipeline.extract import first_pass
 from ..rundir import RunDir
-from .base import Rows, Settings, Step
+from .base import Settings, Step, store_fields, store_row, stores_of_kind
 
-__all__ = ["SpheresFirst", "artefact_items", "store_row"]
+__all__ = ["SpheresFirst", "artefact_items"]
 
 log = logging.getLogger(__name__)
 
 
 def artefact_items(rd: RunDir) -> list[str]:
     """Ids of the calibration measurements' stores, in acquisition order."""
-    table = rd.acquisition.load()
-    return list(table.loc[table["kind"] == "artefact", "measurement"])
-
-
-def store_row(rd: RunDir, item: str) -> Rows:
-    """The acquisition-table row of one store (its measurement and scanner)."""
-    return Rows(rd.acquisition, {"measurement": item})
+    return stores_of_kind(rd, "artefact")
 
 
 class SpheresFirst(Step):
@@ -51,7 +45,7 @@ class SpheresFirst(Step):
         from ..spheres.candidates import CandidateConfig
         from ..spheres.robust import RejectionConfig
 
-        row = store_row(rd, item).load().iloc[0]
+        row = store_fields(rd, item)
         scanner = rd.sensors_prior.load().scanner(row["scanner"])
         radius = float(np.median(rd.artefact.load().radii))
         rows, failures = first_pass(rd.store(item).path, scanner, radius, CandidateConfig(**cfg.extraction.candidates),

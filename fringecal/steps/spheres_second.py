@@ -12,8 +12,8 @@ from __future__ import annotations
 from ..pipeline.extract import second_pass
 from ..pipeline.initialise import poses_from_table
 from ..rundir import RunDir
-from .base import Rows, Settings, Step
-from .spheres_first import artefact_items, store_row
+from .base import Rows, Settings, Step, store_fields, store_row
+from .spheres_first import artefact_items
 
 __all__ = ["SpheresSecond"]
 
@@ -28,7 +28,7 @@ class SpheresSecond(Step):
         return artefact_items(rd)
 
     def _own(self, rd: RunDir, item: str) -> dict:
-        row = store_row(rd, item).load().iloc[0]
+        row = store_fields(rd, item)
         return {"measurement": row["pose"], "scanner": row["scanner"]}
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 
 from ..rundir import RunDir
-from .base import Settings, Step
+from .base import Settings, Step, stores_of_kind
 
 __all__ = ["Verify", "ballbar_stores", "measure_ballbar"]
 
@@ -51,14 +51,14 @@ class Verify(Step):
     modules = ("fringecal.pipeline.verify", "fringecal.verification")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        stores = [rd.store(m) for m in _ballbar_items(rd)]
+        stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
         return [rd.calibration, rd.ballbar, rd.bundle_summary, rd.acquisition] + stores
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.verification, rd.ballbar_centres]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        if not _ballbar_items(rd) or not rd.ballbar.exists():
+        if not stores_of_kind(rd, "ballbar") or not rd.ballbar.exists():
             rd.verification.remove()
             rd.ballbar_centres.remove()
             log.warning("no ball-bar measurements: the calibration is not verified")
@@ -71,8 +71,3 @@ class Verify(Step):
         rd.ballbar_centres.save(centres)
         rd.verification.save({"calibrated": result.to_dict(), "failures": failures.to_dict("records"),
                               "recorded_by": {p: list(s) for p, s in ballbar_stores(rd).items()}})
-
-
-def _ballbar_items(rd: RunDir) -> list[str]:
-    table = rd.acquisition.load()
-    return list(table.loc[table["kind"] == "ballbar", "measurement"])
