@@ -487,7 +487,9 @@ class AcquisitionTable(_Base):
 
 
 class BallbarCentresTable(_Base):
-    """Ball-bar sphere centres in the world frame, one row per (position, scanner, sphere)."""
+    """Ball-bar sphere centres in the world frame, one row per (position, scanner, sphere)
+    (the columns of :class:`SphereCentresTable`, named by position; kept apart so that
+    messages list a table's columns in its own order)."""
 
     position: Series[str] = pa.Field()
     scanner: Series[str] = pa.Field()

@@ -183,3 +183,14 @@ def test_step_command_shares_the_records_of_the_pipeline(data_run, tmp_path):
     assert steps_that_ran(run_pipeline(rd, load_run_config(dataset=data))) == set()  # same content, same keys
     res = runner.invoke(app, ["step", "nosuch", "--run", str(rd.root)])
     assert res.exit_code == 2 and "no step 'nosuch'" in res.output
+
+
+def test_a_data_set_moved_elsewhere_keeps_every_key(data_run, tmp_path):
+    """Outside files count by content, not by where they lie: a copy of the data set in
+    another folder is the same input, so nothing reruns."""
+    import os
+
+    data, rd, _ = data_run
+    moved = shutil.copytree(data, tmp_path / "elsewhere" / "cell",
+                            copy_function=lambda s, d: os.link(s, d) if s.endswith(".png") else shutil.copy2(s, d))
+    assert ran(run_pipeline(rd, load_run_config(dataset=moved))) == set()

@@ -42,11 +42,6 @@ __all__ = ["write_dataset", "PROCESSING_SECTIONS"]
 PROCESSING_SECTIONS = ("decode", "extraction", "control_points", "bundle", "verification")
 
 
-class _VerificationAcquisition:
-    def __init__(self, acq, seed: int):
-        self.render, self.sequence, self.backdrop_mm, self.seed = acq.render, acq.sequence, acq.backdrop_mm, seed
-
-
 def _dataset_yaml(cfg) -> dict:
     sim = cfg.simulate
     doc = {"name": cfg.name, "reference_scanner": cfg.reference_scanner,
@@ -110,7 +105,7 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         positions = frames_from_rows(known.ballbar_positions.load())
 
         acq = sim.acquisition
-        v_acq = _VerificationAcquisition(acq, sim.verification.seed)
+        v_acq = acq.model_copy(update={"seed": sim.verification.seed})
         jobs = []
         for m, T in reached.items():
             scene = artefact_scene(built, rods, T, sr.hardware)

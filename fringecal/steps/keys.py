@@ -59,19 +59,21 @@ def _digest(rd: RunDir, read) -> str | None:
     return digest_cache(rd).digest(path)
 
 
-def _label(rd: RunDir, read) -> str:
+def _label(read, index: int) -> str:
     if isinstance(read, Value):
         return f"value:{read.label}"
     if isinstance(read, Rows):
         return f"{read.table.rel}?{'&'.join(f'{k}={v}' for k, v in sorted(read.where.items()))}"
     if isinstance(read, RunFile):
         return read.rel
-    return str(Path(read).resolve())
+    # a file outside the run directory counts by its content, not by where it lies, so a
+    # data set or rig moved to another folder or machine keeps its keys
+    return f"input {index}: {Path(read).name}"
 
 
 def digests_of(rd: RunDir, files) -> dict[str, str | None]:
-    """Label (run-relative path, or absolute for external files) -> content digest."""
-    return {_label(rd, f): _digest(rd, f) for f in files}
+    """Label (run-relative path, or position and name of an outside file) -> content digest."""
+    return {_label(f, i): _digest(rd, f) for i, f in enumerate(files)}
 
 
 def step_key(step: Step, rd: RunDir, cfg: Settings, item: str) -> str:

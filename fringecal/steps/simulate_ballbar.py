@@ -8,54 +8,35 @@ stack in ``measurements/<position>-<scanner>.zarr``.
 
 from __future__ import annotations
 
-from ..acquisition import frames_from_rows, simulate_measurement
 from ..ballbar import ballbar_rods
-from ..rundir import RunDir
+from ..rundir import RunDir, TableFile
 from ..simulate.resolution import scaled_scanner
-from ..simulate.scenes import ArtefactHardware, artefact_scene
-from .base import Rows, Settings, Step, store_fields, store_row, stores_of_kind
-from .simulate_render import ACQUISITION_SETTINGS, hardware_file, log_summary
+from ..simulate.scenes import ArtefactHardware, Scene, artefact_scene
+from .base import Settings
+from .simulate_render import RenderStores
 
 __all__ = ["SimulateBallbar"]
 
 
-class SimulateBallbar(Step):
+class SimulateBallbar(RenderStores):
     name = "simulate-ballbar"
     title = "render ball-bar"
-    settings = ACQUISITION_SETTINGS + ("simulate.verification.camera_width_px", "simulate.verification.seed")
-    locations = ("simulate.rig",)
-    modules = ("fringecal.acquisition.measure", "fringecal.simulate")
+    kind = "ballbar"
+    settings = RenderStores.settings + ("simulate.verification.camera_width_px", "simulate.verification.seed")
 
-    def items(self, rd: RunDir, cfg: Settings) -> list[str]:
-        return stores_of_kind(rd, "ballbar")
+    def placements(self, rd: RunDir) -> TableFile:
+        return rd.truth.ballbar_positions
 
-    def reads(self, rd: RunDir, cfg: Settings, item: str):
-        row = store_fields(rd, item)
-        return [store_row(rd, item), Rows(rd.truth.ballbar_positions, {"measurement": row["pose"]}),
-                rd.truth.sensors, rd.ballbar, hardware_file(cfg)]
+    def objects(self, rd: RunDir) -> list:
+        return [rd.ballbar]
 
-    def writes(self, rd: RunDir, cfg: Settings, item: str):
-        return [rd.store(item), rd.truth.store(item)]
-
-    def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        row = store_fields(rd, item)
-        T = frames_from_rows(Rows(rd.truth.ballbar_positions, {"measurement": row["pose"]}).load())[row["pose"]]
+    def scene(self, rd: RunDir, T, hardware: ArtefactHardware) -> Scene:
         bar = rd.ballbar.load()
-        scene = artefact_scene(bar, ballbar_rods(bar), T, ArtefactHardware.from_materials(hardware_file(cfg)))
-        scanner = rd.truth.sensors.load().scanner(row["scanner"])
+        return artefact_scene(bar, ballbar_rods(bar), T, hardware)
+
+    def recording(self, rd: RunDir, cfg: Settings, scanner: str):
+        true_scanner, acquisition = super().recording(rd, cfg, scanner)
         v = cfg.simulate.verification
         if v.camera_width_px is not None:
-            scanner = scaled_scanner(scanner, v.camera_width_px)
-        acq = cfg.simulate.acquisition
-        settings = _Acquisition(acq, seed=v.seed)
-        result = simulate_measurement(item, scanner, scene, settings, cfg.decode, rd.store(item).path,
-                                      rd.truth.store(item).path, {"pose": row["pose"], "kind": "ballbar"})
-        log_summary(result.summary)
-
-
-class _Acquisition:
-    """The acquisition settings with the verification's own noise seed."""
-
-    def __init__(self, acq, seed: int):
-        self.render, self.sequence, self.backdrop_mm = acq.render, acq.sequence, acq.backdrop_mm
-        self.store_frames, self.seed = acq.store_frames, seed
+            true_scanner = scaled_scanner(true_scanner, v.camera_width_px)
+        return true_scanner, acquisition.model_copy(update={"seed": v.seed})
