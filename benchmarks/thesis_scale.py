@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -41,7 +42,7 @@ def scratch_copy(src: RunDir, dst: RunDir) -> None:
     """The inputs of the processing steps: what a data source leaves in a run directory."""
     for f in (src.artefact, src.rods, src.ballbar, src.sensors_prior, src.poses_planned, src.acquisition):
         if f.exists():
-            f.path.parent.mkdir(parents=True, exist_ok=True)
+            (dst.root / f.rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(f.path, dst.root / f.rel)
     for m in src.acquisition.load()["measurement"]:
         copy_store(src.store(m).path, dst.store(m).path)
@@ -74,7 +75,8 @@ def main():
     cfg = RunConfig.model_validate(src.read_manifest()["config"])
     table = src.acquisition.load()
     out = {"run_dir": str(src.root), "n_measurements": int((table.kind == "artefact").sum()),
-           "n_ballbar_measurements": int((table.kind == "ballbar").sum()), "workers": args.workers}
+           "n_ballbar_measurements": int((table.kind == "ballbar").sum()), "workers": args.workers,
+           "load_average_at_start": os.getloadavg(), "cpus": os.cpu_count()}
     if cfg.simulate is not None:
         out["camera_width_px"] = cfg.simulate.acquisition.camera_width_px
         out["decode_and_store_s_per_measurement"] = decode_seconds(src, cfg, args.repeat)
