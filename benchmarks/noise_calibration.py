@@ -1,6 +1,6 @@
 """Measure what the virtual scanner's noise does after decoding: tau against truth,
 epsilon-1 with the true sensor parameters, unwrapping errors. Not a speed benchmark:
-the numbers behind RenderConfig's default ``excess_noise`` (README, "Acquisition").
+the numbers behind RenderConfig's default ``excess_noise`` (docs/acquisition.md).
 
 For each camera width and measurement (table 6-1 pose, scanner), the same scene is
 rendered with the configuration under test and noise-free, both are decoded, and on

@@ -53,7 +53,7 @@ _POINT = ("truth_x", "truth_y", "truth_z")
 
 @dataclass(frozen=True)
 class AcquiredMeasurement:
-    """What :func:`acquire_measurement` did: the decoded maps and a small summary."""
+    """What :func:`simulate_measurement` did: the decoded maps and a small summary."""
 
     decoded: DecodedPhase
     summary: dict

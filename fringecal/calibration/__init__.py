@@ -1,5 +1,5 @@
 """Calibration: DLT start values, control points and the object-space bundle adjustment
-(thesis sections 2.2.3, 2.3.2-2.3.7, 6.3-6.5, 6.9). See README, "Calibration (bundle adjustment)"."""
+(thesis sections 2.2.3, 2.3.2-2.3.7, 6.3-6.5, 6.9). See docs/calibration.md."""
 
 from .bundle import BundleOptions, BundleResult, ResidualStatistics, StartValueError, bundle_adjust
 from .controlpoints import incidence_map, select_control_points

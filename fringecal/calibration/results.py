@@ -95,7 +95,7 @@ def plot_histograms(result: BundleResult, eps1_png, eps2_png, bins: int = 100) -
 
 
 def summary(result: BundleResult, diagonal_mm: float | None = None) -> dict:
-    """A JSON-ready account of the adjustment (see the README's RUN_DIR contract)."""
+    """A JSON-ready account of the adjustment (``bundle_summary.json``; docs/calibration.md)."""
     pr = result.problem
     unc = result.uncertainty
     source = "given"

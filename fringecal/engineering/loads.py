@@ -10,7 +10,7 @@ length / 2`` (it sits in the cap's bore against the sphere), tube between the ca
 
 Prescribed loads: ``node_load_n`` at every node and ``rod_end_load_n`` per rod end
 (so a node with six rods gets six of them), both along gravity. The thesis's
-table 3-3 is reproduced by 3.825 N per rod end and nothing else (see README).
+table 3-3 is reproduced by 3.825 N per rod end and nothing else (see docs/engineering.md).
 """
 
 from __future__ import annotations

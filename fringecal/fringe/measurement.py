@@ -1,7 +1,7 @@
 """Frames -> decoded maps -> one measurement store.
 
-:func:`decode_to_store` is the whole path for frames already in memory (the virtual
-scanner's ``acquire`` is render -> ``decode_to_store``); :func:`decode_folder` reads a
+:func:`decode_to_store` is the whole path for frames already in memory (a simulated
+measurement is render -> ``decode_to_store``, :func:`fringecal.acquisition.simulate_measurement`); :func:`decode_folder` reads a
 frame folder first. Both refuse a measurement without fringes (zero modulation
 everywhere) or without a single valid pixel, naming the source.
 """

@@ -8,7 +8,7 @@ tolerance (section 4.1: about 1/10 of the target accuracy, ~5 um for a 3 x 1 x 1
 volume at 1 part in 20 000 of its diagonal).
 
 The thesis's own numbers (table 4-1, measurements ~2 min apart, a scan of ~15 s, or
-~30 s including processing) are reproduced in the README and the tests: see
+~30 s including processing) are reproduced in docs/hexapod.md and the tests: see
 :func:`thesis_reading`.
 """
 
