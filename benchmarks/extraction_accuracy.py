@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fringecal.acquisition import frames_from_rows  # noqa: E402
+from fringecal.frames import frames_from_rows  # noqa: E402
 from fringecal.pointcloud import triangulate_maps  # noqa: E402
 from fringecal.rundir import RunDir  # noqa: E402
 from fringecal.spheres.fit import SphereModel  # noqa: E402

@@ -13,7 +13,10 @@ import numpy as np
 
 from .rotation import angles_from_matrix, rotation_matrix, to_local, to_world
 
-__all__ = ["Frame"]
+__all__ = ["Frame", "POSE_COLUMNS", "frame_rows", "frames_from_rows"]
+
+#: Columns of a pose in every pose table (``T_world_<object>`` or ``T_<frame>_<object>``).
+POSE_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
 
 
 @dataclass(frozen=True)
@@ -94,3 +97,16 @@ class Frame:
         # x_b = R (x_a - t)  =>  as a frame with origin t' and rotation R':
         # x_b = R'^T x_a + t'  with R' = R^T, t' = -R t
         return Frame.from_matrix(R.T, -R @ self.t)
+
+
+def frame_rows(frames: dict, key: str = "measurement"):
+    """A pose table (``key``, tx_mm .. kappa_rad) of name -> Frame."""
+    import pandas as pd
+
+    return pd.DataFrame([{key: name, **dict(zip(POSE_COLUMNS, map(float, T.params)))} for name, T in frames.items()],
+                        columns=[key, *POSE_COLUMNS])
+
+
+def frames_from_rows(table, key: str = "measurement") -> dict:
+    """name -> Frame of a pose table (inverse of :func:`frame_rows`)."""
+    return {str(r[key]): Frame.from_params([float(r[c]) for c in POSE_COLUMNS]) for _, r in table.iterrows()}

@@ -13,12 +13,10 @@ Typical use (what the simulated steps of ``fringecal run`` and ``fringecal simul
 from .measure import (TRUTH_VARIABLES, AcquiredMeasurement, camera_format_attr, measurement_rng, render_frames,
                       simulate_measurement, truth_from_store, truth_variables)
 from .plan import POSE_COLUMNS, PoseMove, move_hexapod, poses_table
-from .simulated import (SimulatedRig, acquisition_table, frame_rows, frames_from_rows, input_files,
-                        load_simulated_rig, scanners_seeing)
+from .simulated import SimulatedRig, acquisition_table, input_files, load_simulated_rig, scanners_seeing
 
 __all__ = [
-    "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "acquisition_table", "frame_rows",
-    "frames_from_rows", "PoseMove", "move_hexapod", "poses_table", "POSE_COLUMNS",
+    "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "acquisition_table", "PoseMove", "move_hexapod", "poses_table", "POSE_COLUMNS",
     "AcquiredMeasurement", "simulate_measurement", "render_frames", "measurement_rng", "truth_variables",
     "truth_from_store", "camera_format_attr", "TRUTH_VARIABLES",
 ]

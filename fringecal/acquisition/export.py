@@ -29,13 +29,14 @@ from .. import dataset as layout
 from ..artefact import load_artefact, load_rods
 from ..atomic import temporary_sibling
 from ..ballbar import ballbar_rods
+from ..frames import frame_rows, frames_from_rows
 from ..fringe.importer import write_frames
 from ..rundir import TruthDir, measurement_id
 from ..simulate.resolution import scaled_scanner
 from ..simulate.scenes import artefact_scene
 from .measure import render_frames
 from .plan import move_hexapod, poses_table
-from .simulated import frame_rows, frames_from_rows, load_simulated_rig
+from .simulated import load_simulated_rig
 
 __all__ = ["write_dataset", "PROCESSING_SECTIONS"]
 

@@ -12,12 +12,9 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from ..frames import Frame
+from ..frames import POSE_COLUMNS, Frame
 
 __all__ = ["PoseMove", "move_hexapod", "poses_table", "POSE_COLUMNS"]
-
-POSE_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
-
 
 @dataclass(frozen=True)
 class PoseMove:

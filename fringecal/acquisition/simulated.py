@@ -26,16 +26,14 @@ import pandas as pd
 from ..artefact import Artefact, load_artefact, load_rods
 from ..ballbar import BallBarPosition, thesis_positions, vdi7_positions
 from ..config import ConfigError
-from ..frames import Frame
+from ..frames import frames_from_rows
 from ..pipeline.prior import simulate_prior_rig
 from ..rig import Rig, load_rig
 from ..rundir import measurement_id
 from ..simulate.resolution import scaled_rig
 from ..simulate.scenes import ArtefactHardware
-from .plan import POSE_COLUMNS
 
-__all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "acquisition_table",
-           "frame_rows", "frames_from_rows"]
+__all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "acquisition_table"]
 
 
 @dataclass(frozen=True)
@@ -142,17 +140,6 @@ def load_simulated_rig(sim) -> SimulatedRig:
         raise ConfigError(f"{sim.ballbar_path()}: a ball-bar has two spheres, found {len(ballbar)}")
     positions, recorders = _positions(sim, truth, ballbar)
     return SimulatedRig(truth, prior, frames, artefact, rods, hardware, planned, ballbar, positions, recorders)
-
-
-def frame_rows(frames: dict, key: str = "measurement") -> pd.DataFrame:
-    """A pose table (``key``, tx_mm .. kappa_rad) of name -> Frame."""
-    return pd.DataFrame([{key: name, **dict(zip(POSE_COLUMNS, map(float, T.params)))} for name, T in frames.items()],
-                        columns=[key, *POSE_COLUMNS])
-
-
-def frames_from_rows(table: pd.DataFrame, key: str = "measurement") -> dict:
-    """name -> Frame of a pose table (inverse of :func:`frame_rows`)."""
-    return {str(r[key]): Frame.from_params([float(r[c]) for c in POSE_COLUMNS]) for _, r in table.iterrows()}
 
 
 def acquisition_table(sr: SimulatedRig) -> pd.DataFrame:

@@ -31,7 +31,8 @@ from typing import Any, ClassVar, Union
 
 from ..rundir import RunDir, RunFile, TableFile
 
-__all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read", "store_row", "store_fields", "stores_of_kind"]
+__all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read", "store_row", "store_fields", "stores_of_kind",
+           "save_or_remove"]
 
 
 class StepError(RuntimeError):
@@ -164,6 +165,15 @@ class Step:
     @classmethod
     def module_names(cls) -> tuple[str, ...]:
         return (cls.__module__,) + tuple(cls.modules)
+
+
+def save_or_remove(file, content) -> None:
+    """Save an optional output, or remove it when there is nothing (None) to save: a
+    rerun must not leave an earlier run's file behind."""
+    if content is None:
+        file.remove()
+    else:
+        file.save(content)
 
 
 # -- the acquisition table, which every per-store step starts from ------------------------

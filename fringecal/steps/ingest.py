@@ -12,13 +12,17 @@ six external parameters are fixed whatever ``sensors_prior.csv`` says.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pandas as pd
+
+from schemas import PosePlanTable, read_table
 
 from ..artefact import load_artefact, load_rods
 from ..dataset import DataSet
 from ..rig import load_rig
 from ..rundir import RunDir
-from .base import Settings, Step, Value
+from .base import Settings, Step, Value, save_or_remove
 
 __all__ = ["Ingest"]
 
@@ -54,18 +58,13 @@ class Ingest(Step):
         artefact = apply_corrections(load_artefact(ds.artefact), ds.config.artefact_corrections,
                                      ds.config.temperature_c)
         rd.artefact.save(artefact)
-        rd.rods.save(load_rods(ds.rods, artefact)) if ds.rods else rd.rods.remove()
-        rd.ballbar.save(load_artefact(ds.ballbar)) if ds.ballbar else rd.ballbar.remove()
+        save_or_remove(rd.rods, ds.rods and load_rods(ds.rods, artefact))
+        save_or_remove(rd.ballbar, ds.ballbar and load_artefact(ds.ballbar))
+        save_or_remove(rd.poses_planned, ds.poses_planned and read_table(ds.poses_planned, PosePlanTable))
         prior = load_rig(ds.sensors_prior, reference=cfg.reference_scanner)
         free = prior.free.copy()
         free[[s.name for s in prior.sensors].index(prior.scanner(prior.reference).camera.name), :6] = False
-        rd.sensors_prior.save(prior.__class__(prior.scanners, prior.reference, free, prior.uncertainty))
-        if ds.poses_planned:
-            from schemas import PosePlanTable, read_table
-
-            rd.poses_planned.save(read_table(ds.poses_planned, PosePlanTable))
-        else:
-            rd.poses_planned.remove()
+        rd.sensors_prior.save(replace(prior, free=free))
         table = pd.DataFrame(_stacks(ds)).drop(columns="format")
         table.insert(4, "store", [rd.store(m).rel for m in table["measurement"]])
         rd.acquisition.save(table)

@@ -13,7 +13,7 @@ import logging
 
 import pandas as pd
 
-from ..acquisition import frames_from_rows
+from ..frames import frames_from_rows
 from ..rundir import RunDir
 from .base import Settings, Step
 from .spheres_first import artefact_items

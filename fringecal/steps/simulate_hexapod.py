@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import logging
 
-from ..acquisition import frame_rows, frames_from_rows, move_hexapod, poses_table
+from ..acquisition.plan import move_hexapod, poses_table
+from ..frames import frame_rows, frames_from_rows
 from ..rundir import RunDir
 from .base import Settings, Step
 

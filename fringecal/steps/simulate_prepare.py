@@ -9,10 +9,11 @@ ball-bar positions). See :mod:`fringecal.acquisition.simulated`.
 
 from __future__ import annotations
 
-from ..acquisition import acquisition_table, frame_rows, input_files, load_simulated_rig
+from ..acquisition.simulated import acquisition_table, input_files, load_simulated_rig
+from ..frames import frame_rows
 from ..rundir import RunDir
 from ..runconfig import AcquisitionConfig, SimulatedVerificationConfig, SimulationConfig
-from .base import Settings, Step
+from .base import Settings, Step, save_or_remove
 
 __all__ = ["SimulatePrepare", "simulation_of"]
 
@@ -46,7 +47,7 @@ class SimulatePrepare(Step):
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         sr = load_simulated_rig(simulation_of(cfg))
         rd.artefact.save(sr.artefact)
-        rd.rods.save(sr.rods) if sr.rods is not None else rd.rods.remove()
+        save_or_remove(rd.rods, sr.rods)
         rd.ballbar.save(sr.ballbar)
         rd.sensors_prior.save(sr.prior)
         rd.poses_planned.save(frame_rows(sr.planned))

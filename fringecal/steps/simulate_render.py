@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import logging
 
-from ..acquisition import frames_from_rows, simulate_measurement
+from ..acquisition.measure import simulate_measurement
+from ..frames import frames_from_rows
 from ..rundir import RunDir, TableFile
 from ..runconfig import AcquisitionConfig
 from ..simulate.scenes import ArtefactHardware, Scene, artefact_scene
