@@ -129,21 +129,6 @@ class ExtractionConfig(StrictModel):
 
         return _check_dataclass(LabellingConfig, v, "labelling")
 
-    def candidate_config(self):
-        from .spheres.candidates import CandidateConfig
-
-        return CandidateConfig(**self.candidates)
-
-    def rejection_config(self):
-        from .spheres.robust import RejectionConfig
-
-        return RejectionConfig(**self.rejection)
-
-    def labelling_config(self):
-        from .spheres.labelling import LabellingConfig
-
-        return LabellingConfig(**self.labelling)
-
 
 class ControlPointConfig(StrictModel):
     """Control-point selection on each fitted sphere (thesis 6.4: 10 px at 2048 px)."""
