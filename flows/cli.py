@@ -62,13 +62,15 @@ def pose(
 
 def _register_subcommands():
     """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
-    from . import cli_artefact, cli_decode, cli_fit, cli_hexapod, cli_report, cli_run, cli_simulate, cli_step, cli_verify
+    from . import (cli_acquire, cli_artefact, cli_decode, cli_fit, cli_hexapod, cli_report, cli_run, cli_simulate,
+                   cli_step, cli_verify)
 
     app.command("run")(cli_run.run_command)
     app.command("reproduce")(cli_run.reproduce_command)
     app.command("serve")(cli_run.serve_command)
     app.command("decode")(cli_decode.decode_command)
     app.command("simulate")(cli_simulate.simulate_command)
+    app.command("acquire")(cli_acquire.acquire_command)
     app.command("step")(cli_step.step_command)
     app.command("calibrate")(guarded(cli_step.calibrate_command))
     app.add_typer(cli_verify.app, name="verify")

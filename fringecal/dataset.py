@@ -16,6 +16,9 @@ clear message before any heavy work starts. The layout is the contract::
                               table with width_px, height_px, width_mm, height_mm per sensor)
       poses_planned.csv       optional: measurement, tx_mm, ty_mm, tz_mm, omega_rad, phi_rad,
                               kappa_rad (one row per measurement folder, no more, no fewer)
+      hexapod_moves.csv       optional: the hexapod's log of a live acquisition
+                              (schemas.HexapodMovesTable, :mod:`fringecal.acquisition.live`);
+                              every row names a measurement folder
       measurements/<measurement>/<scanner>/        image stack: sequence.yaml + frames
                                                    (see :mod:`fringecal.fringe.importer`)
       measurements/<measurement>/<scanner>.zarr    or a decoded store with tau_x, tau_y, valid
@@ -69,11 +72,11 @@ from fringecal.fringe.importer import SEQUENCE_FILE, read_stack_spec
 from fringecal.fringe.sequence import FringeSequence, SequenceError
 from fringecal.rig import Rig, load_rig
 from fringecal.store import store_attributes
-from schemas import PosePlanTable, TableError, read_table
+from schemas import HexapodMovesTable, PosePlanTable, TableError, read_table
 
 __all__ = [
     "DATASET_FILE", "ARTEFACT_FILE", "RODS_FILE", "SENSORS_PRIOR_FILE", "POSES_PLANNED_FILE",
-    "MEASUREMENTS_DIR", "VERIFICATION_DIR", "BALLBAR_FILE", "STORE_SUFFIX", "STORE_VARIABLES",
+    "HEXAPOD_MOVES_FILE", "MEASUREMENTS_DIR", "VERIFICATION_DIR", "BALLBAR_FILE", "STORE_SUFFIX", "STORE_VARIABLES",
     "BALLBAR_SPHERES", "DataSetError", "ProcessingOverrides", "DatasetConfig", "StackSource", "DataSet",
     "natural_key",
 ]
@@ -83,6 +86,7 @@ ARTEFACT_FILE = "artefact.csv"
 RODS_FILE = "rods.csv"
 SENSORS_PRIOR_FILE = "sensors_prior.csv"
 POSES_PLANNED_FILE = "poses_planned.csv"
+HEXAPOD_MOVES_FILE = "hexapod_moves.csv"
 MEASUREMENTS_DIR = "measurements"
 VERIFICATION_DIR = "verification"
 BALLBAR_FILE = "ballbar.csv"
@@ -173,6 +177,7 @@ class DataSet:
     scanners: tuple[str, ...]
     measurements: tuple[StackSource, ...]
     verification: tuple[StackSource, ...]
+    hexapod_moves: Optional[Path] = None
 
     @classmethod
     def open(cls, root) -> "DataSet":
@@ -199,11 +204,14 @@ class DataSet:
         poses = _optional_file(root / POSES_PLANNED_FILE)
         if poses is not None:
             _check_planned(poses, root / MEASUREMENTS_DIR, measurements)
+        moves = _optional_file(root / HEXAPOD_MOVES_FILE)
+        if moves is not None:
+            _check_moves(moves, root / MEASUREMENTS_DIR, measurements)
         ballbar, verification = _open_verification(root / VERIFICATION_DIR, rig, prior)
         _check_sequences(measurements + verification)
         _check_unique_ids(measurements + verification)
         return cls(root, config, artefact_path, rods, prior, poses, ballbar,
-                   tuple(s.name for s in rig.scanners), measurements, verification)
+                   tuple(s.name for s in rig.scanners), measurements, verification, moves)
 
     def measurement_names(self) -> list[str]:
         """Measurement names in natural order."""
@@ -421,6 +429,14 @@ def _check_planned(path: Path, folder: Path, sources: tuple[StackSource, ...]) -
     for m in names:
         if m not in planned:
             raise DataSetError(f"{folder / m}: measurement folder has no planned pose in {path}")
+
+
+def _check_moves(path: Path, folder: Path, sources: tuple[StackSource, ...]) -> None:
+    names = _groups(sources)
+    for m in read_table(path, HexapodMovesTable)["measurement"]:
+        if m not in names:
+            raise DataSetError(f"{path}: hexapod move of measurement {m!r}, which has no measurement folder "
+                               f"{folder / m}")
 
 
 # -- verification --------------------------------------------------------------

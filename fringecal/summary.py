@@ -20,7 +20,7 @@ __all__ = ["manifest", "run_summary", "pipeline_status", "source_files"]
 def source_files(cfg) -> list:
     """The files the run's data source is described by (not its image stacks)."""
     if cfg.source == "simulated":
-        from .acquisition import input_files
+        from .acquisition.simulated import input_files
 
         return input_files(cfg.simulate)
     from .dataset import DataSet

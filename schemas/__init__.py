@@ -11,6 +11,7 @@ from .tables import (  # noqa: F401
     CalibratedSensorsTable,
     ControlPointsTable,
     DriftCentresTable,
+    HexapodMovesTable,
     HexapodPlanTable,
     HumidityLengthsTable,
     MoistureUptakeTable,

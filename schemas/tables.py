@@ -33,6 +33,7 @@ __all__ = [
     "ControlPointsTable",
     "HexapodPlanTable",
     "AcquiredPosesTable",
+    "HexapodMovesTable",
     "AcquisitionTable",
     "DriftCentresTable",
     "TrussForcesTable",
@@ -467,6 +468,28 @@ class AcquiredPosesTable(PosePlanTable):
     counts_4: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
     counts_5: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
     counts_6: Optional[Series[pd.Int64Dtype]] = pa.Field(nullable=True)
+
+
+class HexapodMovesTable(AcquiredPosesTable):
+    """The hexapod's log of a live acquisition (``hexapod_moves.csv`` of a data set,
+    :mod:`fringecal.acquisition.live`), one row per complete measurement. As in
+    :class:`AcquiredPosesTable`, ``tx_mm .. kappa_rad`` is the artefact pose reached (forward
+    kinematics of the encoder counts ``counts_1..6`` read back after the move) and
+    ``planned_*`` the pose asked for. ``tolerance_mm`` and ``tolerance_rad`` are the reach
+    tolerance the errors were checked against, ``moves`` how often the platform was moved
+    to this pose (more than 1 when an interrupted measurement was resumed; the row is the
+    last move), ``time_utc`` when that move ended (ISO 8601)."""
+
+    counts_1: Series[int] = pa.Field(ge=0)
+    counts_2: Series[int] = pa.Field(ge=0)
+    counts_3: Series[int] = pa.Field(ge=0)
+    counts_4: Series[int] = pa.Field(ge=0)
+    counts_5: Series[int] = pa.Field(ge=0)
+    counts_6: Series[int] = pa.Field(ge=0)
+    tolerance_mm: Series[float] = pa.Field(ge=0)
+    tolerance_rad: Series[float] = pa.Field(ge=0)
+    moves: Series[int] = pa.Field(ge=1)
+    time_utc: Series[str] = pa.Field(str_length={"min_value": 1})
 
 
 class AcquisitionTable(_Base):
