@@ -33,7 +33,7 @@ from .rotation import angles_from_matrix
 
 __all__ = [
     "FrameLink", "LinkResult", "mean_frame", "robust_mean_frame", "link_scanners",
-    "sensor_in_frame", "rig_in_frame", "LINK_COLUMNS",
+    "sensor_in_frame", "rig_in_frame", "pose_contradictions", "LINK_COLUMNS",
 ]
 
 LINK_COLUMNS = ["scanner", "reference", "tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad",
@@ -127,6 +127,7 @@ class FrameLink:
     u_rotation_rad: float
     via: tuple[str, ...]
     measurements: tuple[str, ...] = field(default=(), repr=False)
+    rejected: tuple[str, ...] = field(default=(), repr=False)
 
 
 @dataclass(frozen=True)
@@ -155,7 +156,8 @@ def _edge(poses_a: dict, poses_b: dict, k: float):
     n = len(used)
     spread_t = float(np.sqrt(np.mean(dt**2))) if n > 1 else float("nan")
     spread_r = float(np.sqrt(np.mean(dr**2))) if n > 1 else float("nan")
-    return mean, n, int((~keep).sum()), spread_t, spread_r, tuple(m for m, k_ in zip(shared, keep) if k_)
+    return (mean, n, int((~keep).sum()), spread_t, spread_r, tuple(m for m, k_ in zip(shared, keep) if k_),
+            tuple(m for m, k_ in zip(shared, keep) if not k_))
 
 
 def link_scanners(poses: pd.DataFrame, reference: str, k: float = 4.0, source: str = "<poses>") -> LinkResult:
@@ -223,17 +225,78 @@ def link_scanners(poses: pd.DataFrame, reference: str, k: float = 4.0, source: s
     order = sorted((s for s in best if s != reference), key=lambda s: best[s][0])
     for s in order:
         p = parent[s]
-        mean, n, n_rej, st, sr, used = _edge(by_scanner[p], by_scanner[s], k)
+        mean, n, n_rej, st, sr, used, rejected = _edge(by_scanner[p], by_scanner[s], k)
         prev = links[p]
         frame = mean if p == reference else prev.frame.compose(mean)
         links[s] = FrameLink(
             s, reference, frame, n, n_rej,
             float(np.hypot(prev.translation_spread_mm, st)), float(np.hypot(prev.rotation_spread_rad, sr)),
             float(np.hypot(prev.u_translation_mm, st / np.sqrt(n))), float(np.hypot(prev.u_rotation_rad, sr / np.sqrt(n))),
-            prev.via + (s,), used)
+            prev.via + (s,), used, rejected)
     unlinked = {s: f"shares no measurement (directly or through other scanners) with {reference!r}"
                 for s in scanners if s not in links}
     return LinkResult(reference, links, unlinked)
+
+
+def pose_contradictions(poses: pd.DataFrame, result: LinkResult, probe_local, tol_mm: float,
+                        source: str = "<poses>") -> pd.DataFrame:
+    """Poses that the other scanners' poses of the same measurement contradict.
+
+    Each linked scanner's pose of measurement m, carried into the reference frame
+    (``T_reference_scanner o T_scanner_artefact(m)``), puts the artefact somewhere;
+    all of them should put it in the same place. Two poses *disagree* when some point
+    of ``probe_local`` (artefact frame, e.g. the sphere centres) lands more than
+    ``tol_mm`` apart. A mislabelled measurement moves a sphere onto another's place,
+    so half the artefact's smallest sphere spacing separates a wrong labelling from
+    pose noise. A pose that disagrees with every other scanner's while those agree
+    with each other is *contradicted*; when the scanners of a measurement disagree
+    without a majority (two scanners, say), every one of them is.
+
+    Returns
+    -------
+    DataFrame
+        ``measurement, scanner, deviation_mm`` (largest distance to the agreeing
+        scanners' placement, or to the nearest other one), ``n_scanners``,
+        ``message``; one row per contradicted pose.
+    """
+    poses = validate_table(poses, PosesTable, source)
+    probe = np.asarray(probe_local, float)
+    placed: dict[str, dict[str, np.ndarray]] = {}
+    for r in poses.itertuples(index=False):
+        if r.scanner not in result.links:
+            continue
+        T = result.links[r.scanner].frame.compose(
+            Frame([r.tx_mm, r.ty_mm, r.tz_mm], [r.omega_rad, r.phi_rad, r.kappa_rad]))
+        placed.setdefault(str(r.measurement), {})[r.scanner] = T.to_world(probe)
+    rows = []
+    for m, by in placed.items():
+        names = list(by)
+        if len(names) < 2:
+            continue
+        P = np.stack([by[s] for s in names])
+        dev = np.linalg.norm(P[:, None] - P[None, :], axis=3).max(axis=2)
+        if dev.max() <= tol_mm:
+            continue
+        # the placement most scanners share: around the scanner agreeing with the most others
+        agree = (dev <= tol_mm).sum(axis=1)
+        centre = min(range(len(names)), key=lambda i: (-agree[i], dev[i].sum()))
+        cluster = [j for j in range(len(names)) if dev[centre, j] <= tol_mm]
+        majority = len(cluster) > len(names) / 2
+        for i, s in enumerate(names):
+            if majority and i in cluster:
+                continue
+            if majority:
+                d = float(dev[i, cluster].max())
+                why = (f"measurement {m}: scanner {s}'s pose, carried into the reference frame by its link, puts the "
+                       f"artefact {d:.0f} mm from where scanner(s) {', '.join(names[j] for j in cluster)} put it "
+                       f"(they agree within {tol_mm:.0f} mm): its labelling is wrong")
+            else:
+                d = float(np.delete(dev[i], i).min())
+                why = (f"measurement {m}: the poses of scanners {', '.join(names)} put the artefact up to "
+                       f"{float(dev.max()):.0f} mm apart through their links, and no majority agrees within "
+                       f"{tol_mm:.0f} mm: one of their labellings is wrong, which one cannot be told")
+            rows.append((m, s, d, len(names), why))
+    return pd.DataFrame(rows, columns=["measurement", "scanner", "deviation_mm", "n_scanners", "message"])
 
 
 def sensor_in_frame(sensor, T_reference_scanner: Frame, near=None):

@@ -103,8 +103,11 @@ class ExtractionConfig(StrictModel):
     candidates: dict = Field(default_factory=dict)
     # point noise of the simulated scanners along the normal is ~0.1 mm at 512 px
     rejection: dict = Field(default_factory=lambda: {"noise_mm": 0.1})
-    # centres from prior (uncalibrated) scanners are good to ~0.15 mm (thesis: 0.2-0.5 mm)
-    labelling: dict = Field(default_factory=lambda: {"centre_u_mm": 0.15, "scale_tol": 0.002})
+    # labelling's tolerances are the prior calibrations' stated uncertainty; LabellingConfig's
+    # defaults are sized for customers' priors (centres up to 3 mm RMS off, 0.6 % in scale,
+    # plans good to 1 mm / 1 mrad), and each scanner's scale and centre uncertainty are then
+    # estimated from its measurements (docs/spheres.md)
+    labelling: dict = Field(default_factory=dict)
     use_planned_poses: bool = True
     second_pass_rod_cones: bool = True
 

@@ -5,22 +5,32 @@ of one (measurement, scanner) -- fitted centres in the scanner frame, in any ord
 possibly with false candidates, missing spheres and poor partial fits -- are matched
 to the artefact definition by an interpretation tree (Grimson & Lozano-Perez): each
 candidate is assigned an artefact sphere or "none", and a branch survives only if
-every pair of assigned candidates is as far apart as their spheres on the CMM,
-within a tolerance built from the uncertainties::
+every pair of assigned candidates is as far apart as their spheres on the CMM, up to
+one common scale factor ``sigma`` and a tolerance built from the uncertainties::
 
-    |d_ij - D_ab| <= k sqrt(u_i^2 + u_j^2 + u_a^2 + u_b^2) + scale_tol D_ab
+    |d_ij - sigma D_ab| <= k sqrt(u_i^2 + u_j^2 + u_a^2 + u_b^2),   |sigma - 1| <= scale_tol
 
-(u_i: standard uncertainty of a fitted centre coordinate, u_a: of a CMM centre).
-Complete branches with at least ``min_spheres`` spheres are verified by SVD
-registration (:func:`fringecal.registration.kabsch`): every matched centre must lie
-within ``k sqrt(u_i^2 + u_a^2)`` (+ the scale term) of its registered CMM centre,
-which also rejects mirror-image assignments that distances alone cannot tell apart.
+(u_i: standard uncertainty of a fitted centre coordinate, u_a: of a CMM centre). The
+branch carries the interval of scales its pairs allow and dies when it is empty, so
+all pairs of a labelling agree on one scale: a scanner whose own calibration is
+0.6 % short measures every distance 0.6 % short, not some short and some long.
+Complete branches with at least ``min_spheres`` spheres are verified by a similarity
+registration (:func:`fringecal.registration.umeyama`, scale within ``scale_tol``):
+every matched centre must lie within ``k sqrt(u_i^2 + u_a^2)`` of its registered CMM
+centre, which also rejects mirror-image assignments that distances alone cannot tell
+apart.
 
 The labelling with the most verified spheres wins, and only if it is the only one:
 when two different labellings explain the data equally well (e.g. subsets of the
 artefact that are symmetric within the tolerance), the measurement is refused with
 both alternatives named, never guessed. A prior pose (for example the hexapod's
 planned pose) or the set of spheres a scanner can see removes such ambiguities.
+
+The tolerances are the prior calibration's stated uncertainty (:class:`LabellingConfig`);
+:func:`label_sphere_fits` (module :mod:`fringecal.spheres.label_scanners`) estimates each
+scanner's scale and centre uncertainty from all its measurements, labels again with
+them, finds each scanner's frame by consensus of its measurements and the planned
+poses, and refuses any labelling the others contradict.
 """
 
 from __future__ import annotations
@@ -33,7 +43,7 @@ import pandas as pd
 
 from ..artefact import Artefact
 from ..frames import Frame
-from ..registration import DegenerateGeometryError, RigidRegistration, kabsch
+from ..registration import DegenerateGeometryError, RigidRegistration, kabsch, umeyama
 
 __all__ = ["LabellingConfig", "Labelling", "LabellingRefused", "label_spheres", "label_sphere_fits",
            "scanner_frame_from_plan", "ambiguous_subsets", "REFUSAL_REASONS"]
@@ -41,7 +51,8 @@ __all__ = ["LabellingConfig", "Labelling", "LabellingRefused", "label_spheres", 
 #: Codes of :class:`LabellingRefused`.
 REFUSAL_REASONS = {
     "too_few_candidates": "fewer candidates than min_spheres can be artefact spheres",
-    "inconsistent": "no assignment of min_spheres or more candidates matches the artefact's distances and shape",
+    "inconsistent": "no assignment of min_spheres or more candidates matches the artefact's distances and shape, "
+                    "or the scanner's other measurements contradict the labelling",
     "ambiguous": "two or more different assignments explain the data equally well",
     "search_limit": "the interpretation tree exceeded its node budget",
 }
@@ -66,42 +77,83 @@ class LabellingRefused(ValueError):
 
 @dataclass(frozen=True)
 class LabellingConfig:
-    """Tolerances of :func:`label_spheres`.
+    """Tolerances of the labelling: the prior calibration's stated uncertainty.
+
+    The defaults are sized for scanners known only by their own (prior) calibration,
+    as a customer's cell gives them: sphere centres up to 3 mm RMS off the CMM
+    geometry (a scale error of up to 0.6 % about the scanner's origin, ~1 mm of
+    smooth distortion-like warp, noise), planned hexapod poses good to ~1 mm / 1 mrad
+    relative to each other, and each scanner's frame arbitrary. They are upper
+    bounds: :func:`label_sphere_fits` estimates each scanner's scale and centre
+    uncertainty from its measurements and labels again with those (never looser than
+    stated here). For the simulated rig's true sensors (~0.01 mm) give
+    ``centre_u_mm=0.01``.
 
     Attributes
     ----------
     k : float
         Tolerance in standard uncertainties.
     centre_u_mm : float
-        Floor of a fitted centre's standard uncertainty per coordinate. A fit's own
-        covariance says ~1 um; what limits agreement with the CMM is the scanner's
-        calibration (simulated rig: ~0.01 mm; uncalibrated real scanners, like the
-        thesis's before bundle adjustment: ~0.2 mm, so use ~0.15 there).
+        The prior calibration's standard uncertainty of a sphere centre per
+        coordinate once the scanner's scale is removed (warp and noise); also the
+        floor of a fitted centre's own uncertainty (a fit's covariance says ~1 um).
+        Default 0.75 mm: ~1 mm of warp plus noise.
     scale_tol : float
-        Relative length error allowed on top (scanner scale, temperature).
+        The largest scale error of a prior calibration (relative): every distance of
+        one scanner may be off by one common factor within ``1 +- scale_tol``.
+        Default 0.008 (documented priors: up to 0.6 %).
     radius_tol_mm : float
         A candidate whose fitted radius differs more from every allowed sphere's
         CMM radius is not a sphere of the artefact (ignored when radii are not given).
     min_spheres : int
     prior_tol_mm : float
         With a prior pose, a candidate can only be a sphere predicted within this
-        distance.
+        distance (an upper bound; spheres are ~600 mm apart).
     ambiguity_margin : float
         The winner is refused if a conflicting labelling with as many spheres passes
         with the tolerance widened by this factor: a clear winner is required, not
         one that won by a hair.
     max_nodes : int
         Budget of the tree search.
+    plan_u_mm, plan_u_rad : float
+        Standard uncertainty of the planned poses relative to each other (hexapod:
+        ~1 mm, ~1 mrad); sizes how closely the scanner frames implied by different
+        measurements must agree.
+    consensus_margin : float
+        The scanner frame found by consensus of the planned poses is refused when a
+        different frame explains the measurements nearly as well: the rival's robust
+        misfit (sum over measurements of the squared normalised distance, each
+        capped at ``k**2``) must exceed the winner's by this much (default ``k**2``:
+        at least one measurement flatly contradicts the rival and not the winner).
+    refine : bool
+        Refine the scale and centre uncertainty per scanner from its measurements
+        (:func:`label_sphere_fits`).
     """
 
     k: float = 4.0
-    centre_u_mm: float = 0.02
-    scale_tol: float = 1e-4
+    centre_u_mm: float = 0.75
+    scale_tol: float = 0.008
     radius_tol_mm: float = 1.0
     min_spheres: int = 3
     prior_tol_mm: float = 100.0
     ambiguity_margin: float = 2.0
     max_nodes: int = 2_000_000
+    plan_u_mm: float = 1.0
+    plan_u_rad: float = 0.001
+    consensus_margin: float = 16.0
+    refine: bool = True
+
+    def __post_init__(self):
+        rules = {"k": (self.k > 0, "> 0"), "centre_u_mm": (self.centre_u_mm > 0, "> 0"),
+                 "scale_tol": (0 <= self.scale_tol < 0.5, "in [0, 0.5)"),
+                 "radius_tol_mm": (self.radius_tol_mm >= 0, ">= 0"), "min_spheres": (self.min_spheres >= 3, ">= 3"),
+                 "prior_tol_mm": (self.prior_tol_mm > 0, "> 0"),
+                 "ambiguity_margin": (self.ambiguity_margin >= 1, ">= 1"), "max_nodes": (self.max_nodes > 0, "> 0"),
+                 "plan_u_mm": (self.plan_u_mm >= 0, ">= 0"), "plan_u_rad": (self.plan_u_rad >= 0, ">= 0"),
+                 "consensus_margin": (self.consensus_margin >= 0, ">= 0")}
+        bad = [f"{name} = {getattr(self, name)!r} (must be {rule})" for name, (ok, rule) in rules.items() if not ok]
+        if bad:
+            raise ValueError(f"labelling settings: {'; '.join(bad)}")
 
 
 @dataclass(frozen=True)
@@ -115,12 +167,16 @@ class Labelling:
     residuals_mm : ndarray, shape (n,)
         Distance of each labelled candidate from its registered CMM centre (NaN if unlabelled).
     T_scanner_artefact : Frame
-        The SVD registration of the labelled centres (artefact -> scanner frame).
+        The rigid registration of the labelled CMM centres onto the candidate centres
+        divided by ``scale`` (artefact -> scale-corrected scanner frame).
     rms_mm : float
     unlabelled : dict
         Candidate index -> why it was left out.
     nodes : int
         Tree nodes visited.
+    scale : float
+        The scanner's scale this labelling implies: the ``scale`` given to
+        :func:`label_spheres` times the fitted residual scale.
     """
 
     sphere_ids: tuple
@@ -129,17 +185,11 @@ class Labelling:
     rms_mm: float
     unlabelled: dict
     nodes: int
+    scale: float = 1.0
 
     @property
     def n_labelled(self) -> int:
         return sum(s is not None for s in self.sphere_ids)
-
-
-def _verify(X, Y, tol_pts):
-    """Rigid fit of CMM centres Y onto candidates X; residuals and whether all pass."""
-    M, T = kabsch(Y, X)
-    res = np.linalg.norm(Y @ M.T + T - X, axis=1)
-    return res, bool(np.all(res <= tol_pts))
 
 
 def _conflict(a: dict, b: dict) -> bool:
@@ -149,45 +199,82 @@ def _conflict(a: dict, b: dict) -> bool:
 
 
 class _Search:
-    """Interpretation tree over candidates; verified leaves with the most spheres."""
+    """Interpretation tree over candidates; verified leaves with the most spheres.
 
-    def __init__(self, X, d, D, Y, u, ua, order, options, cfg):
-        self.X, self.d, self.D, self.Y, self.u, self.ua = X, d, D, Y, u, ua
-        self.order, self.options, self.cfg = order, options, cfg
+    Each branch carries the interval of scales its pairs allow; a leaf is verified by
+    a similarity registration with the scale inside ``scale_bounds``.
+    """
+
+    def __init__(self, X, d, D, Y, u, ua, order, options, scale_bounds, max_nodes):
+        self.X, self.d, self.D, self.Y = X, d, D, Y
+        self.u2, self.ua2 = u**2, ua**2
+        self.order, self.options = order, options
+        self.scale_bounds, self.max_nodes = scale_bounds, max_nodes
         self.nodes = 0
 
-    def run(self, k: float, min_count: int) -> list[tuple[dict, np.ndarray, float]]:
-        cfg, u, ua, d, D = self.cfg, self.u, self.ua, self.d, self.D
-        order, options = self.order, self.options
-        best = [min_count]
-        found: list[tuple[dict, np.ndarray, float]] = []
-        assign: dict[int, int] = {}
-        used: set[int] = set()
+    def run(self, k: float, min_count: int) -> list[tuple[dict, np.ndarray, float, float]]:
+        u2, ua2, d, D = self.u2, self.ua2, self.d, self.D
+        # scale interval each (candidate pair, sphere pair) allows: sigma in [LO, HI]
+        t = k * np.sqrt(u2[:, None, None, None] + u2[None, :, None, None] + ua2[None, None, :, None]
+                        + ua2[None, None, None, :])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            LO = (d[:, :, None, None] - t) / D[None, None]
+            HI = (d[:, :, None, None] + t) / D[None, None]
+        same = np.eye(len(D), dtype=bool)[None, None]
+        LO, HI = np.where(same, np.inf, LO), np.where(same, -np.inf, HI)
+        order = self.order
+        order_arr = np.asarray(order, int)
+        X, Y = self.X, self.Y
+        # a 3-D position error that verification would still accept, per candidate
+        eps = np.sqrt(3) * k * np.sqrt(u2 + ua2.max())
+        cross_c, cross_s = {}, {}
 
-        def pair_ok(i, a, j, b):
-            tol = k * np.sqrt(u[i] ** 2 + u[j] ** 2 + ua[a] ** 2 + ua[b] ** 2) + cfg.scale_tol * D[a, b]
-            return abs(d[i, j] - D[a, b]) <= tol
+        def cross(p, q):
+            return np.array([p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]])
+
+        def handed_c(j0, j1, j2, i):
+            """Signed volume of candidates (j0, j1, j2, i) and its error bound."""
+            if (j0, j1, j2) not in cross_c:
+                n = cross(X[j1] - X[j0], X[j2] - X[j0])
+                cross_c[j0, j1, j2] = n, float(np.sqrt(n @ n))
+            n, nn = cross_c[j0, j1, j2]
+            v = float(n @ (X[i] - X[j0]))
+            return v, 2 * eps[i] * (nn + d[j0, i] * (d[j0, j1] + d[j0, j2]))
+
+        def handed_s(b0, b1, b2, e):
+            """Signed volumes of spheres (b0, b1, b2, every sphere) and their error bounds."""
+            if (b0, b1, b2) not in cross_s:
+                n = cross(Y[b1] - Y[b0], Y[b2] - Y[b0])
+                cross_s[b0, b1, b2] = (Y - Y[b0]) @ n, float(np.sqrt(n @ n)) + D[b0] * (D[b0, b1] + D[b0, b2])
+            v, bound = cross_s[b0, b1, b2]
+            return v, 2 * e * bound
+        allowed = np.zeros((len(d), len(D)), bool)
+        for i, o in self.options.items():
+            allowed[i, o] = True
+        best = [min_count]
+        found: list[tuple[dict, np.ndarray, float, float]] = []
+        assign: dict[int, int] = {}
+        used = np.zeros(len(D), bool)
 
         def leaf():
             if len(assign) < best[0]:
                 return
             idx = sorted(assign)
             spheres = [assign[i] for i in idx]
-            Ya = self.Y[spheres]
-            spread = np.linalg.norm(Ya - Ya.mean(axis=0), axis=1)
-            tol = k * np.sqrt(u[idx] ** 2 + ua[spheres] ** 2) + cfg.scale_tol * spread
-            res, ok = _verify(self.X[idx], Ya, tol)
-            if not ok:
+            Ya, Xa = self.Y[spheres], self.X[idx]
+            s, M, T = umeyama(Ya, Xa, self.scale_bounds)
+            res = np.linalg.norm(s * Ya @ M.T + T - Xa, axis=1)
+            if np.any(res > k * np.sqrt(u2[idx] + ua2[spheres])):
                 return
             if len(assign) > best[0]:
                 best[0] = len(assign)
                 found.clear()
-            found.append((dict(assign), res, float(np.sqrt(np.mean(res**2)))))
+            found.append((dict(assign), res, float(np.sqrt(np.mean(res**2))), s))
 
-        def search(pos):
+        def search(pos, lo, hi):
             self.nodes += 1
-            if self.nodes > cfg.max_nodes:
-                raise LabellingRefused("search_limit", f"more than {cfg.max_nodes} tree nodes; "
+            if self.nodes > self.max_nodes:
+                raise LabellingRefused("search_limit", f"more than {self.max_nodes} tree nodes; "
                                        "give allowed_ids or a prior pose")
             if len(assign) + (len(order) - pos) < best[0]:
                 return
@@ -195,22 +282,44 @@ class _Search:
                 leaf()
                 return
             i = order[pos]
-            for a in options[i]:
-                if a in used or not all(pair_ok(i, a, j, b) for j, b in assign.items()):
-                    continue
+            if assign and pos + 1 < len(order):
+                # forward check: how many of the candidates still to come can be a sphere at all
+                rest, js, bs = order_arr[pos:], list(assign), list(assign.values())
+                lo_r = np.maximum(lo, LO[rest[:, None], js, :, bs].max(axis=1))
+                hi_r = np.minimum(hi, HI[rest[:, None], js, :, bs].min(axis=1))
+                alive = ((lo_r <= hi_r) & allowed[rest] & ~used).any(axis=1)
+                if len(assign) + int(alive.sum()) < best[0]:
+                    return
+            if assign:
+                js, bs = list(assign), list(assign.values())
+                lo_a = np.maximum(lo, LO[i, js, :, bs].max(axis=0))
+                hi_a = np.minimum(hi, HI[i, js, :, bs].min(axis=0))
+                feasible = (lo_a <= hi_a) & allowed[i] & ~used
+                if len(js) >= 3:
+                    # handedness: the tetrahedron of the first three and this one must not be
+                    # mirrored (where its volume is clearly not zero), as a rigid motion keeps it
+                    vc, bc = handed_c(js[0], js[1], js[2], i)
+                    if abs(vc) > bc:
+                        vs, bs_ = handed_s(bs[0], bs[1], bs[2], eps[i])
+                        feasible &= ~((np.sign(vs) != np.sign(vc)) & (np.abs(vs) > bs_))
+            else:
+                lo_a, hi_a = np.full(len(D), lo), np.full(len(D), hi)
+                feasible = allowed[i] & ~used
+            for a in np.flatnonzero(feasible).tolist():
                 assign[i] = a
-                used.add(a)
-                search(pos + 1)
+                used[a] = True
+                search(pos + 1, lo_a[a], hi_a[a])
                 del assign[i]
-                used.discard(a)
-            search(pos + 1)  # candidate i is not an artefact sphere
+                used[a] = False
+            search(pos + 1, lo, hi)  # candidate i is not an artefact sphere
 
-        search(0)
+        search(0, *self.scale_bounds)
         return found
 
 
 def label_spheres(centres, artefact: Artefact, uncertainties=None, radii=None, allowed_ids=None,
-                  prior: Frame | None = None, config: LabellingConfig | None = None) -> Labelling:
+                  prior: Frame | None = None, config: LabellingConfig | None = None,
+                  scale: float = 1.0) -> Labelling:
     """Label candidate sphere centres against an artefact definition.
 
     Parameters
@@ -226,9 +335,14 @@ def label_spheres(centres, artefact: Artefact, uncertainties=None, radii=None, a
     allowed_ids : iterable of str, optional
         Spheres this scanner can see (default: all).
     prior : Frame, optional
-        Approximate ``T_scanner_artefact``; restricts each candidate to spheres
-        predicted within ``config.prior_tol_mm``.
+        Approximate ``T_scanner_artefact`` (in the frame of the centres divided by
+        ``scale``); restricts each candidate to spheres predicted within
+        ``config.prior_tol_mm``.
     config : LabellingConfig
+    scale : float
+        The scanner's scale if known (estimated from its other measurements): the
+        centres are divided by it, about the scanner's origin, and the remaining
+        scale may be off by ``config.scale_tol``.
 
     Returns
     -------
@@ -244,13 +358,13 @@ def label_spheres(centres, artefact: Artefact, uncertainties=None, radii=None, a
     >>> art = Artefact(list("ABCDE"), [[0, 0, 0], [500, 0, 0], [0, 400, 0], [0, 0, 300], [200, 200, 200]],
     ...                [50] * 5)
     >>> T = Frame.from_params([10, 20, 2000, 0.3, -0.2, 1.0])
-    >>> seen = T.to_world(art.centres_of(["D", "A", "E", "B"]))
+    >>> seen = 1.005 * T.to_world(art.centres_of(["D", "A", "E", "B"]))  # 0.5 % long
     >>> lab = label_spheres(np.vstack([seen, [[0.0, 0.0, 0.0]]]), art)  # plus a false candidate
-    >>> lab.sphere_ids
-    ('D', 'A', 'E', 'B', None)
+    >>> lab.sphere_ids, round(lab.scale, 6)
+    (('D', 'A', 'E', 'B', None), 1.005)
     """
     cfg = config or LabellingConfig()
-    X = np.asarray(centres, float).reshape(-1, 3)
+    X = np.asarray(centres, float).reshape(-1, 3) / scale
     n = len(X)
     u = np.full(n, cfg.centre_u_mm) if uncertainties is None else np.asarray(uncertainties, float)
     if u.ndim == 2:
@@ -284,10 +398,14 @@ def label_spheres(centres, artefact: Artefact, uncertainties=None, radii=None, a
 
     D = artefact.distance_matrix()
     d = np.linalg.norm(X[:, None, :] - X[None, :, :], axis=2)
-    # most constrained candidates first: fewer options near the root prunes more
-    order = sorted(usable, key=lambda i: compat[i].sum())
+    # most constrained candidates first: fewer options, then fewer artefact distances like its
+    # distances to the other candidates (a distinctive candidate near the root prunes more)
+    tol = cfg.k * 2 * np.sqrt(2) * max(float(np.max(u)), float(np.max(ua))) + cfg.scale_tol * D.max()
+    like = np.array([np.sum(np.abs(d[i][usable, None, None] - D[None]) <= tol) for i in range(n)])
+    order = sorted(usable, key=lambda i: (compat[i].sum(), like[i]))
     options = {i: np.flatnonzero(compat[i]) for i in order}
-    search = _Search(X, d, D, artefact.centres, u, ua, order, options, cfg)
+    bounds = (1.0 - cfg.scale_tol, 1.0 + cfg.scale_tol)
+    search = _Search(X, d, D, artefact.centres, u, ua, order, options, bounds, cfg.max_nodes)
     found = search.run(cfg.k, cfg.min_spheres)
     if not found:
         raise LabellingRefused("inconsistent",
@@ -298,171 +416,51 @@ def label_spheres(centres, artefact: Artefact, uncertainties=None, radii=None, a
         return tuple(artefact.ids[a[i]] if i in a else None for i in range(n))
 
     if len(found) > 1:
-        alts = [named(a) for a, _, _ in found]
-        shown = "; ".join(f"{list(alt)} (rms {r:.3f} mm)" for alt, (_, _, r) in list(zip(alts, found))[:4])
+        alts = [named(a) for a, _, _, _ in found]
+        shown = "; ".join(f"{list(alt)} (rms {f[2]:.3f} mm)" for alt, f in list(zip(alts, found))[:4])
         raise LabellingRefused("ambiguous", f"{len(found)} labellings of {len(found[0][0])} spheres fit equally "
                                f"well: {shown}", alts)
     # A labelling is trusted only if no conflicting one with as many spheres comes
     # even close: search again with the tolerance widened by ambiguity_margin.
     best = found[0][0]
-    rivals = [a for a, _, _ in search.run(cfg.k * cfg.ambiguity_margin, len(best)) if _conflict(a, best)]
+    rivals = [a for a, _, _, _ in search.run(cfg.k * cfg.ambiguity_margin, len(best)) if _conflict(a, best)]
     if rivals:
         alts = [named(best)] + [named(a) for a in rivals]
         raise LabellingRefused("ambiguous", f"the best labelling {list(alts[0])} has {len(rivals)} rival(s) within "
                                f"{cfg.ambiguity_margin:g}x the tolerance, e.g. {list(alts[1])}", alts)
-    assign_best, res, rms = found[0]
-    ids = tuple(artefact.ids[assign_best[i]] if i in assign_best else None for i in range(n))
+    assign_best, res, rms, s_fit = found[0]
+    ids = named(assign_best)
     idx = sorted(assign_best)
     residuals = np.full(n, np.nan)
     residuals[idx] = res
     for i in range(n):
         if ids[i] is None:
             why.setdefault(i, "does not fit the labelled spheres' geometry")
+    Y, Xs = artefact.centres[[assign_best[i] for i in idx]], X[idx] / s_fit
     try:
-        reg = RigidRegistration.from_estimate(artefact.centres[[assign_best[i] for i in idx]], X[idx])
-        T = reg.frame
+        T = RigidRegistration.from_estimate(Y, Xs).frame
     except DegenerateGeometryError:
-        M, t = kabsch(artefact.centres[[assign_best[i] for i in idx]], X[idx])
+        M, t = kabsch(Y, Xs)
         T = Frame.from_matrix(M.T, t)
-    return Labelling(ids, residuals, T, rms, why, search.nodes)
+    return Labelling(ids, residuals, T, rms, why, search.nodes, float(scale * s_fit))
 
 
-def _frame_of(X, Y) -> Frame:
-    M, t = kabsch(Y, X)
-    return Frame.from_matrix(M.T, t)
+def scanner_frame_from_plan(*args, **kwargs):
+    """``T_scanner_world`` of one scanner by consensus of its measurements and the plan;
+    see :func:`fringecal.spheres.label_consensus.scanner_frame_from_plan`."""
+    from .label_consensus import scanner_frame_from_plan as impl
 
-
-def scanner_frame_from_plan(results: dict, planned: dict, artefact: Artefact,
-                            tol_mm: float) -> tuple[Frame | None, str]:
-    """``T_scanner_world`` of one scanner from its labelled and ambiguous measurements.
-
-    ``results``: measurement -> (candidate centres (n, 3), Labelling or LabellingRefused);
-    ``planned``: measurement -> planned ``T_world_artefact``. Every accepted labelling
-    and every alternative of an ambiguous one proposes ``T_scanner_artefact o
-    T_world_artefact^-1``; a proposal is supported by each measurement with a
-    proposal that maps the planned artefact within ``tol_mm`` of it. The best-
-    supported proposal wins if no far-away proposal has as much support (a wrong
-    alternative repeats the same symmetry, but the hexapod's moves between
-    measurements make its proposals disagree). Returns (frame or None, reason).
-    """
-    probe = next(iter(planned.values())).to_world(artefact.centres)
-    hyps = []
-    for m, (X, res) in results.items():
-        if m not in planned:
-            continue
-        if isinstance(res, Labelling):
-            idx = [i for i, sid in enumerate(res.sphere_ids) if sid is not None]
-            alts = [res.sphere_ids]
-        elif isinstance(res, LabellingRefused) and res.reason == "ambiguous":
-            alts = res.alternatives
-        else:
-            continue
-        for alt in alts:
-            idx = [i for i, sid in enumerate(alt) if sid is not None]
-            if len(idx) < 3:
-                continue
-            T = _frame_of(X[idx], artefact.centres_of([alt[i] for i in idx]))
-            hyps.append((m, T.compose(planned[m].inverse())))
-    if not hyps:
-        return None, "no labelled or ambiguous measurement with a planned pose"
-    mapped = np.stack([T.to_world(probe) for _, T in hyps])
-    close = np.linalg.norm(mapped[:, None] - mapped[None, :], axis=3).max(axis=2) <= tol_mm
-    meas = np.array([m for m, _ in hyps])
-    support = np.array([len(set(meas[close[i]])) for i in range(len(hyps))])
-    best = int(np.argmax(support))
-    rivals = [i for i in range(len(hyps)) if support[i] == support[best] and not close[best, i]]
-    if rivals:
-        return None, (f"the planned poses do not single out one scanner frame: {len(rivals) + 1} frames "
-                      f"are each supported by {support[best]} measurement(s)")
-    members = [hyps[i][1] for i in np.flatnonzero(close[best])]
-    from ..linking import robust_mean_frame
-
-    frame, _ = robust_mean_frame(members)
-    return frame, f"supported by {support[best]} of {len(set(meas))} measurement(s)"
+    return impl(*args, **kwargs)
 
 
 def label_sphere_fits(fits: pd.DataFrame, artefact: Artefact, config: LabellingConfig | None = None,
-                      allowed_ids: dict | None = None, planned: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Label every (measurement, scanner) group of a sphere-fits table.
+                      allowed_ids: dict | None = None, planned: dict | None = None,
+                      estimates: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Label every (measurement, scanner) group of a sphere-fits table; see
+    :func:`fringecal.spheres.label_scanners.label_sphere_fits`."""
+    from .label_scanners import label_sphere_fits as impl
 
-    Parameters
-    ----------
-    fits : DataFrame
-        Rows of :class:`schemas.SphereFitsTable` (``measurement, scanner, candidate,
-        x_mm, y_mm, z_mm`` and optionally ``radius_mm``, ``u_x_mm, u_y_mm, u_z_mm``).
-    artefact : Artefact
-    config : LabellingConfig
-    allowed_ids : dict, optional
-        scanner -> sphere ids that scanner can see.
-    planned : dict, optional
-        measurement -> planned ``T_world_artefact`` (Frame) from the pose plan, in
-        any fixed frame. Measurements that distances alone leave ambiguous are then
-        labelled with the prior ``T_scanner_world o T_world_artefact``, where each
-        scanner's ``T_scanner_world`` comes from :func:`scanner_frame_from_plan`;
-        an accepted labelling that contradicts the plan is refused as inconsistent.
-
-    Returns
-    -------
-    labelled : DataFrame
-        ``fits`` with ``sphere_id`` filled ("" where unlabelled) and ``label_residual_mm``.
-    outcomes : DataFrame
-        :class:`schemas.LabelOutcomesTable`: one row per group with ``status``
-        (labelled / refused), ``reason``, ``method`` (distances / planned pose),
-        ``n_candidates, n_labelled, rms_mm, message``.
-    """
-    cfg = config or LabellingConfig()
-    out = fits.copy().reset_index(drop=True)
-    out["sphere_id"] = ""
-    out["label_residual_mm"] = np.nan
-    groups = {}
-    for (meas, scanner), g in out.groupby(["measurement", "scanner"], sort=False):
-        X = g[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
-        u = g[["u_x_mm", "u_y_mm", "u_z_mm"]].to_numpy(float) if {"u_x_mm", "u_y_mm", "u_z_mm"} <= set(g) else None
-        radii = g["radius_mm"].to_numpy(float) if "radius_mm" in g else None
-        kwargs = dict(uncertainties=u, radii=radii, allowed_ids=(allowed_ids or {}).get(scanner), config=cfg)
-        try:
-            res = label_spheres(X, artefact, **kwargs)
-        except LabellingRefused as err:
-            res = err
-        groups[(meas, scanner)] = dict(index=g.index, X=X, kwargs=kwargs, result=res, method="distances",
-                                       candidates=list(g["candidate"]) if "candidate" in g else list(range(len(g))))
-    if planned:
-        for scanner in dict.fromkeys(s for _, s in groups):
-            mine = {m: (v["X"], v["result"]) for (m, s), v in groups.items() if s == scanner}
-            T_sw, why = scanner_frame_from_plan(mine, planned, artefact, cfg.prior_tol_mm / 2)
-            for (m, s), v in groups.items():
-                if s != scanner or m not in planned:
-                    continue
-                if T_sw is None:
-                    if isinstance(v["result"], LabellingRefused):
-                        v["result"] = LabellingRefused(v["result"].reason, f"{v['result'].args[0]}; plan: {why}",
-                                                       v["result"].alternatives)
-                    continue
-                try:
-                    res = label_spheres(v["X"], artefact, prior=T_sw.compose(planned[m]), **v["kwargs"])
-                except LabellingRefused as err:
-                    res = err
-                before = v["result"]
-                if isinstance(before, Labelling) and isinstance(res, Labelling) and before.sphere_ids != res.sphere_ids:
-                    res = LabellingRefused("inconsistent", f"distances give {list(before.sphere_ids)} but the planned "
-                                           f"pose gives {list(res.sphere_ids)}", [before.sphere_ids, res.sphere_ids])
-                elif isinstance(before, Labelling) and isinstance(res, LabellingRefused):
-                    continue  # the plan adds nothing
-                v["result"] = res
-                v["method"] = "planned pose" if isinstance(before, LabellingRefused) else "distances"
-    rows = []
-    for (meas, scanner), v in groups.items():
-        res, n = v["result"], len(v["X"])
-        if isinstance(res, LabellingRefused):
-            rows.append((meas, scanner, "refused", res.reason, v["method"], n, 0, np.nan, str(res)))
-            continue
-        out.loc[v["index"], "sphere_id"] = [sid or "" for sid in res.sphere_ids]
-        out.loc[v["index"], "label_residual_mm"] = res.residuals_mm
-        rows.append((meas, scanner, "labelled", "", v["method"], n, res.n_labelled, res.rms_mm,
-                     "; ".join(f"candidate {v['candidates'][i]}: {w}" for i, w in res.unlabelled.items())))
-    outcomes = pd.DataFrame(rows, columns=["measurement", "scanner", "status", "reason", "method", "n_candidates",
-                                           "n_labelled", "rms_mm", "message"])
-    return out, outcomes
+    return impl(fits, artefact, config, allowed_ids, planned, estimates)
 
 
 def ambiguous_subsets(artefact: Artefact, subset_size: int, ids=None, config: LabellingConfig | None = None):

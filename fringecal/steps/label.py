@@ -3,8 +3,12 @@ distances, and the planned poses where distances alone are ambiguous), one artef
 pose per (measurement, scanner) by SVD, and each scanner's frame linked to the
 reference scanner's through the measurements they share (thesis 6.2-6.3).
 
-Groups that cannot be labelled or posed are reported in ``label_outcomes`` and
-``poses_skipped`` (and logged); the others go on.
+The labelling estimates each scanner's scale and centre uncertainty from all its
+measurements, and its frame by consensus with the planned poses; a labelling that the
+scanner's other measurements or the other scanners' poses contradict is refused
+(``fringecal.spheres.label_scanners``). Groups that cannot be labelled or posed are
+reported in ``label_outcomes`` and ``poses_skipped`` (and logged, with what was
+estimated per scanner and any refused link); the others go on.
 """
 
 from __future__ import annotations
@@ -48,10 +52,19 @@ class Label(Step):
             planned = frames_from_rows(rd.poses_planned.load())
         res = label_pose_link(table, rd.artefact.load(), cfg.reference_scanner,
                               LabellingConfig(**cfg.extraction.labelling), planned=planned)
+        for scanner, est in res.estimates.items():
+            log.info("labelling, scanner %s: %s", scanner, est.note)
         for r in res.poses.skipped.itertuples():
             log.warning("measurement %s, scanner %s: no pose (%s)", r.measurement, r.scanner, r.reason)
         if res.links_error:
             log.warning("scanner links: %s", res.links_error)
+        if res.links is not None:
+            for scanner, why in res.links.unlinked.items():
+                log.warning("scanner %s not linked: %s", scanner, why)
+            for scanner, link in res.links.links.items():
+                if link.rejected:
+                    log.warning("scanner %s: measurement(s) %s left out of its link as outliers", scanner,
+                                ", ".join(link.rejected))
         rd.sphere_fits_labelled.save(res.fits)
         rd.label_outcomes.save(res.labels)
         rd.sphere_centres.save(res.centres)
