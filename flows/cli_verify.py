@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from .common import console, guarded
+from .common import UserInputError, console, guarded
 
 app = typer.Typer(no_args_is_help=True, help="Verification per VDI/VDE 2634 (parts 2 and 3).")
 
@@ -52,3 +52,52 @@ def ballbar(
     console.print(result.uncertainty.sentence())
     if mpe_mm is not None:
         console.print("[green]PASS[/]" if result.passed else "[red]FAIL[/]")
+
+
+@app.command("plan")
+@guarded
+def plan(
+    run: Path = typer.Option(..., "--run", help="A calibrated run directory."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Positions CSV to write as well (always "
+                                       "written: RUN/tables/ballbar_positions_planned.csv)."),
+    per_pair: int = typer.Option(3, "--per-pair", min=0, help="Positions per pair of neighbouring scanners."),
+    per_scanner: int = typer.Option(2, "--per-scanner", min=0, help="Positions within each scanner's volume."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the random candidates."),
+):
+    """Plan ball-bar positions for a calibrated rig: every scanner and every pair of
+    neighbouring scanners covered, from the calibrated measurement volumes.
+
+    The CSV gives the planned centres of spheres A and B per position in the
+    calibration's frame (the reference scanner's) and the scanner each sphere is
+    planned for: record each position with those scanners into
+    verification/<position>/<scanner>/ of the data set.
+    """
+    from fringecal.ballbar_plan import plan_positions, positions_table, volumes_from_run
+    from fringecal.rundir import RunDir
+
+    rd = RunDir(run)
+    needed = [rd.calibration, rd.poses_calibrated, rd.control_points, rd.artefact, rd.ballbar]
+    missing = [str(f.path) for f in needed if not f.exists()]
+    if missing:
+        raise FileNotFoundError(f"{run}: not a calibrated run with a ball-bar (missing {', '.join(missing)})")
+    bar = rd.ballbar.load()
+    length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
+    result = plan_positions(rd.calibration.load(), volumes_from_run(rd), length, per_pair, per_scanner, seed=seed)
+    table = positions_table(result.positions, bar)
+    written = [rd.ballbar_positions_planned.save(table)]
+    if out is not None:
+        from schemas import SphereCentresTable, write_table
+
+        written.append(write_table(table, out, SphereCentresTable))
+    t = Table(title=f"{len(result.positions)} ball-bar positions ({length:.1f} mm bar)")
+    for c in ("position", "A: scanner", "A (mm)", "B: scanner", "B (mm)"):
+        t.add_column(c)
+    for name, g in table.groupby("measurement", sort=False):
+        a, b = g.iloc[0], g.iloc[1]
+        xyz = lambda r: f"{r.x_mm:.0f}, {r.y_mm:.0f}, {r.z_mm:.0f}"  # noqa: E731
+        t.add_row(name, a.scanner, xyz(a), b.scanner, xyz(b))
+    console.print(t)
+    console.print(f"neighbouring pairs: {', '.join('-'.join(p) for p in result.pairs) or 'none'}; written to {', '.join(map(str, written))}")
+    if result.uncovered:
+        raise UserInputError(f"no ball-bar position fits {', '.join(result.uncovered)}: the bar is longer than "
+                             "those measurement volumes allow")

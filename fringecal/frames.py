@@ -79,7 +79,10 @@ class Frame:
         Ri = inner.R
         R_new = Ri @ R  # x_a = (Ri R)^T x_c + ...
         t_new = self.to_world(inner.t)
-        return Frame.from_matrix(R_new, t_new, near=self.angles + inner.angles)
+        # the summed angles only pick the branch; wrapped, a chain of compositions stays
+        # within the +-2 pi the pose tables allow
+        near = np.angle(np.exp(1j * (self.angles + inner.angles)))
+        return Frame.from_matrix(R_new, t_new, near=near)
 
     def difference(self, other: "Frame") -> tuple[float, float]:
         """(distance between the origins in mm, angle of the relative rotation in rad).

@@ -66,26 +66,31 @@ class AcquisitionConfig(StrictModel):
 
 
 class PriorCalibrationConfig(StrictModel):
-    """Each simulated scanner's own (prior) calibration, as the thesis had from a planar
-    artefact (section 6.1): parameters in the scanner's own frame, with errors.
+    """Each simulated scanner's own (prior) calibration, as from a planar artefact
+    (thesis section 6.1): parameters in the scanner's own frame (its camera's), with
+    errors of the sizes given here (Gaussian standard deviations; the baseline scale
+    uniform in ``scale_error_range``). See :mod:`fringecal.pipeline.prior`.
 
-    The reference scanner's frame is the world; another scanner's frame is the world
-    moved by ``frame_offset_mm`` along x and turned by ``frame_rotation_rad`` about y.
-    A scanner's own calibration fixes its camera-projector geometry well, so the errors
-    are small; they are sized so the prior point clouds are about as good as the
-    thesis's, whose registrations of four sphere centres left 0.2-0.5 mm RMS (tables
-    6-1, 6-4). The non-reference scanners' placement in the world is then unknown
-    until the artefact links them.
+    The defaults are thesis-sized: the thesis's registrations of four sphere centres
+    left 0.2-0.5 mm RMS (tables 6-1, 6-4). Real cells can be far worse; the row and
+    ring rigs' configs use the documented "real-cell" sizes (centres up to ~3 mm off,
+    distances up to 0.6 % short).
     """
 
     seed: int = 7
-    frame_offset_mm: float = 1500.0
-    frame_rotation_rad: float = 0.02
-    position_error_mm: float = 0.2
-    angle_error_rad: float = 0.0002
-    principal_distance_error_mm: float = 0.01
-    principal_point_error_mm: float = 0.01
-    keep_distortion: bool = True
+    scale_error_range: tuple[float, float] = (0.0, 0.0)
+    position_error_mm: float = Field(0.2, ge=0)
+    angle_error_rad: float = Field(0.0002, ge=0)
+    principal_distance_error_mm: float = Field(0.01, ge=0)
+    principal_point_error_mm: float = Field(0.01, ge=0)
+    distortion_error_fraction: float = Field(0.1, ge=0)
+
+    @field_validator("scale_error_range")
+    @classmethod
+    def _range(cls, v):
+        if v[0] > v[1] or max(abs(v[0]), abs(v[1])) >= 0.1:
+            raise ValueError(f"scale_error_range {list(v)}: need lo <= hi, both within +-0.1")
+        return v
 
 
 def _check_dataclass(cls, value: dict, name: str) -> dict:
@@ -177,11 +182,22 @@ class VerificationConfig(StrictModel):
 
 
 class SimulatedVerificationConfig(StrictModel):
-    """Where the simulated ball-bar is placed and how it is rendered."""
+    """Where the simulated ball-bar is placed and how it is rendered.
+
+    ``scheme``: ``thesis9`` the nine positions of ``positions`` (thesis table 6-9 by
+    default), ``vdi7`` seven positions after VDI/VDE 2634 spanning the thesis's two
+    volumes, ``planned`` positions planned for any rig from its measurement volumes
+    (:mod:`fringecal.ballbar_plan`: ``per_pair`` per pair of neighbouring scanners,
+    ``per_scanner`` within each scanner's volume where the bar fits). With ``planned``
+    only the scanners a position was planned for record it, as an operator would
+    trigger them; otherwise every scanner that sees a bar sphere does.
+    """
 
     ballbar: Optional[Path] = None  # default: the rig's ballbar, else configs/thesis/ballbar.csv
     positions: Optional[Path] = None  # default: configs/thesis/ballbar_verification_table6-9.csv
-    scheme: Literal["thesis9", "vdi7"] = "thesis9"
+    scheme: Literal["thesis9", "vdi7", "planned"] = "thesis9"
+    per_pair: int = Field(3, ge=0)
+    per_scanner: int = Field(2, ge=0)
     # camera pixels of the verification measurements (None: as the acquisition); sphere
     # centres of a 50.85 mm ball fitted at 512 px scatter by ~30 um, which would hide
     # the calibration's own error, so the demo verifies at 768 px

@@ -498,6 +498,11 @@ class RunDir:
         return self._at(JsonFile, "verification.json", optional=True)
 
     @property
+    def ballbar_positions_planned(self) -> TableFile:
+        """Ball-bar positions planned from this calibration (``fringecal verify plan``)."""
+        return self._table("tables/ballbar_positions_planned.csv", "SphereCentresTable", optional=True)
+
+    @property
     def ballbar_centres(self) -> TableFile:
         return self._table("tables/ballbar_centres.csv", "BallbarCentresTable", optional=True)
 

@@ -267,6 +267,23 @@ class Sensor:
         ideal = np.where((z > 0)[..., None], ideal, np.nan)
         return distort(ideal, self.k, self.p) + self.principal_point
 
+    def in_view(self, points_world, margin_mm=0.0) -> np.ndarray:
+        """Whether each point (..., 3) is imaged inside the format, ``margin_mm`` (scalar
+        or per point) from its edges: in front of the sensor, its distorted image inside,
+        and its undistorted image too, so that a point far outside the field that the
+        distortion polynomial folds back into the image does not count.
+        """
+        xs = self.to_sensor(points_world)
+        z = xs[..., 2]
+        front = z > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ideal = -self.c * xs[..., :2] / np.where(front, z, 1.0)[..., None]
+        image = distort(ideal, self.k, self.p) + self.principal_point
+        half = np.array([self.format.width_mm, self.format.height_mm]) / 2 - np.asarray(margin_mm, float)[..., None]
+        inside = np.all(np.abs(image) <= half, axis=-1) & np.all(np.abs(ideal + self.principal_point) <= 1.1 * half,
+                                                                  axis=-1)
+        return front & inside
+
     def directions_local(self, image_mm) -> np.ndarray:
         """Image-plane mm (..., 2) -> unnormalised ray directions (-x, -y, c) in the sensor frame."""
         ideal = undistort(np.asarray(image_mm, float) - self.principal_point, self.k, self.p)

@@ -9,8 +9,9 @@ poses, the verification ball-bar and its positions. The simulated pipeline steps
 (which writes the same measurements as a recorded data set) both start from it, so
 both doors see the same rig.
 
-Which scanners record a ball-bar position is decided by visibility, as an operator
-would: a scanner records the position when the centre of at least one bar sphere
+Ball-bar positions are thesis table 6-9's, VDI/VDE 2634's seven, or planned for the
+rig (``verification.scheme``). Which scanners record a planned position is the plan's
+choice; for the others it is decided by visibility, as an operator would: a scanner records the position when the centre of at least one bar sphere
 lies in front of its camera and inside its image. On the thesis rig this gives
 thesis table 6-9's arrangement (sphere A seen by scanner one, B by scanner two).
 """
@@ -73,7 +74,7 @@ def input_files(sim) -> list[Path]:
     """Every file a simulated rig is built from (rig YAML, the tables it names, the
     verification positions, files named by the artefact corrections)."""
     rc = sim.rig_config()
-    files = [sim.rig, sim.ballbar_path(), sim.positions_path()]
+    files = [sim.rig, sim.ballbar_path()] + ([] if sim.verification.scheme == "planned" else [sim.positions_path()])
     files += [p for p in (rc.sensors, rc.artefact, rc.rods, rc.artefact_poses, rc.materials) if p is not None]
     sag = sim.artefact_corrections.sag if sim.artefact_corrections is not None else None
     if sag is not None:
@@ -85,15 +86,33 @@ def scanners_seeing(rig: Rig, points_world: np.ndarray) -> list[list[str]]:
     """For each point (n, 3), the scanners whose camera sees it (in front, inside the image)."""
     out = [[] for _ in range(len(points_world))]
     for s in rig.scanners:
-        cam = s.camera
-        depth = cam.to_sensor(points_world)[:, 2]
-        inside = cam.format.contains_mm(cam.project(points_world))
-        for i in np.flatnonzero((depth > 0) & inside):
+        for i in np.flatnonzero(s.camera.in_view(points_world)):
             out[i].append(s.name)
     return out
 
 
-def _positions(sim, truth: Rig, ballbar: Artefact) -> tuple[list[BallBarPosition], dict]:
+def _planned_positions(sim, truth: Rig, artefact: Artefact, planned: dict, ballbar: Artefact):
+    """Positions planned from the true rig's measurement volumes: the spheres each
+    scanner sees (centre in both fields) in the planned poses."""
+    from ..ballbar_plan import plan_positions, volumes_from_observations
+
+    rows = [(m, name, sid) for m, T in planned.items()
+            for sid, names in zip(artefact.ids, scanners_seeing(truth, T.to_world(artefact.centres))) for name in names]
+    observations = pd.DataFrame(rows, columns=["measurement", "scanner", "sphere_id"])
+    volumes = volumes_from_observations(truth, observations, planned, artefact)
+    v = sim.verification
+    plan = plan_positions(truth, volumes, float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0])),
+                          v.per_pair, v.per_scanner, seed=v.seed)
+    if plan.uncovered:
+        raise ConfigError(f"{sim.rig}: no ball-bar position covers {', '.join(plan.uncovered)} "
+                          "(the bar does not fit the measurement volumes there)")
+    return plan.positions, {p.name: list(dict.fromkeys(p.scanner_of.values())) for p in plan.positions}
+
+
+def _positions(sim, truth: Rig, ballbar: Artefact, artefact: Artefact, planned: dict
+               ) -> tuple[list[BallBarPosition], dict]:
+    if sim.verification.scheme == "planned":
+        return _planned_positions(sim, truth, artefact, planned, ballbar)
     table = pd.read_csv(sim.positions_path(), dtype={"measurement": str})
     positions = thesis_positions(table, scanners=("", ""))
     if sim.verification.scheme == "vdi7":
@@ -138,7 +157,7 @@ def load_simulated_rig(sim) -> SimulatedRig:
     ballbar = load_artefact(sim.ballbar_path())
     if len(ballbar) != 2:
         raise ConfigError(f"{sim.ballbar_path()}: a ball-bar has two spheres, found {len(ballbar)}")
-    positions, recorders = _positions(sim, truth, ballbar)
+    positions, recorders = _positions(sim, truth, ballbar, artefact, planned)
     return SimulatedRig(truth, prior, frames, artefact, rods, hardware, planned, ballbar, positions, recorders)
 
 

@@ -1,13 +1,16 @@
 """Simulated runs only: the calibration against the truth.
 
 Reads ``truth/`` (the only pipeline step that does): each sensor's parameter errors
-against the true values and against its reported uncertainty, the residual floor
+against the true values and against its reported uncertainty (the truth moved into
+the calibration's world, the reference scanner's own frame), the residual floor
 (epsilon-1, epsilon-2 with the true sensors and poses on the same control points),
 and the ball-bar measured with the true sensors -- the error the noise alone leaves,
 against which the calibration's own ball-bar error is judged.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -18,6 +21,31 @@ from .verify import measure_ballbar
 __all__ = ["Evaluate", "parameter_errors"]
 
 _KEY = [0, 1, 2, 3, 4, 5, 8]  # position, angles, principal distance
+
+
+def truth_in_reference_frame(truth, T_world_reference, near):
+    """The true rig and a pose table moved from the simulation's world into the
+    reference scanner's own frame, the world of a calibration.
+
+    ``near`` (a rig with the same sensors) picks the branch of every sensor's angles,
+    so that angle differences are small numbers, not multiples of pi.
+    """
+    from ..linking import sensor_in_frame
+    from ..rig import Scanner
+
+    T_reference_world = T_world_reference.inverse()
+    angles = {s.name: s.angles for s in near.sensors}
+    scanners = [Scanner(s.name, *(sensor_in_frame(x, T_reference_world, near=angles.get(x.name)) for x in s.sensors))
+                for s in truth.scanners]
+    return replace(truth, scanners=tuple(scanners))
+
+
+def poses_in_reference_frame(poses, T_world_reference):
+    """A pose table (``T_world_artefact`` rows) as ``T_reference_artefact`` rows."""
+    from ..frames import frame_rows, frames_from_rows
+
+    T_reference_world = T_world_reference.inverse()
+    return frame_rows({m: T_reference_world.compose(T) for m, T in frames_from_rows(poses).items()})
 
 
 def parameter_errors(calibrated, truth) -> tuple[list[dict], float, float]:
@@ -43,7 +71,7 @@ class Evaluate(Step):
     modules = ("fringecal.calibration", "fringecal.pipeline.verify", "fringecal.verification")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        return [rd.truth.sensors, rd.truth.poses, rd.calibration, rd.control_points, rd.artefact, rd.ballbar,
+        return [rd.truth.sensors, rd.truth.poses, rd.truth.scanner_frames, rd.calibration, rd.control_points, rd.artefact, rd.ballbar,
                 rd.bundle_summary, rd.acquisition] + [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
@@ -52,10 +80,14 @@ class Evaluate(Step):
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         from ..calibration import BundleOptions, BundleProblem, bundle_adjust
 
-        truth = rd.truth.sensors.load(cfg.reference_scanner)
-        per_sensor, pos, ang = parameter_errors(rd.calibration.load(), truth)
+        from ..frames import frames_from_rows
+
+        calibrated = rd.calibration.load()
+        T_world_reference = frames_from_rows(rd.truth.scanner_frames.load(), key="scanner")[cfg.reference_scanner]
+        truth = truth_in_reference_frame(rd.truth.sensors.load(cfg.reference_scanner), T_world_reference, calibrated)
+        per_sensor, pos, ang = parameter_errors(calibrated, truth)
         cps = rd.control_points.load()
-        poses = rd.truth.poses.load()
+        poses = poses_in_reference_frame(rd.truth.poses.load(), T_world_reference)
         problem = BundleProblem.from_tables(truth, rd.artefact.load(), cps,
                                             poses[poses.measurement.isin(set(cps.measurement))],
                                             gamma1=cfg.bundle.gamma1, gamma2=cfg.bundle.gamma2)
