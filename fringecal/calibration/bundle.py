@@ -14,6 +14,13 @@ adjusted on every k-th control point of each sphere image (about ``coarse_points
 all); the adjustment on all points starts from there if that lowered F, and only has a
 few iterations left to do. Each stage is a monotone LM run on its own F.
 
+Start values: sphere residuals have separate minima, a few mm above the noise floor, into
+which rough start values (a few mm and mrad) lead. Every minimum is tested for its noise
+floor without the truth (:mod:`.convergence`); only a first descent that fails the test
+makes :func:`bundle_adjust` adjust again from start values computed from the control
+points (:mod:`.start`), and a result none of whose starts reached the floor carries the
+verdict ``not_reached`` and the error diagnosis ``floor_not_reached``.
+
 Optional robust loss (Huber or Cauchy, by iteratively reweighted least squares): F uses
 rho(alpha) instead of alpha^2 with a scale per term; unless given, the scale is
 ``ROBUST_K`` times 1.4826 MAD of that term's residuals, re-estimated after each pass of
@@ -30,6 +37,7 @@ import numpy as np
 import pandas as pd
 
 from ..rig import Rig
+from .convergence import SEPARATE_MINIMUM_RATIO, noise_floor_check, same_minimum
 from .diagnostics import DegenerateCalibrationError, Diagnosis, check_rank, check_structure
 from .model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
 from .solver import LMOptions, LMReport, levenberg_marquardt
@@ -119,6 +127,11 @@ class BundleResult:
     @property
     def iterations(self) -> int:
         return self.report.iterations
+
+    @property
+    def floor_reached(self) -> bool:
+        """Whether the verdict of :mod:`.convergence` is ``noise_floor``."""
+        return bool(self.extra.get("convergence", {}).get("floor_reached", False))
 
     def sensors_frame(self) -> pd.DataFrame:
         """SensorParametersTable rows with ``u_<column>`` standard uncertainties (0 = fixed)."""
@@ -239,25 +252,38 @@ def local_sphere_rms(problem: BundleProblem, rig: Rig) -> float:
     return float(np.sqrt(np.mean(d[keep] ** 2))) if keep.any() else float("nan")
 
 
-#: epsilon-2 RMS over the RMS of free sphere fits to each sphere image above which the
-#: minimum is taken to be a separate one: the caps are measured with the right shape but
-#: sit millimetres off the spheres the poses put there (about 1.0 at the right minimum of
-#: the simulated thesis rig, 15 to 40 at the separate minima a 0.02 rad start can reach)
-SEPARATE_MINIMUM_RATIO = 2.0
+#: the starts computed from the control points (label, :func:`.start.reinitialise` mode,
+#: basis), tried in this order after the given start values; basis "given": from the
+#: given start values, "lowest": from the lowest minimum found so far (its sensors give
+#: better sphere-centre images)
+DATA_STARTS = (("control points", "dlt", "given"),
+               ("control points, resection", "resection", "given"),
+               ("control points, from the lowest minimum", None, "lowest"))
 
 
 def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions()) -> BundleResult:
     """Adjust sensors and poses of ``problem``; raises :class:`DegenerateCalibrationError`
     for degenerate set-ups and :class:`StartValueError` for unusable start values.
 
-    ``options.start``: ``"given"`` adjusts from the problem's start values only;
-    ``"data"`` from start values computed from the control points
-    (:func:`.start.reinitialise`: poses by resection in the reference camera, the other
-    sensors by DLT); ``"auto"`` (default) from the given ones and, if that minimum looks
-    like a separate one (epsilon-2 RMS more than ``SEPARATE_MINIMUM_RATIO`` times the RMS
-    of free sphere fits to the sphere images), also from the data ones; ``"best"`` always
-    from both. The lower minimum of F is kept; ``extra["start"]`` says which start won,
-    ``before`` always describes the given start values.
+    Every adjustment is tested for its noise floor without the truth
+    (:func:`.convergence.noise_floor_check`: epsilon-1 and epsilon-2 against the noise
+    left by free fits within each sphere image). ``options.start``:
+
+    * ``"auto"`` (default): from the given start values; only if that minimum does not
+      reach the noise floor, from the starts of ``DATA_STARTS`` in turn
+      (:func:`.start.reinitialise`: sphere-centre images from each scanner's own
+      triangulation, poses by resection in the reference camera, the other sensors by
+      the DLT, then by resection, then both again from the lowest minimum so far),
+      stopping at the first that reaches it. A first descent that reaches the floor (the
+      usual case from DLT start values) costs only the test;
+    * ``"given"``: the given start values only; ``"data"``: the data starts only;
+      ``"best"``: every start.
+
+    The result is the lowest minimum of F among the starts that reached the floor, else
+    among all. ``extra["start"]`` names its start, ``extra["convergence"]`` holds the
+    verdict (``noise_floor``, ``lowest_minimum``, ``unconfirmed`` or ``not_reached``;
+    :mod:`.convergence`) with every start's figures; ``not_reached`` adds the error
+    diagnosis ``floor_not_reached``. ``before`` always describes the given start values.
     """
     t0 = time.perf_counter()
     found = check_structure(problem)
@@ -265,48 +291,159 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions
         raise DegenerateCalibrationError(found)
     if options.start not in ("given", "data", "auto", "best"):
         raise ValueError(f"unknown start {options.start!r}; choose given, data, auto or best")
-    runs = []
+    runs: list[tuple[str, BundleResult]] = []
+    failed: dict = {}
+    errors: dict = {}
+
+    def attempt(label, prob, must=False):
+        t = time.perf_counter()
+        try:
+            r = _adjust(prob, options, found)
+        except (DegenerateCalibrationError, StartValueError) as err:
+            if must:
+                raise
+            failed[label] = str(err)
+            errors[label] = err
+            return None
+        check = noise_floor_check(problem, r.rig, r.residuals, r.uncertainty.dof)
+        r.extra.update(floor=check, shape_ratio=check.shape_ratio, seconds=time.perf_counter() - t)
+        runs.append((label, r))
+        return r
+
+    def lowest(candidates):
+        # a later start wins only if clearly lower (not by rounding at the same minimum)
+        lab, best = candidates[0]
+        for lb, r in candidates[1:]:
+            if r.extra["cost"] < best.extra["cost"] * (1 - 1e-9):
+                lab, best = lb, r
+        return lab, best
+
     if options.start != "data":
-        first = _adjust(problem, options, found)
-        first.extra["shape_ratio"] = first.after.rms_eps2_mm / local_sphere_rms(problem, first.rig)
-        runs.append(("given", first))
-    if options.start in ("data", "best") or (options.start == "auto"
-                                             and not runs[0][1].extra["shape_ratio"] <= SEPARATE_MINIMUM_RATIO):
+        # from the given start values only: their failure is the answer; otherwise the
+        # data starts may still succeed (a start so rough that the rays fold over or the
+        # normal matrix is singular there), and the error is raised if none does
+        attempt("given", problem, must=options.start == "given")
+    if options.start != "given":
         from .start import reinitialise
 
-        data_problem, report = reinitialise(problem)
-        try:
-            second = _adjust(data_problem, options, found)
-            second.extra["shape_ratio"] = second.after.rms_eps2_mm / local_sphere_rms(data_problem, second.rig)
-            runs.append(("control points", second))
-        except (DegenerateCalibrationError, StartValueError) as err:
-            if not runs:
-                raise
-            runs[0][1].extra["data_start_failed"] = str(err)
-    # the data start wins only if clearly lower (not by rounding at the same minimum)
-    label, best = runs[0]
-    for lab, r in runs[1:]:
-        if r.extra["cost"] < best.extra["cost"] * (1 - 1e-9):
-            label, best = lab, r
+        modes = {}
+        for label, mode, basis in DATA_STARTS:
+            if options.start in ("auto", "data") and _settled(runs, lowest):
+                break
+            if basis == "lowest":
+                if not runs:
+                    break
+                base_label, base = lowest(runs)
+                base_prob = problem.with_start(base.rig, base.poses)
+                # the mode whose start came lower, DLT if neither ran
+                ran = [(r.extra["cost"], modes[lb]) for lb, r in runs if lb in modes]
+                mode = min(ran)[1] if ran else "dlt"
+                label = f"{label} ({base_label}, {'DLT' if mode == 'dlt' else mode})"
+            else:
+                base_prob = problem
+            try:
+                prob, _ = reinitialise(base_prob, mode)
+            except (ValueError, ArithmeticError) as err:  # DLTError, UndistortError, LinAlgError
+                failed[label] = str(err)
+                continue
+            if attempt(label, prob):
+                modes[label] = mode
+        if not runs:
+            if "given" in errors:
+                raise errors["given"]
+            raise StartValueError("no start computed from the control points could be adjusted: "
+                                  + "; ".join(f"{k}: {v}" for k, v in failed.items()))
+    reached = [(lb, r) for lb, r in runs if r.extra["floor"].reached]
+    label, best = lowest(reached or runs)
+    conv = _verdict(label, best, runs, bool(reached), failed)
     best.extra["start"] = label
+    best.extra["convergence"] = conv
     best.extra["alternatives"] = {lab: {"rms_f_mm": r.after.rms_f_mm, "iterations": r.iterations,
-                                        "shape_ratio": r.extra["shape_ratio"]} for lab, r in runs}
+                                        "shape_ratio": r.extra["shape_ratio"],
+                                        "ratio_eps1": r.extra["floor"].ratio_eps1,
+                                        "ratio_eps2": r.extra["floor"].ratio_eps2} for lab, r in runs}
+    if failed:
+        best.extra["failed_starts"] = dict(failed)
     if label != "given":
         ev = Evaluator(problem, chunk_size=options.chunk_size)
         res0 = ev.evaluate(ev.layout.pack(problem.rig.params, problem.poses), False).res
         best = _replace_start(best, problem, res0)
-    diags = list(best.diagnostics)
-    ratio = best.extra["shape_ratio"]
-    if not ratio <= SEPARATE_MINIMUM_RATIO:
-        diags.append(Diagnosis("separate_minimum", "warning", "all",
-                               f"epsilon-2 RMS is {ratio:.1f} times the RMS of spheres fitted freely to each "
-                               "sphere image: the measured caps have the right shape but do not sit on the "
-                               "spheres the adjusted poses put there. The adjustment has probably stopped in a "
-                               "separate minimum (try other start values), or the artefact definition does not "
-                               "fit the spheres measured"))
+    diags = list(best.diagnostics) + _convergence_diagnoses(conv, best)
     from dataclasses import replace as _dc_replace
 
     return _dc_replace(best, diagnostics=tuple(diags), elapsed_s=time.perf_counter() - t0)
+
+
+def _settled(runs: list, lowest) -> bool:
+    """Whether further starts are pointless: one reached the noise floor, or two ended in
+    the same lowest minimum without a separate minimum's ratio (the verdict is then
+    ``lowest_minimum`` whatever a third start does)."""
+    if any(r.extra["floor"].reached for _, r in runs):
+        return True
+    if len(runs) < 2:
+        return False
+    _, best = lowest(runs)
+    return best.extra["floor"].ratio <= SEPARATE_MINIMUM_RATIO and any(
+        r is not best and same_minimum(r, best) for _, r in runs)
+
+
+def _verdict(label: str, best: BundleResult, runs: list, reached: bool, failed: dict) -> dict:
+    """The convergence verdict of the chosen minimum (:mod:`.convergence`)."""
+    check = best.extra["floor"]
+    agree = [lb for lb, r in runs if r is not best and same_minimum(r, best)]
+    if reached:
+        verdict = "noise_floor"
+    elif check.ratio <= SEPARATE_MINIMUM_RATIO and agree:
+        verdict = "lowest_minimum"
+    elif check.ratio <= SEPARATE_MINIMUM_RATIO and len(runs) == 1 and not failed:
+        verdict = "unconfirmed"
+    else:
+        verdict = "not_reached"
+    starts = []
+    for lb, r in runs:
+        f = r.extra["floor"]
+        starts.append({"start": lb, "rms_f_mm": r.after.rms_f_mm, "rms_eps1_mm": r.after.rms_eps1_mm,
+                       "rms_eps2_mm": r.after.rms_eps2_mm, "ratio_eps1": f.ratio_eps1, "ratio_eps2": f.ratio_eps2,
+                       "floor_reached": f.reached, "failing_scanners": f.failing_scanners,
+                       "iterations": r.iterations, "seconds": r.extra.get("seconds"),
+                       "same_minimum_as_result": r is best or lb in agree})
+    return {"verdict": verdict, "floor_reached": verdict == "noise_floor", "start": label,
+            "check": check.to_dict(), "starts": starts, "agreeing_starts": agree, "failed_starts": dict(failed)}
+
+
+def _convergence_diagnoses(conv: dict, best: BundleResult) -> list[Diagnosis]:
+    check = best.extra["floor"]
+    ratios = (f"epsilon-1 and epsilon-2 are {check.ratio_eps1:.2f} and {check.ratio_eps2:.2f} times the "
+              "per-point noise estimated within each sphere image (noise floor: 1.00, limit "
+              f"{check.limit:.3f})")
+    failing = check.failing_scanners
+    where = f"; scanners above their limit: {', '.join(failing)}" if failing else ""
+    tried = "; ".join(f"{s['start']}: F RMS {1000 * s['rms_f_mm']:.1f} um, ratios {s['ratio_eps1']:.2f}/"
+                      f"{s['ratio_eps2']:.2f}" for s in conv["starts"])
+    out = []
+    if conv["verdict"] == "not_reached":
+        out.append(Diagnosis(
+            "floor_not_reached", "error", "all",
+            f"no start reached the noise floor ({len(conv['starts'])} tried: {tried}"
+            + (f"; failed: {', '.join(conv['failed_starts'])}" if conv["failed_starts"] else "")
+            + f"). In the lowest minimum found, {ratios}{where}. This result is not a calibration: "
+            "give start values closer to the truth (each scanner's own calibration, the poses), check "
+            "that the artefact table and the sphere labels belong to these measurements, or add "
+            "measurements that spread the spheres through the depth of the volume"))
+    elif conv["verdict"] in ("lowest_minimum", "unconfirmed"):
+        why = (f"{len(conv['agreeing_starts']) + 1} starts ended in this same minimum, so it is not a separate "
+               "one: the data hold errors the model does not absorb (artefact, lens beyond the 14 "
+               "parameters, sphere labels)" if conv["verdict"] == "lowest_minimum" else
+               "only one start was tried (start='given'); start='auto' tries others")
+        out.append(Diagnosis("above_noise_floor", "warning", "all", f"{ratios}{where}: {why}"))
+    if not check.ratio_eps2 <= SEPARATE_MINIMUM_RATIO:
+        out.append(Diagnosis("separate_minimum", "warning", "all",
+                             f"epsilon-2 is {check.ratio_eps2:.1f} times the RMS distance to spheres fitted freely "
+                             "to each sphere image: the measured caps have the right shape but do not sit on the "
+                             "spheres the adjusted poses put there. The adjustment has probably stopped in a "
+                             "separate minimum (try other start values), or the artefact definition does not "
+                             "fit the spheres measured"))
+    return out
 
 
 def _replace_start(result: "BundleResult", problem: BundleProblem, res0: np.ndarray) -> "BundleResult":

@@ -51,7 +51,10 @@ _INTERNAL = ("xi_h", "eta_h", "c", "k1", "k2", "k3", "p1", "p2")
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """One finding. ``severity`` is ``error`` (the adjustment is refused) or ``warning``."""
+    """One finding. ``severity`` is ``error`` or ``warning``. An error found before
+    solving refuses the adjustment (:class:`DegenerateCalibrationError`); the one error
+    attached to a result, ``floor_not_reached`` (:mod:`.convergence`), says that no start
+    reached the noise floor: the result is the lowest minimum found, not a calibration."""
 
     kind: str
     severity: str

@@ -94,6 +94,17 @@ def plot_histograms(result: BundleResult, eps1_png, eps2_png, bins: int = 100) -
         fig.savefig(path, format="png")
 
 
+def _json_safe(obj):
+    """``obj`` with non-finite floats as None (strict JSON has no Infinity or NaN)."""
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
+
+
 def summary(result: BundleResult, diagonal_mm: float | None = None) -> dict:
     """A JSON-ready account of the adjustment (``bundle_summary.json``; docs/calibration.md)."""
     pr = result.problem
@@ -129,7 +140,9 @@ def summary(result: BundleResult, diagonal_mm: float | None = None) -> dict:
         "condition_number": unc.condition,
         "weak_directions": [w.describe() for w in unc.weak],
         "high_correlations": [{"a": a, "b": b, "r": r} for a, b, r in unc.high_correlations(0.99)[:50]],
-        "shape_ratio": result.extra.get("shape_ratio"),
+        "shape_ratio": _json_safe(result.extra.get("shape_ratio")),
+        "floor_reached": result.floor_reached if "convergence" in result.extra else None,
+        "convergence": _json_safe(result.extra.get("convergence")),
         "diagnostics": [d.to_dict() for d in result.diagnostics],
         "dropped_measurements": [{"measurement": m, "reason": r} for m, r in pr.dropped],
         "parameters": [{"name": n, "start": float(s), "value": float(v), "u": float(u), "u_classical": float(c)}
