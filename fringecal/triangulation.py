@@ -13,7 +13,24 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["closest_approach", "triangulate"]
+__all__ = ["closest_points", "closest_approach", "triangulate"]
+
+
+def closest_points(o1, d1, o2, d2) -> tuple[np.ndarray, np.ndarray]:
+    """The point on each ray 1 closest to ray 2 and on ray 2 closest to ray 1, each
+    (..., 3) (NaN for parallel rays); arguments as :func:`closest_approach`."""
+    o1, d1, o2, d2 = (np.asarray(a, float) for a in (o1, d1, o2, d2))
+    w0 = o1 - o2
+    a = np.sum(d1 * d1, axis=-1)
+    b = np.sum(d1 * d2, axis=-1)
+    c = np.sum(d2 * d2, axis=-1)
+    d = np.sum(d1 * w0, axis=-1)
+    e = np.sum(d2 * w0, axis=-1)
+    den = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s1 = (b * e - c * d) / den
+        s2 = (a * e - b * d) / den
+    return o1 + s1[..., None] * d1, o2 + s2[..., None] * d2
 
 
 def closest_approach(o1, d1, o2, d2) -> tuple[np.ndarray, np.ndarray]:
@@ -40,18 +57,8 @@ def closest_approach(o1, d1, o2, d2) -> tuple[np.ndarray, np.ndarray]:
     ([0.0, 0.5, 0.0], -1.0)
     """
     o1, d1, o2, d2 = (np.asarray(a, float) for a in (o1, d1, o2, d2))
-    w0 = o1 - o2
-    a = np.sum(d1 * d1, axis=-1)
-    b = np.sum(d1 * d2, axis=-1)
-    c = np.sum(d2 * d2, axis=-1)
-    d = np.sum(d1 * w0, axis=-1)
-    e = np.sum(d2 * w0, axis=-1)
-    den = a * c - b * b
+    p1, p2 = closest_points(o1, d1, o2, d2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s1 = (b * e - c * d) / den
-        s2 = (a * e - b * d) / den
-        p1 = o1 + s1[..., None] * d1
-        p2 = o2 + s2[..., None] * d2
         n = np.cross(d1, d2)
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
         eps1 = np.sum((o2 - o1) * n, axis=-1)

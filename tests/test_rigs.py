@@ -16,7 +16,6 @@ from fringecal.ballbar_plan import (MeasurementVolume, neighbours, plan_position
 from fringecal.frames import frames_from_rows
 from fringecal.pipeline.prior import simulate_prior_rig
 from fringecal.registration import kabsch
-from fringecal.rig import load_rig
 from fringecal.runconfig import PriorCalibrationConfig
 from fringecal.simulate.rigs import RIG_TABLES, ring_rig, row_rig, write_rig_tables
 from fringecal.steps.evaluate import poses_in_reference_frame, truth_in_reference_frame

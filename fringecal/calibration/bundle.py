@@ -44,7 +44,7 @@ from .solver import LMOptions, LMReport, levenberg_marquardt
 from .uncertainty import Uncertainty, estimate_uncertainty
 
 __all__ = ["BundleOptions", "BundleResult", "ResidualStatistics", "StartValueError", "bundle_adjust",
-           "local_sphere_rms", "SEPARATE_MINIMUM_RATIO"]
+           "SEPARATE_MINIMUM_RATIO"]
 
 #: robust-loss scale in units of the residuals' robust standard deviation
 ROBUST_K = {"huber": 1.345, "cauchy": 2.385}
@@ -216,40 +216,6 @@ def _c_distance_correlation(sensor, index, unc: Uncertainty, rig: Rig):
     if var_a <= 0 or C[3, 3] <= 0:
         return None
     return float(cov_ac / np.sqrt(var_a * C[3, 3]))
-
-
-def local_sphere_rms(problem: BundleProblem, rig: Rig) -> float:
-    """RMS distance of the triangulated control points to a sphere of free centre and
-    radius fitted to each sphere image (algebraic fit, vectorised over all images)."""
-    from .results import triangulated_points
-
-    S = triangulated_points(problem, rig)
-    n_sph, n_m = len(problem.artefact), len(problem.measurements)
-    key = (problem.scanner_idx * n_m + problem.meas_idx) * n_sph + problem.sphere_idx
-    _, g, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    G = len(cnt)
-    good = np.all(np.isfinite(S), axis=1)
-    w = good.astype(float)
-    S = np.where(good[:, None], S, 0.0)
-    cnt_ok = np.bincount(g, w, G)
-    mean = np.stack([np.bincount(g, w * S[:, k], G) for k in range(3)], 1) / np.maximum(cnt_ok, 1)[:, None]
-    P = S - mean[g]
-    q = np.sum(P * P, axis=1)
-    A = np.concatenate([2 * P, np.ones((len(P), 1))], axis=1)  # |p|^2 = 2 c.p + k
-    AtA = np.zeros((G, 4, 4))
-    Atq = np.zeros((G, 4))
-    for a in range(4):
-        Atq[:, a] = np.bincount(g, w * A[:, a] * q, G)
-        for b in range(a, 4):
-            AtA[:, a, b] = AtA[:, b, a] = np.bincount(g, w * A[:, a] * A[:, b], G)
-    ok = cnt_ok >= 8
-    sol = np.zeros((G, 4))
-    sol[ok] = np.linalg.solve(AtA[ok], Atq[ok][..., None])[..., 0]
-    c = sol[:, :3]
-    r = np.sqrt(np.maximum(sol[:, 3] + np.sum(c * c, axis=1), 0.0))
-    d = np.linalg.norm(P - c[g], axis=1) - r[g]
-    keep = ok[g] & good
-    return float(np.sqrt(np.mean(d[keep] ** 2))) if keep.any() else float("nan")
 
 
 #: the starts computed from the control points (label, :func:`.start.reinitialise` mode,

@@ -48,6 +48,7 @@ from ..frames import Frame
 from ..registration import kabsch
 from ..rotation import angles_from_matrix
 from ..sensor import Sensor, UndistortError
+from ..triangulation import closest_points
 from .dlt import DLTError, DLTEstimate
 from .model import BundleProblem
 
@@ -107,21 +108,6 @@ def _fit_spheres(P, g, G, w):
     return c + mean, r
 
 
-def _ray_points(o1, d1, o2, d2):
-    """The point on each ray 1 closest to ray 2, and on ray 2 closest to ray 1."""
-    w0 = o1 - o2
-    a = np.sum(d1 * d1, axis=-1)
-    b = np.sum(d1 * d2, axis=-1)
-    c = np.sum(d2 * d2, axis=-1)
-    d = np.sum(d1 * w0, axis=-1)
-    e = np.sum(d2 * w0, axis=-1)
-    den = a * c - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (b * e - c * d) / den
-        t2 = (a * e - b * d) / den
-    return o1 + t1[:, None] * d1, o2 + t2[:, None] * d2
-
-
 def sphere_centre_images(problem: BundleProblem, min_points: int = 10) -> tuple[dict, dict]:
     """The image of every sphere's centre in the camera and the projector that saw it
     (module docstring, step 1), with the problem's start values.
@@ -148,7 +134,7 @@ def sphere_centre_images(problem: BundleProblem, min_points: int = 10) -> tuple[
             continue
         o1 = np.broadcast_to(o1, d1.shape)
         o2 = np.broadcast_to(o2, d2.shape)
-        Xc, Xp = _ray_points(o1, d1, o2, d2)
+        Xc, Xp = closest_points(o1, d1, o2, d2)
         g = inv[sel]
         finite = np.all(np.isfinite(Xc), 1) & np.all(np.isfinite(Xp), 1)
         w = finite.astype(float)
