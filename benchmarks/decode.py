@@ -289,7 +289,7 @@ def bench_formats(frames, repeats, formats):
         for fmt in out:
             out[fmt]["ratio_to_npy"] = round(out[fmt]["read_median_s"] / out["npy"]["read_median_s"], 1)
     out["note"] = ("read_frames: read + checks (size, dtype, bit range, saturation); warm page cache; "
-                   "PNG decoded by OpenCV and TIFF by tifffile in one thread per core")
+                   "PNG decoded by fringecal.fringe.frame_files and TIFF by tifffile in one thread per core")
     return out
 
 

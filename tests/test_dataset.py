@@ -159,7 +159,8 @@ def test_validation_reads_no_image(root, monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("an image was decoded during validation")
 
-    monkeypatch.setattr(importer.cv2, "imdecode", forbidden)
+    for reader in ("read_png", "read_bmp", "read_tif"):
+        monkeypatch.setattr(importer, reader, forbidden)
     assert len(DataSet.open(root).measurements) == 6
     monkeypatch.undo()
     with pytest.raises(FrameStackError, match="y_006_02.png: corrupt"):

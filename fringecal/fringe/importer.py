@@ -5,15 +5,46 @@ Layout::
     measurement/
         sequence.yaml          orientations, fringe_counts, n_steps, width_px, height_px,
                                bit_depth (8..16), optional scanner and measurement ids
-        x_064_00.png           one grey 8- or 16-bit PNG or TIFF per frame, named
-        x_064_01.png           {orientation}_{fringes:03d}_{step:02d}.png (or .tif/.tiff)
-        ...
+        x_064_00.png           one grey 8- or 16-bit PNG or TIFF, or 8-bit BMP, per frame,
+        x_064_01.png           named {orientation}_{fringes:03d}_{step:02d}.png
+        ...                    (or .tif/.tiff/.bmp)
     or, instead of the per-frame files,
         frames.npy             all frames, shape (n_frames, height, width), in acquisition order
 
 Every problem (unreadable YAML, missing/extra/misnamed frames, mixed formats, wrong
-size, wrong bit depth, corrupt or colour image, saturated stack) raises one
+size, wrong bit depth, corrupt, truncated or colour image, saturated stack) raises one
 :class:`FrameStackError` whose message starts with the offending file.
+
+How frames are read (the readers are in :mod:`fringecal.fringe.frame_files`; decisions
+measured by ``benchmarks/image_import.py``, the table is in docs/decoding.md, "Image
+import"):
+
+* One thread per core reads whole frames, each decoded straight into its slice of the
+  preallocated ``(n_frames, height, width)`` array: there is never a second copy of
+  the stack. A thread's scratch (the file's bytes and, for PNG, its zlib stream and
+  inflated rows: 16 MB for a 2048 px 16-bit frame) is reused from frame to frame.
+* PNG (grey, 8/16-bit, not interlaced: what scanners write) is decoded here: the
+  chunks are walked and the IDAT payloads joined, the zlib stream inflated by
+  libdeflate (``imagecodecs.deflate_decode``; it checks the stream's Adler-32, so a
+  damaged image byte is refused, and chunk CRCs are not checked again) and the rows
+  unfiltered and byte-swapped by one numba kernel. Inflating is most of the work, and
+  libdeflate inflates twice as fast as zlib 1.2.13 (1.4 times zlib-ng, 1.3 times
+  ISA-L); the libpng/libspng decoders (OpenCV, Pillow, ``imagecodecs.png_decode``,
+  ``pyspng``) reach 90-100 M px per CPU second, this path 250 (the inflate alone 345).
+  Interlaced PNG, rare from scanners, goes through libpng (``imagecodecs.png_decode``);
+  colour, palette and alpha PNGs are refused from the header.
+* BMP: 8-bit paletted with a grey palette (the palette applied), by
+  ``imagecodecs.bmp_decode``; colour palettes and 24/32-bit BMPs are refused. BMP has
+  no 16-bit grey form (16-bit BMP is RGB555/565 colour), so a BMP stack must say
+  ``bit_depth: 8``. TIFF (uncompressed, LZW, deflate...) by tifffile, with imagecodecs
+  for the codecs: fastest for uncompressed and deflate TIFF; for LZW libtiff is 1.3-1.5
+  times faster, not worth a second TIFF reader.
+* No streaming (decoding the first orientation while the second is read): reading is
+  CPU-bound on every core, so overlap can only fill idle moments; decoding a stack side
+  by side with reading one finished 0.07-0.21 s (6-13 %) sooner than one after the
+  other (``overlap_probe``), and getting even that needs the decoder split by
+  orientation (:func:`fringecal.fringe.decode.decode` reads every frame of a row in one
+  fused pass) and a reader that reports finished orientations.
 """
 
 from __future__ import annotations
@@ -33,20 +64,17 @@ import yaml
 from pydantic import Field, ValidationError
 
 from ..config import StrictModel
+from .frame_files import SEQUENCE_FILE, FrameStackError, Scratch, read_bmp, read_png, read_tif
 from .sequence import FringeSequence, SequenceError
 
 __all__ = ["FrameStackError", "StackSpec", "FrameStack", "read_stack_spec", "read_frames", "write_frames",
-           "SEQUENCE_FILE", "STACK_FILE"]
+           "SEQUENCE_FILE", "STACK_FILE", "FRAME_FORMATS"]
 
-SEQUENCE_FILE = "sequence.yaml"
 STACK_FILE = "frames.npy"
-_FRAME_EXTS = {".png": "png", ".tif": "tif", ".tiff": "tif"}
-_IMAGE_EXTS = set(_FRAME_EXTS) | {".npy", ".jpg", ".jpeg", ".bmp", ".gif", ".webp", ".jp2", ".pgm", ".ppm"}
+FRAME_FORMATS = ("png", "tif", "bmp")
+_FRAME_EXTS = {".png": "png", ".tif": "tif", ".tiff": "tif", ".bmp": "bmp"}
+_IMAGE_EXTS = set(_FRAME_EXTS) | {".npy", ".jpg", ".jpeg", ".gif", ".webp", ".jp2", ".pgm", ".ppm"}
 _NAME = re.compile(r"^([a-z])_(\d{3})_(\d{2})$")
-
-
-class FrameStackError(ValueError):
-    """A frame folder that cannot be decoded; the message names the file (and frame)."""
 
 
 class StackSpec(StrictModel):
@@ -96,8 +124,13 @@ class FrameStack:
 def read_stack_spec(folder) -> tuple[StackSpec, list[Path], str]:
     """Validate ``sequence.yaml`` and the folder listing without reading any image.
 
-    Returns the spec, the frame files in acquisition order (or ``[frames.npy]``) and
-    the format (``"png"``, ``"tif"`` or ``"npy"``).
+    Returns
+    -------
+    spec : StackSpec
+    files : list of Path
+        The frame files in acquisition order (or ``[frames.npy]``).
+    format : str
+        ``"png"``, ``"tif"``, ``"bmp"`` or ``"npy"``.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -119,7 +152,7 @@ def read_stack_spec(folder) -> tuple[StackSpec, list[Path], str]:
         fmt = _FRAME_EXTS.get(p.suffix.lower())
         if fmt is None:
             raise FrameStackError(f"{p}: unsupported frame format {p.suffix!r}; use PNG or TIFF (8 or 16 bit, "
-                                  f"lossless) or one {STACK_FILE}")
+                                  f"lossless), 8-bit BMP or one {STACK_FILE}")
         if not _NAME.match(p.stem):
             raise FrameStackError(f"{p}: frame name does not follow {{orientation}}_{{fringes:03d}}_{{step:02d}} "
                                   f"(e.g. {seq.frame_name(*seq.frames()[0])})")
@@ -135,8 +168,10 @@ def read_stack_spec(folder) -> tuple[StackSpec, list[Path], str]:
         a, b = formats.values()
         raise FrameStackError(f"{b}: mixed frame formats in one measurement ({a.name} and {b.name})")
     fmt = next(iter(formats), "png")
-    ext = "tif" if fmt == "tif" else "png"
-    missing = [seq.frame_name(o, t, k, ext) for o, t, k in seq.frames() if _stem(o, t, k) not in found]
+    if fmt == "bmp" and spec.bit_depth != 8:
+        raise FrameStackError(f"{formats['bmp']}: BMP frames are 8-bit (BMP has no 16-bit grey form), but "
+                              f"{SEQUENCE_FILE} says bit_depth {spec.bit_depth}; use 16-bit PNG or TIFF")
+    missing = [seq.frame_name(o, t, k, fmt) for o, t, k in seq.frames() if _stem(o, t, k) not in found]
     if missing:
         shown = ", ".join(missing[:4]) + (", ..." if len(missing) > 4 else "")
         raise FrameStackError(f"{folder / missing[0]}: missing frame ({len(missing)} of {seq.n_frames} "
@@ -152,29 +187,33 @@ def read_frames(folder, threads: int | None = None, max_saturated_fraction: floa
     ----------
     folder : path
     threads : int, optional
-        Reader threads (image decoding releases the GIL); default: all cores.
+        Reader threads, each decoding whole frames (every decoder used releases the
+        GIL); default: the cores this process may run on.
     max_saturated_fraction : float
         A frame with more of its pixels at full scale makes the stack unusable.
+
+    Returns
+    -------
+    FrameStack
+        ``frames`` has shape (n_frames, height, width) and the dtype of the bit depth.
     """
     folder = Path(folder)
     spec, files, fmt = read_stack_spec(folder)
-    h, w = spec.height_px, spec.width_px
     if fmt == "npy":
         frames = _read_npy(files[0], spec)
     else:
-        frames = np.empty((spec.sequence.n_frames, h, w), spec.dtype)
-        reader = _read_png if fmt == "png" else _read_tif
+        frames = np.empty((spec.sequence.n_frames, spec.height_px, spec.width_px), spec.dtype)
+        reader = {"png": read_png, "tif": read_tif, "bmp": read_bmp}[fmt]
+        scratch = Scratch()
 
         def read(i):
-            reader(files[i], spec, frames[i])
+            reader(files[i], spec, frames[i], scratch)
 
-        with ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1) as pool:
-            errors = []
-            for i, fut in enumerate([pool.submit(read, i) for i in range(len(files))]):
-                if (e := fut.exception()) is not None:
-                    errors.append((i, e))
+        with ThreadPoolExecutor(max_workers=threads or _cores()) as pool:
+            futures = [pool.submit(read, i) for i in range(len(files))]
+            errors = [e for e in (f.exception() for f in futures) if e is not None]
         if errors:
-            raise errors[0][1]
+            raise errors[0]
     _check_values(frames, files, spec, max_saturated_fraction)
     return FrameStack(folder, spec, frames, files, fmt)
 
@@ -183,7 +222,14 @@ def write_frames(folder, frames: np.ndarray, sequence: FringeSequence, bit_depth
                  scanner: str | None = None, measurement: str | None = None) -> Path:
     """Write frames (n_frames, H, W) as a measurement folder that :func:`read_frames` reads.
 
-    ``fmt`` is ``"png"``, ``"tif"`` (uncompressed) or ``"npy"`` (one stack file).
+    Parameters
+    ----------
+    fmt : str
+        ``"png"`` (OpenCV's libpng at zlib level 1 with libpng's adaptive row filters:
+        2.5 % larger than level 6 on noisy fringes, written 7 times faster, and ~20 %
+        faster than ``imagecodecs.png_encode`` at level 1), ``"tif"`` (uncompressed),
+        ``"bmp"`` (8-bit only, grey palette) or ``"npy"`` (one stack file). Writing
+        keeps OpenCV; reading does not use it.
     """
     folder = Path(folder)
     frames = np.asarray(frames)
@@ -192,29 +238,36 @@ def write_frames(folder, frames: np.ndarray, sequence: FringeSequence, bit_depth
         raise ValueError(f"expected ({sequence.n_frames}, H, W) frames, got {frames.shape}")
     if frames.dtype != dtype:
         raise ValueError(f"{bit_depth}-bit frames must be {np.dtype(dtype).name}, got {frames.dtype}")
+    if fmt == "bmp" and bit_depth != 8:
+        raise ValueError(f"BMP holds 8-bit grey frames only, not {bit_depth}-bit")
+    if fmt not in (*FRAME_FORMATS, "npy"):
+        raise ValueError(f"unknown frame format {fmt!r}; use 'png', 'tif', 'bmp' or 'npy'")
     folder.mkdir(parents=True, exist_ok=True)
     spec = {**sequence.to_dict(), "width_px": int(frames.shape[2]), "height_px": int(frames.shape[1]),
             "bit_depth": int(bit_depth)}
     spec.update({k: v for k, v in (("scanner", scanner), ("measurement", measurement)) if v is not None})
     if fmt == "npy":
         np.save(folder / STACK_FILE, frames)
-    elif fmt in ("png", "tif"):
+    else:
         def write(i):
             name = folder / sequence.frame_name(*sequence.frames()[i], ext=fmt)
-            if fmt == "png":
-                ok, buf = cv2.imencode(".png", frames[i], [cv2.IMWRITE_PNG_COMPRESSION, 1])
-                if not ok:
-                    raise OSError(f"{name}: PNG encoding failed")
-                buf.tofile(name)
-            else:
+            if fmt == "tif":
                 tifffile.imwrite(name, frames[i], compression=None)
+                return
+            ok, buf = cv2.imencode(f".{fmt}", frames[i], [cv2.IMWRITE_PNG_COMPRESSION, 1] if fmt == "png" else [])
+            if not ok:
+                raise OSError(f"{name}: {fmt.upper()} encoding failed")
+            buf.tofile(name)
 
-        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        with ThreadPoolExecutor(max_workers=_cores()) as pool:
             list(pool.map(write, range(sequence.n_frames)))
-    else:
-        raise ValueError(f"unknown frame format {fmt!r}; use 'png', 'tif' or 'npy'")
     (folder / SEQUENCE_FILE).write_text(yaml.safe_dump(spec, sort_keys=False))
     return folder
+
+
+def _cores() -> int:
+    """The cores this process may run on (all of them where affinity is unknown)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _stem(orientation: str, fringes: int, step: int) -> str:
@@ -241,49 +294,6 @@ def _load_spec(path: Path) -> StackSpec:
     except SequenceError as err:
         raise FrameStackError(f"{path}: {err}") from None
     return spec
-
-
-def _check_image(path: Path, img: np.ndarray, spec: StackSpec) -> None:
-    if img.ndim == 3 and img.shape[2] == 1:
-        img = img[..., 0]
-    if img.ndim != 2:
-        raise FrameStackError(f"{path}: expected a single-channel (grey) image, got shape {img.shape}")
-    if img.shape != (spec.height_px, spec.width_px):
-        raise FrameStackError(f"{path}: image is {img.shape[1]}x{img.shape[0]} px, "
-                              f"{SEQUENCE_FILE} says {spec.width_px}x{spec.height_px}")
-    if img.dtype != spec.dtype:
-        raise FrameStackError(f"{path}: {img.dtype.itemsize * 8}-bit {img.dtype.name} image, but {SEQUENCE_FILE} says "
-                              f"bit_depth {spec.bit_depth} ({spec.dtype.itemsize * 8}-bit files)")
-
-
-def _read_png(path: Path, spec: StackSpec, out: np.ndarray) -> None:
-    try:
-        img = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
-    except (OSError, cv2.error) as err:
-        raise FrameStackError(f"{path}: cannot read image ({err})") from None
-    if img is None:
-        raise FrameStackError(f"{path}: corrupt or unreadable PNG")
-    _check_image(path, img, spec)
-    out[...] = img.reshape(out.shape)
-
-
-def _read_tif(path: Path, spec: StackSpec, out: np.ndarray) -> None:
-    try:
-        with tifffile.TiffFile(path) as tif:
-            if len(tif.pages) != 1:
-                raise FrameStackError(f"{path}: {len(tif.pages)} pages; expected one grey frame per file")
-            page = tif.pages[0]
-            shape, dtype = page.shape, np.dtype(page.dtype)
-            if len(shape) == 2 and shape == out.shape and dtype == out.dtype:
-                page.asarray(out=out)
-                return
-            img = page.asarray()
-    except FrameStackError:
-        raise
-    except Exception as err:  # tifffile raises many types on damaged files
-        raise FrameStackError(f"{path}: corrupt or unreadable TIFF ({type(err).__name__}: {err})") from None
-    _check_image(path, img, spec)
-    out[...] = img.reshape(out.shape)
 
 
 def _read_npy(path: Path, spec: StackSpec) -> np.ndarray:
