@@ -31,26 +31,13 @@ from collections import Counter
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fringecal.spheres.labelling import LabellingConfig, ambiguous_subsets  # noqa: E402
-from fringecal.spheres.labelling_synthetic import RIGS, PriorErrors, observe_rig  # noqa: E402
+from fringecal.spheres.labelling_synthetic import RIGS, PriorErrors, link_errors, observe_rig  # noqa: E402
 from fringecal.spheres.steps import label_pose_link  # noqa: E402
-
-
-def link_errors(obs, res) -> tuple[float, float]:
-    worst_mm = worst_rad = 0.0
-    if res.links is None:
-        return float("nan"), float("nan")
-    for s, link in res.links.links.items():
-        pts = obs.fits.loc[obs.fits["scanner"] == s, ["x_mm", "y_mm", "z_mm"]].to_numpy(float) / obs.scales[s]
-        true = obs.true_links[s]
-        worst_mm = max(worst_mm, float(np.linalg.norm(link.frame.to_world(pts) - true.to_world(pts), axis=1).max()))
-        worst_rad = max(worst_rad, link.frame.difference(true)[1])
-    return worst_mm, worst_rad
 
 
 def run(obs, planned) -> tuple[dict, object]:

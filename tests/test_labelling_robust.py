@@ -24,7 +24,7 @@ from fringecal.linking import FrameLink, LinkResult, pose_contradictions
 from fringecal.registration import umeyama
 from fringecal.spheres.labelling import (LabellingConfig, LabellingRefused, label_sphere_fits, label_spheres)
 from fringecal.spheres.label_consensus import frame_uncertainty
-from fringecal.spheres.labelling_synthetic import RIGS, observe_rig
+from fringecal.spheres.labelling_synthetic import RIGS, link_errors, observe_rig
 from fringecal.spheres.steps import label_pose_link
 
 SEED = 1
@@ -40,13 +40,7 @@ def rigs():
 def check_links(obs, res):
     """Largest link error where each scanner measures (mm) and in angle (rad)."""
     assert not res.links.unlinked
-    worst_mm = worst_rad = 0.0
-    for s, link in res.links.links.items():
-        pts = obs.fits.loc[obs.fits["scanner"] == s, ["x_mm", "y_mm", "z_mm"]].to_numpy(float) / obs.scales[s]
-        true = obs.true_links[s]
-        worst_mm = max(worst_mm, float(np.linalg.norm(link.frame.to_world(pts) - true.to_world(pts), axis=1).max()))
-        worst_rad = max(worst_rad, link.frame.difference(true)[1])
-    return worst_mm, worst_rad
+    return link_errors(obs, res)
 
 
 def right_labels(obs, res):

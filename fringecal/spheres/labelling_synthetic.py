@@ -21,7 +21,7 @@ from ..artefact import Artefact
 from ..frames import POSE_COLUMNS, Frame
 from ..rotation import rotation_matrix
 
-__all__ = ["PriorErrors", "RigObservations", "observe_rig", "rig_views", "RIGS"]
+__all__ = ["PriorErrors", "RigObservations", "observe_rig", "rig_views", "link_errors", "RIGS"]
 
 #: The three rigs of the labelling tests and benchmark.
 RIGS = ("thesis", "three_scanner_row", "ring6")
@@ -187,3 +187,17 @@ def observe_rig(name: str, errors: PriorErrors | None = None, seed: int = 0, fal
     links = {s: own[ref].inverse().compose(own[s]) for s in own}
     return RigObservations(name, art, ref, pd.DataFrame(rows), planned, own, scales, links,
                            float(np.sqrt(np.mean(sq))))
+
+
+def link_errors(obs: "RigObservations", res) -> tuple[float, float]:
+    """Largest error of the links of a :class:`~fringecal.spheres.steps.LabelPoseLink`
+    against the truth, where each scanner measures (mm) and in angle (rad); NaN without links."""
+    if res.links is None:
+        return float("nan"), float("nan")
+    worst_mm = worst_rad = 0.0
+    for s, link in res.links.links.items():
+        pts = obs.fits.loc[obs.fits["scanner"] == s, ["x_mm", "y_mm", "z_mm"]].to_numpy(float) / obs.scales[s]
+        true = obs.true_links[s]
+        worst_mm = max(worst_mm, float(np.linalg.norm(link.frame.to_world(pts) - true.to_world(pts), axis=1).max()))
+        worst_rad = max(worst_rad, link.frame.difference(true)[1])
+    return worst_mm, worst_rad
