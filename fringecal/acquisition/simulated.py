@@ -11,8 +11,9 @@ both doors see the same rig.
 
 Ball-bar positions are thesis table 6-9's, VDI/VDE 2634's seven, or planned for the
 rig (``verification.scheme``). Which scanners record a planned position is the plan's
-choice; for the others it is decided by visibility, as an operator would: a scanner records the position when the centre of at least one bar sphere
-lies in front of its camera and inside its image. On the thesis rig this gives
+choice; for the others it is decided by visibility, as an operator would: a scanner
+records the position when the centre of at least one bar sphere lies in front of its
+camera and inside its image. On the thesis rig this gives
 thesis table 6-9's arrangement (sphere A seen by scanner one, B by scanner two).
 """
 

@@ -24,8 +24,8 @@ _KEY = [0, 1, 2, 3, 4, 5, 8]  # position, angles, principal distance
 
 
 def truth_in_reference_frame(truth, T_world_reference, near):
-    """The true rig and a pose table moved from the simulation's world into the
-    reference scanner's own frame, the world of a calibration.
+    """The true rig moved from the simulation's world into the reference scanner's own
+    frame, the world of a calibration.
 
     ``near`` (a rig with the same sensors) picks the branch of every sensor's angles,
     so that angle differences are small numbers, not multiples of pi.
@@ -71,15 +71,14 @@ class Evaluate(Step):
     modules = ("fringecal.calibration", "fringecal.pipeline.verify", "fringecal.verification")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        return [rd.truth.sensors, rd.truth.poses, rd.truth.scanner_frames, rd.calibration, rd.control_points, rd.artefact, rd.ballbar,
-                rd.bundle_summary, rd.acquisition] + [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
+        return [rd.truth.sensors, rd.truth.poses, rd.truth.scanner_frames, rd.calibration, rd.control_points,
+                rd.artefact, rd.ballbar, rd.bundle_summary, rd.acquisition] + [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.evaluation, rd.ballbar_centres_true]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         from ..calibration import BundleOptions, BundleProblem, bundle_adjust
-
         from ..frames import frames_from_rows
 
         calibrated = rd.calibration.load()
