@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fringecal.acquisition.simulated import scanners_seeing
+from fringecal.acquisition.simulated import scanners_seeing, sphere_sightings
 from fringecal.artefact import load_artefact
 from fringecal.ballbar_plan import (MeasurementVolume, neighbours, plan_positions, positions_table,
                                     volumes_from_observations)
@@ -39,12 +39,6 @@ def ballbar():
     return load_artefact(THESIS / "ballbar.csv")
 
 
-def observations(rig, artefact, poses) -> pd.DataFrame:
-    rows = [(m, name, sid) for m, T in poses.items()
-            for sid, names in zip(artefact.ids, scanners_seeing(rig, T.to_world(artefact.centres))) for name in names]
-    return pd.DataFrame(rows, columns=["measurement", "scanner", "sphere_id"])
-
-
 def test_config_tables_are_the_generated_rigs(tmp_path):
     for path in write_rig_tables(tmp_path):
         committed = pd.read_csv(ROOT / "configs" / path.parent.name / "sensors.csv")
@@ -54,7 +48,7 @@ def test_config_tables_are_the_generated_rigs(tmp_path):
 
 
 def test_row_rig_sees_three_to_seven_spheres_per_view(thesis_artefact, poses):
-    obs = observations(row_rig(), thesis_artefact, poses)
+    obs = sphere_sightings(row_rig(), thesis_artefact, poses)
     counts = obs.groupby(["measurement", "scanner"]).size()
     assert len(counts) == 36 and counts.min() >= 3 and counts.max() <= 7
     # the fields overlap by ~0.2 m of 0.95 m: a few spheres are seen by two scanners
@@ -67,7 +61,7 @@ def test_ring_scanners_surround_the_artefact(thesis_artefact, poses):
     centre = np.array([-780.0, 82.0, -279.0])
     bearings = [np.degrees(np.arctan2(*(s.camera.pinhole - centre)[[0, 2]])) % 360 for s in rig.scanners]
     assert np.allclose(np.diff(bearings) % 360, 60.0, atol=0.1)  # two designs, aimed alike
-    obs = observations(rig, thesis_artefact, poses)
+    obs = sphere_sightings(rig, thesis_artefact, poses)
     assert obs.groupby(["measurement", "scanner"]).size().min() >= 3 and len(set(obs.scanner)) == 6
 
 
@@ -82,7 +76,7 @@ def test_neighbours_are_consecutive_in_a_row_and_adjacent_on_a_ring(thesis_rig):
 def test_planned_positions_cover_every_scanner_and_neighbouring_pair(build, thesis_rig, thesis_artefact, poses,
                                                                      ballbar):
     rig = build() if build else thesis_rig
-    volumes = volumes_from_observations(rig, observations(rig, thesis_artefact, poses), poses, thesis_artefact)
+    volumes = volumes_from_observations(rig, sphere_sightings(rig, thesis_artefact, poses), poses, thesis_artefact)
     length = float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0]))
     plan = plan_positions(rig, volumes, length, per_pair=3, per_scanner=2)
     assert plan.uncovered == []

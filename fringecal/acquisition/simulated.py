@@ -35,7 +35,8 @@ from ..rundir import measurement_id
 from ..simulate.resolution import scaled_rig
 from ..simulate.scenes import ArtefactHardware
 
-__all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "acquisition_table"]
+__all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "sphere_sightings",
+           "acquisition_table"]
 
 
 @dataclass(frozen=True)
@@ -92,15 +93,20 @@ def scanners_seeing(rig: Rig, points_world: np.ndarray) -> list[list[str]]:
     return out
 
 
+def sphere_sightings(rig: Rig, artefact: Artefact, poses: dict) -> pd.DataFrame:
+    """measurement, scanner, sphere_id: every artefact sphere whose centre a scanner's
+    camera sees at the poses (``measurement -> T_world_artefact``)."""
+    rows = [(m, name, sid) for m, T in poses.items()
+            for sid, names in zip(artefact.ids, scanners_seeing(rig, T.to_world(artefact.centres))) for name in names]
+    return pd.DataFrame(rows, columns=["measurement", "scanner", "sphere_id"])
+
+
 def _planned_positions(sim, truth: Rig, artefact: Artefact, planned: dict, ballbar: Artefact):
     """Positions planned from the true rig's measurement volumes: the spheres each
-    scanner sees (centre in both fields) in the planned poses."""
+    scanner sees in the planned poses."""
     from ..ballbar_plan import plan_positions, volumes_from_observations
 
-    rows = [(m, name, sid) for m, T in planned.items()
-            for sid, names in zip(artefact.ids, scanners_seeing(truth, T.to_world(artefact.centres))) for name in names]
-    observations = pd.DataFrame(rows, columns=["measurement", "scanner", "sphere_id"])
-    volumes = volumes_from_observations(truth, observations, planned, artefact)
+    volumes = volumes_from_observations(truth, sphere_sightings(truth, artefact, planned), planned, artefact)
     v = sim.verification
     plan = plan_positions(truth, volumes, float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0])),
                           v.per_pair, v.per_scanner, seed=v.seed)
