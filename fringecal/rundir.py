@@ -15,6 +15,8 @@ bound to the file's schema and written by the one atomic writer
       ballbar.csv                the verification ball-bar (CMM table, spheres A and B)
       calibration.xml/.json      the calibrated sensors with uncertainties
       bundle_summary.json, verification.json, evaluation.json (simulated runs)
+      calibration_covariance.npz the adjustment's covariance and its sensitivity to the artefact
+      crossval.json, crossval_halves.npz  cross-validation of the calibration over two halves
       measurements/<id>.zarr     acquisition stores, one per (measurement, scanner) or (position, scanner);
                                  immutable once complete
       maps/<id>.zarr             derived maps of a measurement: x, y, z, eps1, candidate regions
@@ -52,7 +54,7 @@ import pandas as pd
 from . import atomic
 
 __all__ = ["RunDir", "RunFile", "TableFile", "JsonFile", "TextFile", "StoreFile", "ArtefactFile", "RigFile",
-           "RodsFile", "CalibrationFile", "TruthDir", "measurement_id", "package_versions"]
+           "RodsFile", "CalibrationFile", "ArraysFile", "TruthDir", "measurement_id", "package_versions"]
 
 _PACKAGES = ("fringecal", "numpy", "scipy", "numba", "zarr", "xarray", "pandas", "pandera",
              "opencv-python-headless", "prefect", "matplotlib", "pydantic")
@@ -210,6 +212,26 @@ class BytesFile(RunFile):
 
 
 @dataclass(frozen=True)
+class ArraysFile(RunFile):
+    """Named numpy arrays (``.npz``, no pickles)."""
+
+    def load(self) -> dict:
+        import numpy as np
+
+        with np.load(self.path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+
+    def save(self, arrays: dict) -> Path:
+        import io
+
+        import numpy as np
+
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        return atomic.write_bytes(self.path, buf.getvalue())
+
+
+@dataclass(frozen=True)
 class StoreFile(RunFile):
     """A zarr v3 measurement store (:mod:`fringecal.store`)."""
 
@@ -280,6 +302,12 @@ class TruthDir:
         """The artefact as built, which the renderer places (the run's ``artefact.csv`` is
         the CMM table the pipeline fits against)."""
         return self._at(ArtefactFile, "artefact.csv")
+
+    @property
+    def ballbar(self) -> ArtefactFile:
+        """The ball-bar as built, which the renderer places (the run's ``ballbar.csv``
+        is its certificate)."""
+        return self._at(ArtefactFile, "ballbar.csv")
 
     @property
     def scanner_frames(self) -> TableFile:
@@ -491,6 +519,22 @@ class RunDir:
     @property
     def bundle_summary(self) -> JsonFile:
         return self._at(JsonFile, "bundle_summary.json")
+
+    @property
+    def covariance(self) -> ArraysFile:
+        """The adjustment's covariance and its sensitivity to the artefact
+        (:func:`fringecal.calibration.results.covariance_arrays`)."""
+        return self._at(ArraysFile, "calibration_covariance.npz")
+
+    @property
+    def crossval(self) -> JsonFile:
+        """Cross-validation of the calibration (two halves of the measurements)."""
+        return self._at(JsonFile, "crossval.json")
+
+    @property
+    def crossval_halves(self) -> ArraysFile:
+        """Each half-calibration's sensor parameters and covariance."""
+        return self._at(ArraysFile, "crossval_halves.npz", optional=True)
 
     # -- verification and evaluation -----------------------------------------------------------
     @property

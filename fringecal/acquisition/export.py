@@ -7,13 +7,14 @@ rods, each scanner's prior calibration, the planned poses, one image stack per
 table and its image stacks. ``dataset.yaml`` carries the simulation config's
 processing settings, so ``fringecal run --dataset`` processes it as ``fringecal run``
 processes the simulation. The truth goes to a separate folder that the data set
-does not reference (true sensors, scanner frames, reached poses, hexapod moves,
-ball-bar positions), laid out as a run directory's ``truth/``
-(:class:`~fringecal.rundir.TruthDir`).
+does not reference (true sensors, the artefact and ball-bar as built, scanner
+frames, reached poses, hexapod moves, ball-bar positions), laid out as a run
+directory's ``truth/`` (:class:`~fringecal.rundir.TruthDir`).
 
 Both doors render with the same functions, the same measurement ids and noise
-seeds, and the frames are integers written losslessly, so the data set decodes to
-the very maps the simulated run stores.
+seeds and the same unmodelled errors (``simulate.errors``), and the frames are
+integers written losslessly, so the data set decodes to the very maps the simulated
+run stores.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from pathlib import Path
 import yaml
 
 from .. import dataset as layout
-from ..artefact import load_artefact, load_rods
+from ..artefact import load_rods
 from ..atomic import temporary_sibling
 from ..ballbar import ballbar_rods
 from ..frames import frame_rows, frames_from_rows
@@ -34,6 +35,7 @@ from ..fringe.importer import write_frames
 from ..rundir import TruthDir, measurement_id
 from ..simulate.resolution import scaled_scanner
 from ..simulate.scenes import artefact_scene
+from ..simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
 from .measure import render_frames
 from .plan import move_hexapod, poses_table
 from .simulated import load_simulated_rig
@@ -46,7 +48,7 @@ PROCESSING_SECTIONS = ("decode", "extraction", "control_points", "bundle", "veri
 def _dataset_yaml(cfg) -> dict:
     sim = cfg.simulate
     doc = {"name": cfg.name, "reference_scanner": cfg.reference_scanner,
-           "description": f"simulated by fringecal from rig {sim.rig}"}
+           "description": f"simulated by fringecal from rig {sim.rig} (simulation profile {sim.errors.profile_name})"}
     if sim.temperature_c is not None:
         doc["temperature_c"] = sim.temperature_c
     if sim.artefact_corrections is not None:
@@ -93,7 +95,8 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         moves = move_hexapod(planned, sim.acquisition.hexapod)
         known = TruthDir(tmp_truth, prefix="")
         known.sensors.save(sr.truth)
-        known.artefact.save(sr.artefact)
+        known.artefact.save(sr.built)
+        known.ballbar.save(sr.ballbar_built)
         known.scanner_frames.save(frame_rows(sr.scanner_frames, key="scanner"))
         known.poses.save(frame_rows({m.pose: m.reached for m in moves}))
         known.hexapod_moves.save(poses_table(moves))
@@ -101,28 +104,33 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         truth = known.sensors.load()
         built = known.artefact.load()
         rods = load_rods(tmp / layout.RODS_FILE, built) if rc.rods is not None else None
-        bar = load_artefact(verification / layout.BALLBAR_FILE)
+        bar = known.ballbar.load()
         reached = frames_from_rows(known.poses.load())
         positions = frames_from_rows(known.ballbar_positions.load())
 
         acq = sim.acquisition
         v_acq = acq.model_copy(update={"seed": sim.verification.seed})
+        errors = sim.errors
+        native = native_formats(rc.sensors) if errors.thin_prism_corner_px else None
         jobs = []
-        for m, T in reached.items():
+        for i, (m, T) in enumerate(reached.items()):
             scene = artefact_scene(built, rods, T, sr.hardware)
             for s in truth.scanners:
-                jobs.append((measurement_id(m, s.name), s, scene, acq, tmp / layout.MEASUREMENTS_DIR / m / s.name))
+                s = drifted_scanner(s, session_displacement(errors, s.name, list(reached)[:i + 1]))
+                jobs.append((measurement_id(m, s.name), s, scene, acq, tmp / layout.MEASUREMENTS_DIR / m / s.name,
+                             render_errors(errors, s, T, "artefact", scene.sphere_ids, native)))
         for name, T in positions.items():
             scene = artefact_scene(bar, ballbar_rods(bar), T, sr.hardware)
             for scanner in sr.recorders[name]:
                 s = truth.scanner(scanner)
                 if sim.verification.camera_width_px is not None:
                     s = scaled_scanner(s, sim.verification.camera_width_px)
-                jobs.append((measurement_id(name, scanner), s, scene, v_acq, verification / name / scanner))
+                jobs.append((measurement_id(name, scanner), s, scene, v_acq, verification / name / scanner,
+                             render_errors(errors, s, T, "ballbar", scene.sphere_ids, native)))
 
         def render(job):
-            mid, scanner, scene, settings, folder = job
-            m = render_frames(mid, scanner, scene, settings)
+            mid, scanner, scene, settings, folder, errs = job
+            m = render_frames(mid, scanner, scene, settings, errs)
             write_frames(folder, m.frames, m.sequence, acq.render.bit_depth, fmt, scanner=scanner.name)
             if on_stack is not None:
                 on_stack(mid)

@@ -101,23 +101,25 @@ def _sensor_attr(s: Sensor) -> dict:
     return {"name": s.name, "role": s.role, "params": s.as_dict(), "format": camera_format_attr(s.format)}
 
 
-def render_frames(measurement: str, scanner: Scanner, scene: Scene, acquisition) -> Measurement:
+def render_frames(measurement: str, scanner: Scanner, scene: Scene, acquisition, errors=None) -> Measurement:
     """The fringe frames ``scanner`` records of ``scene`` (and the renderer's truth).
 
     ``acquisition`` is an :class:`~fringecal.runconfig.AcquisitionConfig` (render
     settings, sequence, seed, optional backdrop ``backdrop_mm`` in front of the
     camera); the noise comes from :func:`measurement_rng` (seed, measurement id), so a
     measurement renders the same whatever else is rendered and in whatever order.
+    ``errors`` (:class:`~fringecal.simulate.unmodelled.RenderErrors`, optional) are
+    the unmodelled errors of this measurement (:func:`fringecal.simulate.world.render_errors`).
     """
     if acquisition.backdrop_mm is not None:
         bg = SceneObject("background", "background", "background", (backdrop(scanner, acquisition.backdrop_mm),))
         scene = Scene(scene.objects + (bg,))
     return render_measurement(scanner, scene, acquisition.render, measurement_rng(acquisition.seed, measurement),
-                              acquisition.sequence.build())
+                              acquisition.sequence.build(), errors)
 
 
 def simulate_measurement(measurement: str, scanner: Scanner, scene: Scene, acquisition, decode_settings, out,
-                         truth_out=None, attrs: dict | None = None) -> AcquiredMeasurement:
+                         truth_out=None, attrs: dict | None = None, errors=None) -> AcquiredMeasurement:
     """Render, decode and write one measurement store at ``out`` (atomically), and its
     ground truth as a separate store at ``truth_out`` (if given).
 
@@ -126,10 +128,10 @@ def simulate_measurement(measurement: str, scanner: Scanner, scene: Scene, acqui
     ``source = "simulated"`` plus ``attrs``); the truth store holds the renderer's
     per-pixel truth (:data:`TRUTH_VARIABLES`; the world point as ``truth_x``,
     ``truth_y``, ``truth_z``) and, as attributes, the true sensors and the scene's
-    object names, kinds and sphere ids.
+    object names, kinds and sphere ids. ``errors``: as :func:`render_frames`.
     """
     t0 = time.perf_counter()
-    rendered = render_frames(measurement, scanner, scene, acquisition)
+    rendered = render_frames(measurement, scanner, scene, acquisition, errors)
     t1 = time.perf_counter()
     truth = rendered.truth
     fmt = scanner.camera.format

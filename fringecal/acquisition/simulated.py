@@ -3,8 +3,11 @@
 :func:`load_simulated_rig` turns a :class:`~fringecal.runconfig.SimulationConfig`
 into a :class:`SimulatedRig`: the true sensors (cameras at the simulated
 resolution), each scanner's prior calibration in its own frame, the artefact (CMM
-table with the configured corrections), its rods and hardware, the planned artefact
-poses, the verification ball-bar and its positions. The simulated pipeline steps
+table with the configured corrections: what the run fits against) and the artefact
+as built (what is rendered; the same unless ``simulate.errors`` switches artefact
+errors on, :mod:`fringecal.simulate.world`), its rods and hardware, the planned
+artefact poses, the verification ball-bar (certificate and as built) and its
+positions. The simulated pipeline steps
 (:mod:`fringecal.steps.simulate_prepare` and friends) and ``fringecal simulate``
 (which writes the same measurements as a recorded data set) both start from it, so
 both doors see the same rig.
@@ -34,6 +37,8 @@ from ..rig import Rig, load_rig
 from ..rundir import measurement_id
 from ..simulate.resolution import scaled_rig
 from ..simulate.scenes import ArtefactHardware
+from ..simulate.unmodelled import emitted_harmonics
+from ..simulate.world import as_built_artefact, as_built_ballbar
 
 __all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "sphere_sightings",
            "acquisition_table"]
@@ -58,6 +63,9 @@ class SimulatedRig:
         scanner that sees it.
     recorders : dict position -> list of scanner names
         The scanners that record each position.
+    built, ballbar_built : Artefact
+        The artefact and ball-bar as built (rendered); ``artefact`` and ``ballbar``
+        are the CMM table and the certificate the run uses.
     """
 
     truth: Rig
@@ -70,6 +78,8 @@ class SimulatedRig:
     ballbar: Artefact
     positions: list
     recorders: dict
+    built: Artefact | None = None
+    ballbar_built: Artefact | None = None
 
 
 def input_files(sim) -> list[Path]:
@@ -165,7 +175,14 @@ def load_simulated_rig(sim) -> SimulatedRig:
     if len(ballbar) != 2:
         raise ConfigError(f"{sim.ballbar_path()}: a ball-bar has two spheres, found {len(ballbar)}")
     positions, recorders = _positions(sim, truth, ballbar, artefact, planned)
-    return SimulatedRig(truth, prior, frames, artefact, rods, hardware, planned, ballbar, positions, recorders)
+    render = sim.acquisition.render
+    try:  # refused here, before any work, rather than at the first render
+        emitted_harmonics(render.offset, render.amplitude, sim.errors.projector_gamma)
+    except ValueError as err:
+        raise ConfigError(f"simulate.errors.projector_gamma: {err}") from None
+    built, ballbar_built = as_built_artefact(sim, sim.errors), as_built_ballbar(ballbar, sim.errors)
+    return SimulatedRig(truth, prior, frames, artefact, rods, hardware, planned, ballbar, positions, recorders,
+                        built, ballbar_built)
 
 
 def acquisition_table(sr: SimulatedRig) -> pd.DataFrame:

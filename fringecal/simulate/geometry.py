@@ -16,7 +16,11 @@ PLANE       P = a point, A = unit normal (two-sided, infinite)
 plus a bounding sphere (``BOUND`` centre, ``BOUND_R`` radius; infinite for planes)
 used to cull primitives per image tile. Normals are outward (for planes: facing the
 ray). The sensor model mirrors :mod:`fringecal.sensor` exactly (distortion of ideal
-coordinates, Newton inversion), packed as ``sensor_pack``.
+coordinates, Newton inversion), packed as ``sensor_pack``, plus a thin-prism term
+outside the 14-parameter model (``xi += s1 r^2, eta += s2 r^2``, r the ideal radius;
+zero unless the simulation's ``thin_prism_corner_px`` switch is on), which the
+calibration cannot represent. Its inversion wraps the Newton iteration in a
+fixed-point loop on the (micrometre-sized) prism term.
 """
 
 from __future__ import annotations
@@ -38,20 +42,15 @@ N_PRIM_COLS = 21
 NO_HIT = np.inf
 
 
-def sensor_pack(sensor: Sensor) -> np.ndarray:
-    """(20,) float: pinhole (3), R row-major (9), xi_h, eta_h, c, k1, k2, k3, p1, p2."""
+def sensor_pack(sensor: Sensor, prism=(0.0, 0.0)) -> np.ndarray:
+    """(22,) float: pinhole (3), R row-major (9), xi_h, eta_h, c, k1, k2, k3, p1, p2,
+    thin prism s1, s2 (mm^-1; the renderer's only, see the module notes)."""
     p = sensor.params
-    return np.concatenate([p[0:3], sensor.R.ravel(), p[6:14]])
+    return np.concatenate([p[0:3], sensor.R.ravel(), p[6:14], np.asarray(prism, float).reshape(2)])
 
 
 @njit(cache=True)
-def undistort_point(mx, my, s, gx, gy):
-    """Distorted (relative to the principal point) -> ideal image mm, by Newton from
-    the guess (gx, gy).
-
-    Same iteration and tolerance as :func:`fringecal.sensor.undistort`; returns
-    (x, y, converged).
-    """
+def _newton_undistort(mx, my, s, gx, gy):
     k1, k2, k3, p1, p2 = s[15], s[16], s[17], s[18], s[19]
     x, y = gx, gy
     if k1 == 0.0 and k2 == 0.0 and k3 == 0.0 and p1 == 0.0 and p2 == 0.0:
@@ -61,6 +60,30 @@ def undistort_point(mx, my, s, gx, gy):
         x, y, step, det, tr = newton_step(x, y, mx, my, k1, k2, k3, p1, p2)
         if step <= 1e-13 * (1 + abs(x) + abs(y)):
             ok = det > 0 and tr > 0
+            break
+    return x, y, ok
+
+
+@njit(cache=True)
+def undistort_point(mx, my, s, gx, gy):
+    """Distorted (relative to the principal point) -> ideal image mm, by Newton from
+    the guess (gx, gy).
+
+    Same iteration and tolerance as :func:`fringecal.sensor.undistort`; returns
+    (x, y, converged). With a thin-prism term, Newton inverts the 14-parameter part
+    for ``m - s r(u)^2`` and a fixed-point loop updates ``u`` (contraction factor
+    ~ 2 |s| r, below 1e-5 for micrometre terms).
+    """
+    s1, s2 = s[20], s[21]
+    if s1 == 0.0 and s2 == 0.0:
+        return _newton_undistort(mx, my, s, gx, gy)
+    x, y, ok = gx, gy, False
+    for _ in range(20):
+        r2 = x * x + y * y
+        nx, ny, ok = _newton_undistort(mx - s1 * r2, my - s2 * r2, s, x, y)
+        moved = abs(nx - x) + abs(ny - y)
+        x, y = nx, ny
+        if moved <= 1e-13 * (1 + abs(x) + abs(y)):
             break
     return x, y, ok
 
@@ -97,6 +120,9 @@ def project_point(X, Y, Z, s):
     q = r2 * (k1 + r2 * (k2 + r2 * k3))
     xi = s[12] + x + x * q + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
     eta = s[13] + y + y * q + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
+    if s[20] != 0.0 or s[21] != 0.0:  # thin prism (renderer only)
+        xi += s[20] * r2
+        eta += s[21] * r2
     return xi, eta, zs
 
 
@@ -238,6 +264,37 @@ def nearest_hit(prims, kinds, cand, n_cand, ox, oy, oz, dx, dy, dz, tmin):
         if t < best:
             best, jbest, bnx, bny, bnz = t, j, nx, ny, nz
     return best, jbest, bnx, bny, bnz
+
+
+@njit(cache=True)
+def form_deviation(form, j, nx, ny, nz):
+    """Radial form error (mm) of sphere primitive ``j`` at the outward unit normal n:
+    ``sum_m a_m P_l(u_m . n)`` over the rows (ux, uy, uz, a, l) of ``form[j]``
+    (zonal terms, Legendre polynomial P_l by its recurrence)."""
+    d = 0.0
+    for m in range(form.shape[1]):
+        a = form[j, m, 3]
+        if a == 0.0:
+            continue
+        c = form[j, m, 0] * nx + form[j, m, 1] * ny + form[j, m, 2] * nz
+        p_prev, p = 1.0, c
+        for k in range(1, int(form[j, m, 4])):
+            p_prev, p = p, ((2 * k + 1) * c * p - k * p_prev) / (k + 1)
+        d += a * p
+    return d
+
+
+@njit(cache=True)
+def form_hit(form, kinds, j, t, dx, dy, dz, nx, ny, nz):
+    """Ray parameter of the as-built surface near the nominal hit ``t`` on primitive j:
+    a sphere's radial deviation delta moves the hit by ``-delta / cos i`` along the
+    unit ray d (first order; ``cos i`` held above 0.1 at grazing incidence). The
+    normal stays the nominal one (form slopes are ~1e-4 rad). ``form`` (n_prim, m, 5)
+    is empty when form errors are off."""
+    if form.shape[0] == 0 or kinds[j] != SPHERE:
+        return t
+    cos_i = abs(dx * nx + dy * ny + dz * nz)
+    return t - form_deviation(form, j, nx, ny, nz) / max(cos_i, 0.1)
 
 
 @njit(cache=True)

@@ -6,6 +6,14 @@ the shadow tests, projector light per hit, then per pixel the phasors
 ``Z_t = sum_s w_s P_s m_t exp(i t tau_s)`` and the truth, and finally every frame
 of the sequence from the phasors, noise included. Array layouts are documented on
 :func:`render_tiles`; :mod:`fringecal.simulate.render` is the Python entry point.
+
+The unmodelled errors of :mod:`fringecal.simulate.errors` enter as arrays of fixed
+dtype and dimension, empty or trivial when off, so switching them on or off never
+compiles a new specialisation: sphere form errors (``form``, empty when off), a
+projector intensity non-linearity as harmonics h = 1..H of every fringe count
+(phasors of the counts h t; H = 1 when off) with the per-frame weights ``fcos``,
+``fsin`` that also carry a pattern drift during the sequence, a per-pixel phase
+field (``field``, empty when off) and the camera response (``noise[5]``).
 """
 
 from __future__ import annotations
@@ -66,10 +74,10 @@ def bounding_cone(dirs, mask):
 
 
 @njit(cache=True)
-def cast_tile(prims, kinds, cam, prj, dirs, ok, hit_t, hit_j, hit_n, to_hit, prj_dist):
-    """First hits of the tile's rays; ``to_hit`` gets the unit direction from the
-    projector pinhole to each hit, ``prj_dist`` its distance. Returns whether anything
-    was hit."""
+def cast_tile(prims, kinds, form, cam, prj, dirs, ok, hit_t, hit_j, hit_n, to_hit, prj_dist):
+    """First hits of the tile's rays (on the as-built surface, :func:`.geometry.form_hit`);
+    ``to_hit`` gets the unit direction from the projector pinhole to each hit,
+    ``prj_dist`` its distance. Returns whether anything was hit."""
     cand = np.empty(prims.shape[0], np.int64)
     ax, ay, az, cos_half, found = bounding_cone(dirs, ok)
     n_cand = g.cone_candidates(prims, cam[0], cam[1], cam[2], ax, ay, az, cos_half, np.inf, cand) if found else 0
@@ -83,6 +91,7 @@ def cast_tile(prims, kinds, cam, prj, dirs, ok, hit_t, hit_j, hit_n, to_hit, prj
             t, j, nx, ny, nz = g.nearest_hit(prims, kinds, cand, n_cand, cam[0], cam[1], cam[2], dx, dy, dz, 0.0)
             if j < 0:
                 continue
+            t = g.form_hit(form, kinds, j, t, dx, dy, dz, nx, ny, nz)
             any_hit = True
             hit_t[p, s], hit_j[p, s] = t, j
             hit_n[p, s, 0], hit_n[p, s, 1], hit_n[p, s, 2] = nx, ny, nz
@@ -124,10 +133,13 @@ def shadow_candidates(prims, prj, owner, n_obj, hit_j, to_hit, prj_dist):
 
 
 @njit(cache=True)
-def shade(prims, kinds, mats, cand, n_cand, prj, prj_fmt, optics, cam, X, Y, Z, nx, ny, nz, obj):
-    """Projector light at a hit: (code, tau_x, tau_y, P, projector depth z').
+def shade(prims, kinds, form, mats, cand, n_cand, prj, prj_fmt, optics, cam, X, Y, Z, nx, ny, nz, obj, j):
+    """Projector light at a hit on primitive j: (code, tau_x, tau_y, P, projector depth z').
 
     P is the relative irradiance times reflectance of :mod:`.config`; 0 unless lit.
+    With form errors a sphere never shadows its own (moved) hit -- a convex surface
+    only turns its back, which ``cos_i`` tests -- another occluder's hit is moved to
+    its as-built surface too and must be 0.1 um nearer than the point.
     """
     xi, eta, zp = g.project_point(X, Y, Z, prj)
     if not zp > 0 or abs(xi) > prj_fmt[0] / 2 or abs(eta) > prj_fmt[1] / 2:
@@ -140,8 +152,15 @@ def shade(prims, kinds, mats, cand, n_cand, prj, prj_fmt, optics, cam, X, Y, Z, 
     cos_i = nx * lx + ny * ly + nz * lz
     if cos_i <= 0:  # the surface turns its back on the projector
         return LIGHT_SHADOW, tx, ty, 0.0, zp
-    t, _, _, _, _ = g.nearest_hit(prims, kinds, cand, n_cand, prj[0], prj[1], prj[2], -lx, -ly, -lz, 0.0)
-    if t < dist * (1 - 1e-9) - 1e-7:  # something nearer the projector is in the way
+    t, js, snx, sny, snz = g.nearest_hit(prims, kinds, cand, n_cand, prj[0], prj[1], prj[2], -lx, -ly, -lz, 0.0)
+    slack = 1e-7
+    if form.shape[0] > 0:
+        slack = 1e-4
+        if js == j and kinds[j] == g.SPHERE:
+            t = np.inf
+        elif js >= 0:
+            t = g.form_hit(form, kinds, js, t, -lx, -ly, -lz, snx, sny, snz)
+    if t < dist * (1 - 1e-9) - slack:  # something nearer the projector is in the way
         return LIGHT_SHADOW, tx, ty, 0.0, zp
     albedo, spec, shininess = mats[obj, 0], mats[obj, 1], mats[obj, 2]
     reflect = albedo * cos_i
@@ -157,9 +176,11 @@ def shade(prims, kinds, mats, cand, n_cand, prj, prj_fmt, optics, cam, X, Y, Z, 
 
 
 @njit(cache=True)
-def add_phasors(zre, zim, oi, p, w, a, mfac, icounts, pr, pim):
+def add_phasors(zre, zim, oi, p, w, a, mfac, icounts, n_h, pr, pim):
     """zre/zim[oi, t, p] += a m_t exp(i t w) for every fringe count: exp(i 2^b w) by
-    repeated squaring, exp(i t w) as the product over t's bits (no trig per count)."""
+    repeated squaring, exp(i t w) as the product over t's bits (no trig per count);
+    for harmonics h = 2..n_h also the counts h t (index (h - 1) n_t + t), by powers
+    of exp(i t w)."""
     pr[0], pim[0] = math.cos(w), math.sin(w)
     for b in range(1, pr.shape[0]):
         pr[b] = pr[b - 1] * pr[b - 1] - pim[b - 1] * pim[b - 1]
@@ -175,6 +196,13 @@ def add_phasors(zre, zim, oi, p, w, a, mfac, icounts, pr, pim):
         m = a * mfac[oi, ti]
         zre[oi, ti, p] += m * er
         zim[oi, ti, p] += m * ei
+        hr, hi = er, ei
+        for h in range(1, n_h):
+            hr, hi = hr * er - hi * ei, hr * ei + hi * er
+            k = h * icounts.shape[0] + ti
+            m = a * mfac[oi, k]
+            zre[oi, k, p] += m * hr
+            zim[oi, k, p] += m * hi
 
 
 @njit(cache=True)
@@ -202,14 +230,21 @@ def dominant(objs, ns):
 
 
 @njit(cache=True)
-def write_frames(frames, r0, c0, nr, nc, base, zre, zim, B, step_cos, step_sin, key, noise):
-    """Every frame of the tile from its phasors: I = base + B Re(exp(i delta_k) Z_t),
-    then camera noise (one random stream per pixel, frame after frame) and quantisation."""
+def write_frames(frames, r0, c0, nr, nc, base, zre, zim, fcos, fsin, key, noise):
+    """Every frame f of the tile from its phasors:
+    I = base + sum_h Re((fcos[f, h] + i fsin[f, h]) Z_(h+1)t), i.e. for harmonic
+    amplitudes B_h and a frame's extra phase psi_f: fcos = B_h cos(h (delta_k + psi_f)),
+    fsin = B_h sin(...); then the camera response ``I + 4 e I (1 - I)`` (e =
+    ``noise[5]``), camera noise (one random stream per pixel, frame after frame) and
+    quantisation."""
     W = frames.shape[2]
     full_well, sigma_e, inv_gain, max_dn, shot = noise[0], noise[1], noise[2], int(noise[3]), noise[4] > 0
+    lin = noise[5]
     noisy = shot or sigma_e > 0
     scale = full_well * inv_gain
-    n_o, n_t, n_k = zre.shape[0], zre.shape[1], step_cos.shape[0]
+    n_h = fcos.shape[1]
+    n_o, n_t = zre.shape[0], zre.shape[1] // n_h
+    n_k = fcos.shape[0] // (n_o * n_t)
     states = np.empty(nr * nc, np.uint64)
     for p in range(nr * nc):
         states[p] = stream(key, (r0 + p // nc) * W + c0 + p % nc)
@@ -217,12 +252,17 @@ def write_frames(frames, r0, c0, nr, nc, base, zre, zim, B, step_cos, step_sin, 
         for ti in range(n_t):
             for k in range(n_k):
                 f = (oi * n_t + ti) * n_k + k
-                bc, bs = B * step_cos[k], B * step_sin[k]
                 for r in range(nr):
                     out = frames[f, r0 + r, c0:c0 + nc]
                     for c in range(nc):
                         p = r * nc + c
-                        val = base[p] + bc * zre[oi, ti, p] - bs * zim[oi, ti, p]
+                        val = base[p]
+                        for h in range(n_h):
+                            q = h * n_t + ti
+                            val = val + fcos[f, h] * zre[oi, q, p]
+                            val = val - fsin[f, h] * zim[oi, q, p]
+                        if lin != 0.0:
+                            val = val + 4.0 * lin * val * (1.0 - val)
                         if noisy:
                             states[p], out[c] = record(val * full_well, states[p], shot, sigma_e, inv_gain, max_dn)
                         else:
@@ -230,17 +270,20 @@ def write_frames(frames, r0, c0, nr, nc, base, zre, zim, B, step_cos, step_sin, 
 
 
 @njit(parallel=True, cache=True)
-def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphere, n, orient, counts, step_cos,
-                 step_sin, optics, noise, key, tile, frames, tau, tau_c, point, ints, fracs, light, levels):
+def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphere, form, n, orient, counts, fcos,
+                 fsin, optics, noise, field, key, tile, frames, tau, tau_c, point, ints, fracs, light, levels):
     """Render every tile of the image in parallel.
 
-    Inputs: ``cam``, ``prj`` sensor packs (20,); ``cam_fmt`` (cols, rows, width mm,
+    Inputs: ``cam``, ``prj`` sensor packs (22,); ``cam_fmt`` (cols, rows, width mm,
     height mm); ``prj_fmt`` (SLM width, height mm); ``prims``, ``kinds``, ``owner``
     (object of each primitive); ``mats`` (n_obj, 3) albedo, specular, shininess;
-    ``obj_sphere`` (n_obj,) sphere index or -1; ``n`` sub-samples per side;
-    ``orient`` (n_o,) 0 = x, 1 = y; ``counts`` (n_t,); ``step_cos``, ``step_sin``
-    (N,); ``optics`` (A, B, ambient, d_ref, focus, blur at focus, blur per mm);
-    ``noise`` (full well, sigma_e, 1/gain, max DN, shot flag); ``key`` uint64.
+    ``obj_sphere`` (n_obj,) sphere index or -1; ``form`` (n_prim, m, 5) sphere form
+    terms or (0, m, 5); ``n`` sub-samples per side; ``orient`` (n_o,) 0 = x, 1 = y;
+    ``counts`` (H n_t,) the fringe counts then their harmonics h t, h = 2..H;
+    ``fcos``, ``fsin`` (n_frames, H) frame weights (:func:`write_frames`); ``optics``
+    (A, B, ambient, d_ref, focus, blur at focus, blur per mm); ``noise`` (full well,
+    sigma_e, 1/gain, max DN, shot flag, camera linearity error); ``field`` (2, rows,
+    cols) phase added to tau_x, tau_y before the phasors, or (2, 0, 0); ``key`` uint64.
 
     Outputs: ``frames`` (n_o n_t N, rows, cols) uint16; ``tau``, ``tau_c`` (2, rows,
     cols) area-mean and centre tau; ``point`` (rows, cols, 3); ``ints`` (3, rows,
@@ -249,7 +292,10 @@ def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphe
     irradiance S, ambient level.
     """
     H, W = frames.shape[1], frames.shape[2]
-    n_o, n_t = orient.shape[0], counts.shape[0]
+    n_h = fcos.shape[1]
+    n_o, n_q = orient.shape[0], counts.shape[0]
+    n_t = n_q // n_h
+    has_field = field.shape[1] > 0
     ns = n * n
     nray = ns + (1 if n % 2 == 0 else 0)
     centre = ns if n % 2 == 0 else (n // 2) * n + n // 2
@@ -273,12 +319,12 @@ def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphe
         hit_n = np.empty((npx, nray, 3))
         to_hit = np.empty((npx, nray, 3))
         prj_dist = np.empty((npx, nray))
-        cast_tile(prims, kinds, cam, prj, dirs, ok, hit_t, hit_j, hit_n, to_hit, prj_dist)
+        cast_tile(prims, kinds, form, cam, prj, dirs, ok, hit_t, hit_j, hit_n, to_hit, prj_dist)
         group_of, shadow_lists, shadow_n = shadow_candidates(prims, prj, owner, mats.shape[0], hit_j, to_hit,
                                                              prj_dist)
 
-        zre = np.zeros((n_o, n_t, npx))
-        zim = np.zeros((n_o, n_t, npx))
+        zre = np.zeros((n_o, n_q, npx))
+        zim = np.zeros((n_o, n_q, npx))
         base = np.zeros(npx)
         objs = np.empty(nray, np.int64)
         lit = np.empty(nray, np.bool_)
@@ -287,7 +333,7 @@ def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphe
         a_s = np.empty(nray)
         z_s = np.empty(nray)
         done = np.empty(nray, np.bool_)
-        mfac = np.empty((n_o, n_t))
+        mfac = np.empty((n_o, n_q))
         pr = np.empty(n_bits)
         pim = np.empty(n_bits)
         for p in range(npx):
@@ -304,9 +350,9 @@ def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphe
                     t = hit_t[p, s]
                     X, Y, Z = cam[0] + t * dirs[p, s, 0], cam[1] + t * dirs[p, s, 1], cam[2] + t * dirs[p, s, 2]
                     gi = group_of[objs[s]]
-                    code, tx, ty, P, zp = shade(prims, kinds, mats, shadow_lists[gi], shadow_n[gi], prj, prj_fmt,
+                    code, tx, ty, P, zp = shade(prims, kinds, form, mats, shadow_lists[gi], shadow_n[gi], prj, prj_fmt,
                                                 optics, cam, X, Y, Z, hit_n[p, s, 0], hit_n[p, s, 1],
-                                                hit_n[p, s, 2], objs[s])
+                                                hit_n[p, s, 2], objs[s], j)
                     if code == LIGHT_LIT:
                         lit[s] = True
                         txs[s], tys[s] = tx, ty
@@ -342,7 +388,9 @@ def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphe
                         done[q] = True
                         for oi in range(n_o):
                             w = txs[q] if orient[oi] == 0 else tys[q]
-                            add_phasors(zre, zim, oi, p, w, a_s[q], mfac, icounts, pr, pim)
+                            if has_field:
+                                w += field[orient[oi], row, col]
+                            add_phasors(zre, zim, oi, p, w, a_s[q], mfac, icounts, n_h, pr, pim)
             best, best_n = dominant(objs, ns)
             mx = my = 0.0
             m_n = 0
@@ -360,4 +408,4 @@ def render_tiles(cam, cam_fmt, prj, prj_fmt, prims, kinds, owner, mats, obj_sphe
             levels[0, row, col] = irradiance
             levels[1, row, col] = ambient
             base[p] = ambient + optics[0] * irradiance
-        write_frames(frames, r0, c0, nr, nc, base, zre, zim, optics[1], step_cos, step_sin, key, noise)
+        write_frames(frames, r0, c0, nr, nc, base, zre, zim, fcos, fsin, key, noise)

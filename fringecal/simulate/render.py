@@ -12,7 +12,10 @@ phasor ``Z_t = sum_s w_s P_s m_t,s exp(i t tau_s)``; every phase step is then
 ``I_k = ambient + A S + B Re(exp(i 2 pi k/N) Z_t)`` with ``S = sum_s w_s P_s``.
 Candidate primitives are culled per image tile with bounding cones. The whole
 pipeline, noise included, is one parallel numba kernel over tiles
-(:mod:`fringecal.simulate.kernel`).
+(:mod:`fringecal.simulate.kernel`). Errors outside the calibration model (sphere form,
+projector gamma, camera response, a phase field, drift during the scan, a thin-prism
+lens term) come in as :class:`~fringecal.simulate.unmodelled.RenderErrors`; without
+them the frames are bit for bit those of the ideal renderer.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from . import geometry as g
 from .config import RenderConfig
 from .kernel import LIGHT_LIT, LIGHT_NO_HIT, LIGHT_OUTSIDE, LIGHT_SHADOW, render_tiles
 from .scene import Scene
+from .unmodelled import NO_FIELD, RenderErrors, emitted_harmonics, form_array, frame_weights, phase_field
 
 __all__ = ["GroundTruth", "Measurement", "render_measurement", "LIGHT_NO_HIT", "LIGHT_LIT",
            "LIGHT_SHADOW", "LIGHT_OUTSIDE"]
@@ -130,16 +134,19 @@ class GroundTruth:
 
 @dataclass(frozen=True)
 class Measurement:
-    """Frames (n_frames, rows, cols) uint16 in ``sequence.frames()`` order, and truth."""
+    """Frames (n_frames, rows, cols) uint16 in ``sequence.frames()`` order, and truth;
+    ``phase_field`` (2, rows, cols) is the phase added to tau_x, tau_y (rad) when a
+    phase-field error was rendered (the truth's tau excludes it)."""
 
     frames: np.ndarray
     truth: GroundTruth
     sequence: FringeSequence
     scanner: str
+    phase_field: np.ndarray | None = None
 
 
 def render_measurement(scanner: Scanner, scene: Scene, config: RenderConfig, rng: np.random.Generator,
-                       sequence: FringeSequence | None = None) -> Measurement:
+                       sequence: FringeSequence | None = None, errors: RenderErrors | None = None) -> Measurement:
     """Render the fringe sequence of ``scanner`` looking at ``scene``.
 
     Parameters
@@ -152,6 +159,9 @@ def render_measurement(scanner: Scanner, scene: Scene, config: RenderConfig, rng
     rng : numpy.random.Generator
         Source of the noise key; the same generator state gives the same frames.
     sequence : FringeSequence, default the thesis's 2 x 7 x 7
+    errors : RenderErrors, optional
+        Unmodelled errors (:mod:`fringecal.simulate.unmodelled`); the phase field is
+        drawn from ``rng`` after the noise key, so without one the frames are unchanged.
 
     Returns
     -------
@@ -169,15 +179,18 @@ def render_measurement(scanner: Scanner, scene: Scene, config: RenderConfig, rng
     mats = np.array([[config.materials[o.material].albedo, config.materials[o.material].specular,
                       config.materials[o.material].shininess] for o in scene.objects], float).reshape(-1, 3)
     obj_sphere = scene.object_sphere_index()
+    err = errors or RenderErrors()
     orient = np.array([0 if o == "x" else 1 for o in seq.orientations], np.int64)
-    counts = np.array(seq.fringe_counts, float)
-    phases = seq.step_phases()
+    counts, fcos, fsin = frame_weights(seq, emitted_harmonics(config.offset, config.amplitude, err.projector_gamma),
+                                       err.scan_drift_rad)
     optics = np.array([config.offset, config.amplitude, config.ambient, config.reference_distance_mm,
                        config.focus_distance_mm, config.blur_at_focus_mm, config.blur_per_mm])
     sigma_e = math.hypot(config.read_noise_e, config.excess_noise * config.full_well_e)
     noise = np.array([config.full_well_e, sigma_e, 1.0 / config.gain_e_per_dn, float(config.max_dn),
-                      1.0 if config.shot_noise else 0.0])
+                      1.0 if config.shot_noise else 0.0, err.camera_linearity_error])
     key = np.uint64(rng.integers(0, 2**63, dtype=np.int64))
+    field = phase_field(rng, (H, W), err.phase_field_rms_rad, err.phase_field_modes) \
+        if err.phase_field_rms_rad > 0 else NO_FIELD
     cam_fmt = np.array([W, H, cam.format.width_mm, cam.format.height_mm], float)
     prj_fmt = np.array([prj.format.width_mm, prj.format.height_mm], float)
 
@@ -189,8 +202,9 @@ def render_measurement(scanner: Scanner, scene: Scene, config: RenderConfig, rng
     fracs = np.empty((2, H, W), np.float32)  # purity, lit fraction
     light = np.empty((H, W), np.int8)
     levels = np.empty((2, H, W))  # irradiance, ambient
-    render_tiles(g.sensor_pack(cam), cam_fmt, g.sensor_pack(prj), prj_fmt, prims, kinds, owner, mats, obj_sphere,
-                 config.supersampling, orient, counts, np.cos(phases), np.sin(phases), optics, noise, key,
+    render_tiles(g.sensor_pack(cam, err.camera_prism), cam_fmt, g.sensor_pack(prj, err.projector_prism), prj_fmt,
+                 prims, kinds, owner, mats, obj_sphere, form_array(scene, kinds, owner, err.sphere_form),
+                 config.supersampling, orient, counts, fcos, fsin, optics, noise, field, key,
                  config.tile_px, frames, tau, tau_c, point, ints, fracs, light, levels)
     truth = GroundTruth(
         tau_x=tau[0], tau_y=tau[1], tau_x_centre=tau_c[0], tau_y_centre=tau_c[1], point=point,
@@ -199,4 +213,4 @@ def render_measurement(scanner: Scanner, scene: Scene, config: RenderConfig, rng
         object_names=scene.names, object_kinds=tuple(o.kind for o in scene.objects),
         sphere_ids=scene.sphere_ids,
     )
-    return Measurement(frames, truth, seq, scanner.name)
+    return Measurement(frames, truth, seq, scanner.name, None if field is NO_FIELD else field)

@@ -1,9 +1,11 @@
 """Simulated source, step 4: render, decode and store the ball-bar at every position.
 
 Every scanner that sees a bar sphere records the position (the acquisition table
-lists them); the bar is rendered at ``truth/ballbar_positions.csv`` with the
-verification's own camera resolution and noise seed, and stored like a recorded
-stack in ``measurements/<position>-<scanner>.zarr``.
+lists them); the bar as built (``truth/ballbar.csv``; the run's ``ballbar.csv`` is its
+certificate) is rendered at ``truth/ballbar_positions.csv`` with the verification's
+own camera resolution and noise seed, and stored like a recorded stack in
+``measurements/<position>-<scanner>.zarr``. The scanners record the verification at
+their session-start placement (no session drift).
 """
 
 from __future__ import annotations
@@ -28,14 +30,14 @@ class SimulateBallbar(RenderStores):
         return rd.truth.ballbar_positions
 
     def objects(self, rd: RunDir) -> list:
-        return [rd.ballbar]
+        return [rd.truth.ballbar]
 
     def scene(self, rd: RunDir, T, hardware: ArtefactHardware) -> Scene:
-        bar = rd.ballbar.load()
+        bar = rd.truth.ballbar.load()
         return artefact_scene(bar, ballbar_rods(bar), T, hardware)
 
-    def recording(self, rd: RunDir, cfg: Settings, scanner: str):
-        true_scanner, acquisition = super().recording(rd, cfg, scanner)
+    def recording(self, rd: RunDir, cfg: Settings, scanner: str, pose: str):
+        true_scanner, acquisition = super().recording(rd, cfg, scanner, pose)
         v = cfg.simulate.verification
         if v.camera_width_px is not None:
             true_scanner = scaled_scanner(true_scanner, v.camera_width_px)

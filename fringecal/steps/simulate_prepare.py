@@ -4,7 +4,9 @@ Writes what a recorded data set would bring (the artefact with its corrections, 
 rods, each scanner's prior calibration, the planned poses, the ball-bar, the list of
 measurements) and, apart in ``truth/``, what only the simulator knows (the true
 sensors at the simulated resolution, each scanner frame's true placement, the
-ball-bar positions). See :mod:`fringecal.acquisition.simulated`.
+ball-bar positions, the artefact and ball-bar as built, which differ from the CMM
+table and the certificate when ``simulate.errors`` says so). See
+:mod:`fringecal.acquisition.simulated`.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from ..acquisition.simulated import acquisition_table, input_files, load_simulat
 from ..frames import frame_rows
 from ..rundir import RunDir
 from ..runconfig import AcquisitionConfig, SimulatedVerificationConfig, SimulationConfig
+from ..simulate.errors import ARTEFACT_SWITCHES, errors_subset, switch_settings
 from .base import Settings, Step, save_or_remove
 
 __all__ = ["SimulatePrepare", "simulation_of"]
@@ -20,29 +23,33 @@ __all__ = ["SimulatePrepare", "simulation_of"]
 
 def simulation_of(cfg: Settings) -> SimulationConfig:
     """The simulation config rebuilt from what :class:`SimulatePrepare` declares (render
-    and decoding settings, which it does not use, at their defaults)."""
+    and decoding settings and the render-time error switches, which it does not use,
+    at their defaults)."""
     s = cfg.simulate
     v = s.verification
     return SimulationConfig(rig=s.rig, artefact_corrections=s.artefact_corrections, temperature_c=s.temperature_c,
                             prior=s.prior, acquisition=AcquisitionConfig(camera_width_px=s.acquisition.camera_width_px),
                             verification=SimulatedVerificationConfig(ballbar=v.ballbar, positions=v.positions,
-                                                                     scheme=v.scheme))
+                                                                     scheme=v.scheme),
+                            errors=errors_subset(s.errors, ARTEFACT_SWITCHES))
 
 
 class SimulatePrepare(Step):
     name = "simulate-prepare"
     title = "simulated rig"
     settings = ("simulate.artefact_corrections", "simulate.temperature_c", "simulate.prior",
-                "simulate.acquisition.camera_width_px", "simulate.verification.scheme")
+                "simulate.acquisition.camera_width_px", "simulate.verification.scheme") \
+        + switch_settings(ARTEFACT_SWITCHES)
     locations = ("simulate.rig", "simulate.verification.ballbar", "simulate.verification.positions")
-    modules = ("fringecal.acquisition.simulated",)
+    modules = ("fringecal.acquisition.simulated", "fringecal.simulate.world")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return input_files(simulation_of(cfg))
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.artefact, rd.rods, rd.ballbar, rd.sensors_prior, rd.poses_planned, rd.acquisition,
-                rd.truth.sensors, rd.truth.artefact, rd.truth.scanner_frames, rd.truth.ballbar_positions]
+                rd.truth.sensors, rd.truth.artefact, rd.truth.ballbar, rd.truth.scanner_frames,
+                rd.truth.ballbar_positions]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         sr = load_simulated_rig(simulation_of(cfg))
@@ -55,6 +62,7 @@ class SimulatePrepare(Step):
         table.insert(4, "store", [rd.store(m).rel for m in table["measurement"]])
         rd.acquisition.save(table)
         rd.truth.sensors.save(sr.truth)
-        rd.truth.artefact.save(sr.artefact)
+        rd.truth.artefact.save(sr.built)
+        rd.truth.ballbar.save(sr.ballbar_built)
         rd.truth.scanner_frames.save(frame_rows(sr.scanner_frames, key="scanner"))
         rd.truth.ballbar_positions.save(frame_rows({p.name: p.T_world_ballbar for p in sr.positions}))
