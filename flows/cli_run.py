@@ -103,6 +103,8 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
     t.add_column("", justify="right")
     v, tr = summary.get("verification"), summary.get("truth")
     source = summary.get("dataset") or "simulated rig"
+    if summary.get("simulation_profile"):
+        source += f", {summary['simulation_profile']} profile"
     rows = [
         ("source", str(source)),
         ("measurements / control points", f"{summary['n_measurements']} / {summary['n_control_points']:,}"),
@@ -114,6 +116,12 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
         rows += [("ball-bar max |error|", f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "
                                           f"{v['volume_diagonal_mm']:.0f} mm"),
                  ("verification (MPE %.0f um)" % (1000 * v["mpe_mm"]), "[green]PASS[/]" if v["pass"] else "[red]FAIL[/]")]
+        if v.get("lengths"):
+            worst = max(v["lengths"], key=lambda e: abs(e["error_mm"]))
+            rows.append((f"  its U (k = {v['length_coverage_factor']:g}), ISO 14253-1",
+                         f"{1000 * worst['U_mm']:.1f} um, {worst['iso14253']}"))
+            if v.get("not_covered"):
+                rows.append(("  [red]not covered by the budget[/]", ", ".join(v["not_covered"])))
     else:
         rows.append(("verification", "[yellow]not verified[/] (no ball-bar measurements)"))
     if tr:

@@ -117,6 +117,7 @@ class SphereMeasurement:
     rms_mm: float
     n_points: int
     rejected: dict
+    pixels: tuple | None = field(default=None, repr=False)  # (rows, cols) of the kept points
 
 
 def measure_sphere(maps: PointMaps, valid, camera, projector, radius_mm: float, rod_axis=None,
@@ -384,4 +385,4 @@ def refit_sighting(sighting: Sighting, radius_mm: float, rod_axis, rejection_con
                             config=rejection_config)
     m = fit.model
     return SphereMeasurement(np.asarray(m.centre, float), float(m.radius), float(m.rms), int(m.n_points),
-                             dict(fit.rejected))
+                             dict(fit.rejected), (px.rows[fit.kept], px.cols[fit.kept]))

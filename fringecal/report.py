@@ -728,6 +728,54 @@ def _gum(cal: dict) -> str:
             f"(artefact calibration certificate).</p>\n")
 
 
+_ISO = {"conformance": "conformance proven", "non-conformance": "non-conformance proven",
+        "uncertainty zone": "inside the uncertainty zone"}
+
+
+def _length_budget(unc: dict | None, mpe_mm) -> str:
+    """Each length's expanded uncertainty and ISO 14253-1 verdict, and the budget."""
+    if not unc:
+        return _note("No task-specific uncertainty recorded for the lengths (a run from before the budget "
+                     "existed, or without the adjustment's covariance).")
+    k = unc["coverage_factor"]
+    out = (f"<h3>Uncertainty of each length and the decision rule (ISO 14253-1)</h3>\n<p>Every length carries "
+           f"its own expanded uncertainty U (k = {_num(k, 'g')}) propagated from the calibration's covariance, "
+           f"the artefact's CMM uncertainty and temperature, the sphere fits' own noise and the bar's "
+           f"certificate and temperature. Conformance with the MPE is shown only when |error| + U is inside it; "
+           f"non-conformance only when |error| - U exceeds it; otherwise the length lies in the uncertainty "
+           f"zone.</p>\n")
+    rows = []
+    for e in unc["lengths"]:
+        mc = e.get("monte_carlo")
+        mc_cell = "not run" if mc is None else (f"{_um(mc['u_mc_mm'], 2)} ({mc['ratio']:.2f} x linear; "
+                                                f"{'agrees' if mc['agree'] else 'DOES NOT AGREE'})")
+        rows.append([e["measurement"], _um(e["error_mm"]), _um(e["u_mm"], 2), _um(e["U_mm"]),
+                     mc_cell, _ISO.get(e["iso14253"], e["iso14253"]),
+                     ("yes", "pass") if e["covered"] else ("NO: not covered by the budget", "fail")])
+    out += _table(["Length", "Error", "u (linear)", "U", "u (Monte Carlo, JCGM 101)", "ISO 14253-1",
+                   "|error| <= U"], rows, left=1)
+    if unc["not_covered"]:
+        out += _warn(f"Length error beyond its expanded uncertainty at {', '.join(unc['not_covered'])}: an error "
+                     "source the uncertainty budget does not hold (for example an artefact whose scale differs "
+                     "from its CMM table, or lens behaviour outside the sensor model). With k = 2 about one "
+                     "length in twenty exceeds U by chance; more than that means the budget is incomplete.")
+    mc = unc.get("monte_carlo")
+    if mc is not None and not mc["all_agree"]:
+        out += _warn(f"The Monte Carlo propagation does not confirm the linear one at {', '.join(mc['disagree'])} "
+                     "(JCGM 101 clause 8): quote the Monte Carlo interval there.")
+    b = unc.get("budget") or {}
+    if b:
+        worst = b["largest_error"]
+        out += (f"<h3>Uncertainty budget</h3>\n<p>Standard uncertainty contributions (µm), as RMS over the "
+                f"{len(unc['lengths'])} lengths and at the length of largest error ({_e(worst['measurement'])}, "
+                f"error {_um(worst['error_mm'])}, U {_um(worst['U_mm'])}).</p>\n")
+        out += _table(["Contribution", "RMS over lengths", f"At {worst['measurement']}"],
+                      [[t, _um(b["rms_mm"][t], 2), _um(worst["budget_mm"][t], 2)] for t in b["terms"]]
+                      + [["combined u", _um(float(np.sqrt(sum(v ** 2 for v in b["rms_mm"].values()))), 2),
+                          _um(worst["u_mm"], 2)]], left=1)
+    return out
+
+
 _SCHEMES = {"thesis9": "placed as in thesis section 6.9.3", "vdi7": "placed after the scheme of VDI/VDE 2634"}
 
 
@@ -800,6 +848,7 @@ def _verification(run: _Run) -> str:
     out += _table(heads, rows, left=2)
     out += f'<div class="figs">{_img(_ballbar_png(cal, true), "ball-bar length error per position")}</div>\n'
     out += _gum(cal)
+    out += _length_budget(ver.get("uncertainty"), cal.get("mpe_mm"))
     if fails:
         out += "<h3>Positions that could not be measured completely</h3>\n" + _table(
             ["Position", "Scanner", "Sphere", "Reason"],

@@ -14,7 +14,7 @@ from .digests import code_digest, digest_path
 from .rundir import RunDir, package_versions
 from .steps import current_record, pipeline, step_key
 
-__all__ = ["manifest", "run_summary", "pipeline_status", "source_files"]
+__all__ = ["manifest", "run_summary", "pipeline_status", "source_files", "simulation_profile"]
 
 
 def source_files(cfg) -> list:
@@ -59,6 +59,14 @@ def _maybe(f) -> dict | None:
     return f.load() if f.exists() else None
 
 
+def simulation_profile(cfg) -> str | None:
+    """Which simulated world a run's figures come from (``ideal``, ``realistic``, or
+    ``custom`` / ``realistic+custom`` for edited switches); None for recorded data."""
+    if cfg.source != "simulated":
+        return None
+    return cfg.simulate.errors.profile_name
+
+
 def run_summary(rd: RunDir, cfg) -> dict:
     """The figures of a finished run, from its files (missing parts are None)."""
     b = rd.bundle_summary.load()
@@ -74,6 +82,7 @@ def run_summary(rd: RunDir, cfg) -> dict:
         "rms_eps1_mm_after": b["after"]["rms_eps1_mm"], "rms_eps2_mm_after": b["after"]["rms_eps2_mm"],
         "one_part_in": b["one_part_in_1p96_sigma"], "volume_diagonal_mm": b["volume_diagonal_mm"],
         "bundle_seconds": b.get("bundle_seconds", b.get("elapsed_s")),
+        "simulation_profile": simulation_profile(cfg),
         "verification": None, "truth": None,
     }
     if v is not None:
@@ -85,6 +94,16 @@ def run_summary(rd: RunDir, cfg) -> dict:
             "n_lengths": len(cal["positions"]), "n_failures": len(v["failures"]),
             "expanded_uncertainty_mm": cal["uncertainty"]["expanded_mm"],
             "coverage_factor": cal["uncertainty"]["coverage_factor"]}
+        budget = v.get("uncertainty")
+        if budget:
+            out["verification"]["lengths"] = [
+                {"measurement": e["measurement"], "error_mm": e["error_mm"], "U_mm": e["U_mm"],
+                 "iso14253": e["iso14253"], "covered": e["covered"]} for e in budget["lengths"]]
+            out["verification"]["length_coverage_factor"] = budget["coverage_factor"]
+            out["verification"]["not_covered"] = budget["not_covered"]
+            out["verification"]["budget_rms_mm"] = budget["budget"].get("rms_mm")
+            mc = budget.get("monte_carlo")
+            out["verification"]["monte_carlo_agrees"] = None if mc is None else mc["all_agree"]
     if t is not None:
         out["truth"] = {
             "max_position_error_mm": t["max_position_error_mm"], "max_angle_error_rad": t["max_angle_error_rad"],

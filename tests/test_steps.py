@@ -85,9 +85,9 @@ def test_one_setting_reruns_the_steps_that_declare_it(data_run, tmp_path):
     own = tmp_path / "run.yaml"
     own.write_text("bundle:\n  gamma2: 0.5\n")
     records = run_pipeline(rd, load_run_config(own, dataset=data))
-    assert steps_that_ran(records) == {"bundle", "verify", "report"}
+    assert steps_that_ran(records) == {"bundle", "cross-validate", "verify", "report"}
     back = run_pipeline(rd, load_run_config(dataset=data))
-    assert steps_that_ran(back) == {"bundle", "verify", "report"}
+    assert steps_that_ran(back) == {"bundle", "cross-validate", "verify", "report"}
 
 
 @pytest.mark.parametrize("module, expected", [

@@ -11,6 +11,7 @@ compiled kernels.
 
 from __future__ import annotations
 
+import copy
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -384,6 +385,14 @@ class Evaluator:
                               a["group_meas"], sp, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
                               pr.cam_mm, pr.prj_mm, res, ok, J)
         return res, J, ok
+
+    def with_artefact(self, centres: np.ndarray, radii: np.ndarray) -> "Evaluator":
+        """The same evaluator against other sphere centres (n_spheres, 3) and radii
+        (n_spheres,): what the residuals would be if the artefact were as given."""
+        other = copy.copy(self)
+        other._arrays = {**self._arrays, "centres": np.ascontiguousarray(centres, float),
+                         "radii": np.ascontiguousarray(radii, float)}
+        return other
 
     def global_columns(self) -> np.ndarray:
         """Global parameter index of each local slot of each control point, (n, 34) (-1: fixed)."""

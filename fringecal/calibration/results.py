@@ -151,6 +151,24 @@ def summary(result: BundleResult, diagonal_mm: float | None = None) -> dict:
     }
 
 
+def covariance_arrays(result: BundleResult) -> dict:
+    """What uncertainty propagation needs of an adjustment (``calibration_covariance.npz``):
+
+    ``names`` (p,) of the adjusted vector (sensors, then poses); ``covariance`` (p, p);
+    ``sensor_index`` (n_sensors, 14) position of each sensor parameter in it (-1 fixed);
+    ``sensor_names``; the artefact's ``sphere_ids``; ``artefact_sensitivity`` (p, 4
+    n_spheres) and ``artefact_u`` (4 n_spheres,) and ``scale_sensitivity`` (p,) of
+    :func:`fringecal.calibration.artefact_sensitivity.artefact_sensitivity`.
+    """
+    from .artefact_sensitivity import artefact_sensitivity
+
+    sens = artefact_sensitivity(result)
+    return {"names": np.array(result.layout.names, dtype=str), "covariance": result.uncertainty.covariance,
+            "sensor_index": result.layout.sensor_index, "sensor_names": np.array(result.layout.sensor_names, dtype=str),
+            "sphere_ids": np.array(result.problem.artefact.ids, dtype=str), "artefact_sensitivity": sens.S,
+            "artefact_u": sens.u_artefact, "scale_sensitivity": sens.scale}
+
+
 def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, extra: dict | None = None) -> list:
     """Write the calibration files, tables, histograms and summary of ``result`` into the
     run directory ``rd`` (:class:`fringecal.rundir.RunDir`), all or nothing.
@@ -173,7 +191,9 @@ def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, ex
     for term, path in zip(("eps1", "eps2"), (io.BytesIO(), io.BytesIO())):
         figures[rd.histogram(term)] = path
     plot_histograms(result, *figures.values())
-    files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary]
+    arrays = io.BytesIO()
+    np.savez(arrays, **covariance_arrays(result))
+    files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary, rd.covariance]
     with atomic_paths([f.path for f in files]) as tmps:
         tmp = dict(zip([f.rel for f in files], tmps))
         tmp[rd.calibration.rel].write_text(json.dumps(rig_to_dict(result.rig, meta), indent=2) + "\n")
@@ -183,4 +203,5 @@ def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, ex
         for f, buf in figures.items():
             tmp[f.rel].write_bytes(buf.getvalue())
         tmp[rd.bundle_summary.rel].write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
+        tmp[rd.covariance.rel].write_bytes(arrays.getvalue())
     return files

@@ -90,7 +90,7 @@ def _refit_all(position: str, sightings: list[Sighting], labels, names: dict, ba
             continue
         rows.append({"position": position, "scanner": s.scanner, "sphere_id": sid, "x_mm": m.centre[0],
                      "y_mm": m.centre[1], "z_mm": m.centre[2], "radius_mm": m.radius_mm, "rms_mm": m.rms_mm,
-                     "n_points": m.n_points})
+                     "n_points": m.n_points, "pixels": m.pixels})
     return rows, failures
 
 
@@ -188,10 +188,12 @@ def measure_position(stores: dict, rig: Rig, ballbar, rejection_config, position
 
 
 def measure_positions(stores: dict, rig: Rig, ballbar, rejection_config, workers: int = 2,
-                      config: SightingConfig | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+                      config: SightingConfig | None = None, pixels: bool = False):
     """:func:`measure_position` for every position (``stores``: position -> scanner ->
     store path); the stores are searched ``workers`` at a time in a thread pool, then
-    each position is assembled. Returns the concatenated tables in ``stores`` order."""
+    each position is assembled. Returns the concatenated tables in ``stores`` order,
+    and with ``pixels`` a third item: (position, scanner, sphere_id) -> (rows, cols) of
+    the camera pixels each refit kept (for the length's uncertainty)."""
     for position, by_scanner in stores.items():
         _check_scanners(position, by_scanner, rig)
     order = [s.name for s in rig.scanners]
@@ -203,4 +205,8 @@ def measure_positions(stores: dict, rig: Rig, ballbar, rejection_config, workers
         per_position = {pos: {name: found[(pos, name)] for (p, name) in jobs if p == pos} for pos in stores}
         done = list(pool.map(lambda pos: _assemble(pos, per_position[pos], order, ballbar, rejection_config, config),
                              stores))
-    return _frames([r for rows, _ in done for r in rows], [f for _, fails in done for f in fails])
+    rows = [r for rows, _ in done for r in rows]
+    tables = _frames(rows, [f for _, fails in done for f in fails])
+    if not pixels:
+        return tables
+    return (*tables, {(r["position"], r["scanner"], r["sphere_id"]): r["pixels"] for r in rows})

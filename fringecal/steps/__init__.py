@@ -10,7 +10,8 @@ simulated source       ``simulate-prepare`` -> ``simulate-hexapod`` -> ``simulat
                        -> ``simulate-ballbar``
 recorded data set      ``ingest`` -> ``decode``
 every run              ``spheres-first`` -> ``label`` -> ``spheres-second`` -> ``initialise``
-                       -> ``bundle`` -> ``verify`` -> (simulated: ``evaluate``) -> ``report``
+                       -> ``bundle`` -> ``cross-validate`` -> ``verify`` -> (simulated: ``evaluate``)
+                       -> ``report``
 =====================  ====================================================================
 """
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 from .base import Rows, Settings, Step, StepError, Value
 from .bundle import Bundle
+from .crossval import CrossValidate
 from .decode import Decode
 from .evaluate import Evaluate
 from .ingest import Ingest
@@ -38,7 +40,7 @@ __all__ = ["STEPS", "SIMULATED_SOURCE", "DATASET_SOURCE", "COMMON", "pipeline", 
 
 SIMULATED_SOURCE = (SimulatePrepare(), SimulateHexapod(), SimulateRender(), SimulateBallbar())
 DATASET_SOURCE = (Ingest(), Decode())
-COMMON = (SpheresFirst(), Label(), SpheresSecond(), Initialise(), Bundle(), Verify())
+COMMON = (SpheresFirst(), Label(), SpheresSecond(), Initialise(), Bundle(), CrossValidate(), Verify())
 EVALUATION = (Evaluate(),)
 REPORT = (Report(),)
 

@@ -51,7 +51,7 @@ class Bundle(Step):
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.calibration, rd.calibration.xml, rd.sensors_calibrated, rd.poses_calibrated,
                 rd.residuals_per_sphere, rd.residuals_per_measurement, rd.histogram("eps1"), rd.histogram("eps2"),
-                rd.bundle_summary]
+                rd.bundle_summary, rd.covariance]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         from ..calibration import bundle_adjust

@@ -96,8 +96,8 @@ class Evaluate(Step):
                "rms_eps2_mm_true_params": floor.rms_eps2_mm}
         if stores_of_kind(rd, "ballbar") and rd.ballbar.exists():
             diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
-            centres, failures, result = measure_ballbar(rd, truth, cfg.extraction.rejection, cfg.verification,
-                                                        diagonal)
+            centres, failures, result, _ = measure_ballbar(rd, truth, cfg.extraction.rejection, cfg.verification,
+                                                           diagonal)
             rd.ballbar_centres_true.save(centres)
             doc["verification_true_params"] = {**result.to_dict(), "failures": failures.to_dict("records")}
         else:

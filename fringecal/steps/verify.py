@@ -28,20 +28,33 @@ def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
     return out
 
 
-def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm: float):
-    """Centres, failures and the evaluated lengths of the run's ball-bar with ``rig``."""
+def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm: float, covariance=None,
+                    halves=None):
+    """Centres, failures and the evaluated lengths of the run's ball-bar with ``rig``;
+    with ``covariance`` (the run's ``calibration_covariance.npz`` arrays) also every
+    length's uncertainty budget (:func:`fringecal.pipeline.ballbar_uncertainty.ballbar_uncertainty`),
+    else None in its place."""
     from ..pipeline.verify import measure_positions
     from ..spheres.robust import RejectionConfig
     from ..verification import ballbar_lengths, evaluate_ballbar
 
     bar = rd.ballbar.load()
-    centres, failures = measure_positions(ballbar_stores(rd), rig, bar, RejectionConfig(**rejection))
+    stores = ballbar_stores(rd)
+    centres, failures, pixels = measure_positions(stores, rig, bar, RejectionConfig(**rejection), pixels=True)
     lengths = ballbar_lengths(centres, "ball-bar centres")
     reference_length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
     result = evaluate_ballbar(lengths.length_mm, reference_length, lengths.measurement, verification.mpe_mm,
                               diagonal_mm, verification.certificate_u_mm, verification.certificate_k,
                               verification.coverage_factor)
-    return centres, failures, result
+    budget = None
+    if covariance is not None and len(lengths):
+        from ..pipeline.ballbar_uncertainty import ballbar_uncertainty
+
+        budget = ballbar_uncertainty(centres, pixels, stores, rig, lengths, reference_length, covariance,
+                                     verification.uncertainty, verification.mpe_mm,
+                                     verification.certificate_u_mm / verification.certificate_k, bar.ids[:2],
+                                     halves=halves)
+    return centres, failures, result, budget
 
 
 class Verify(Step):
@@ -52,7 +65,8 @@ class Verify(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
-        return [rd.calibration, rd.ballbar, rd.bundle_summary, rd.acquisition] + stores
+        return [rd.calibration, rd.covariance, rd.crossval_halves, rd.ballbar, rd.bundle_summary,
+                rd.acquisition] + stores
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.verification, rd.ballbar_centres]
@@ -64,10 +78,16 @@ class Verify(Step):
             log.warning("no ball-bar measurements: the calibration is not verified")
             return
         diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
-        centres, failures, result = measure_ballbar(rd, rd.calibration.load(), cfg.extraction.rejection,
-                                                    cfg.verification, diagonal)
+        centres, failures, result, budget = measure_ballbar(rd, rd.calibration.load(), cfg.extraction.rejection,
+                                                            cfg.verification, diagonal, rd.covariance.load(),
+                                                            rd.crossval_halves.load() if rd.crossval_halves.exists()
+                                                            else None)
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner, f.reason)
         rd.ballbar_centres.save(centres)
-        rd.verification.save({"calibrated": result.to_dict(), "failures": failures.to_dict("records"),
+        if budget and budget["not_covered"]:
+            log.warning("ball-bar length error beyond its expanded uncertainty at %s: an error source the "
+                        "uncertainty budget does not hold", ", ".join(budget["not_covered"]))
+        rd.verification.save({"calibrated": result.to_dict(), "uncertainty": budget,
+                              "failures": failures.to_dict("records"),
                               "recorded_by": {p: list(s) for p, s in ballbar_stores(rd).items()}})

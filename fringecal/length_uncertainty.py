@@ -1,0 +1,261 @@
+"""Task-specific uncertainty of a measured length (GUM, and JCGM 101 Monte Carlo).
+
+A ball-bar length (or any distance between two measured sphere centres) is
+
+    L = | c_A - c_B |,   c = fixed-radius least-squares sphere through the points
+                         X_i(theta) triangulated from the pixels the fit kept,
+
+with theta the sensor parameters of the scanners that saw the spheres. Its inputs and
+their standard uncertainties:
+
+* ``calibration``: theta from the adjustment, covariance ``Cov_theta`` (sensors and
+  poses adjusted together; the sensors' block, :mod:`fringecal.calibration.propagation`);
+* ``artefact CMM``: the artefact table's own uncertainty moves theta by ``S Sigma_a S^T``
+  (:mod:`fringecal.calibration.artefact_sensitivity`);
+* ``artefact temperature``: a relative scale ``cte * u_T`` of the artefact moves theta
+  along the scale response;
+* ``sphere fits``: each fit's own noise, ``(A^T A)^-1 (sum r_i^2 a_i a_i^T) (A^T A)^-1
+  n / (n - 3)`` (A the unit normals, r the fit's residuals): the sandwich estimator,
+  because a point's noise along the normal grows towards the rim (the camera ray meets
+  the surface obliquely), so the plain ``s^2 (A^T A)^-1`` understates the lateral
+  components (by ~20 % for a ball-bar sphere);
+* ``bar certificate`` and ``bar temperature``: the reference length's own uncertainty;
+* ``model error (cross-validation)``: when the two half-calibrations' lengths differ
+  beyond their stated uncertainty, the excess (:mod:`fringecal.pipeline.ballbar_uncertainty`),
+  an estimate of what the model leaves out; 0 when they agree.
+
+Linear propagation (GUM): the centre moves with the points as ``dc = (A^T A)^-1 A^T
+(n_i . dX_i)`` (the fixed-radius fit linearised), ``dX_i/dtheta`` by central
+differences of the triangulation, and ``dL = e . (dc_A - dc_B)`` with ``e`` the unit
+vector from B to A. Monte Carlo (JCGM 101): theta drawn from the sum of the three
+parameter covariances, every kept pixel re-triangulated, Gaussian noise of the fit's
+RMS added along each normal, both spheres refitted (Gauss-Newton from the measured
+centre), the length plus the reference-length draws. The two agree (JCGM 101 clause 8)
+when both ends of the linear 95 % interval lie within ``delta`` of the Monte Carlo
+interval's, ``delta`` the numerical tolerance of the standard uncertainty stated to
+two significant digits, or, where the Monte Carlo's own scatter over its blocks of
+draws exceeds that, within twice that scatter (reported as such).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .calibration.propagation import point_jacobian, triangulate_mm
+from .rig import Scanner
+
+__all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
+           "monte_carlo_lengths", "refitted_length", "numerical_tolerance", "validate_linear", "BUDGET_TERMS"]
+
+#: the contributions of a length's budget, in report order
+BUDGET_TERMS = ("calibration", "artefact CMM", "artefact temperature", "sphere fits", "bar certificate",
+                "bar temperature", "model error (cross-validation)")
+
+
+@dataclass(frozen=True)
+class SightingPoints:
+    """The pixels a sphere fit kept, in image-plane mm, and its result.
+
+    scanner : the scanner (camera at the store's resolution) in the world frame
+    block : index of the scanner in the rig (its 28 parameters sit at 28 * block)
+    cam_mm, prj_mm : (n, 2); centre : (3,); radius_mm, rms_mm : float
+    """
+
+    scanner: Scanner
+    block: int
+    cam_mm: np.ndarray = field(repr=False)
+    prj_mm: np.ndarray = field(repr=False)
+    centre: np.ndarray
+    radius_mm: float
+    rms_mm: float
+
+
+@dataclass(frozen=True)
+class SightingModel:
+    """Linearised fit of one sighting: ``J`` (3, 28) d(centre)/d(scanner parameters),
+    ``C_fit`` (3, 3) covariance of the centre from the fit's own noise (sandwich)."""
+
+    points: SightingPoints
+    J: np.ndarray
+    C_fit: np.ndarray
+
+
+def _normals(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    d = points - centre
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def sighting_model(s: SightingPoints, std28: np.ndarray) -> SightingModel:
+    """Jacobian of the fitted centre by the scanner's parameters, and the fit's covariance."""
+    X = triangulate_mm(s.scanner, s.cam_mm, s.prj_mm)
+    A = _normals(X, s.centre)
+    AtA_inv = np.linalg.inv(A.T @ A)
+    JX = point_jacobian(s.scanner, s.cam_mm, s.prj_mm, std28)  # (n, 3, 28)
+    J = AtA_inv @ (A.T @ np.einsum("ni,nij->nj", A, JX))
+    n = len(X)
+    r = np.linalg.norm(X - s.centre, axis=1) - s.radius_mm
+    meat = (A * (r**2)[:, None]).T @ A * (n / max(n - 3, 1))
+    return SightingModel(s, J, AtA_inv @ meat @ AtA_inv)
+
+
+@dataclass(frozen=True)
+class LengthBudget:
+    """Standard uncertainties (mm) of one length by contribution, and combined."""
+
+    length_mm: float
+    u_mm: dict
+
+    @property
+    def combined_mm(self) -> float:
+        return float(math.sqrt(sum(v**2 for v in self.u_mm.values())))
+
+
+@dataclass(frozen=True)
+class ParameterCovariances:
+    """The sensor-parameter covariances (n_sensors * 14 square) and the scale response.
+
+    calibration, cmm : covariance from the adjustment and from the artefact table;
+    scale : (n_sensors * 14,) parameter change per unit relative scale of the artefact;
+    u_scale : relative standard uncertainty of the artefact's scale (temperature).
+    """
+
+    calibration: np.ndarray
+    cmm: np.ndarray
+    scale: np.ndarray
+    u_scale: float
+
+    @property
+    def total(self) -> np.ndarray:
+        return self.calibration + self.cmm + self.u_scale**2 * np.outer(self.scale, self.scale)
+
+
+def _gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(dL/dtheta over all sensor parameters, e, L)."""
+    d = a.points.centre - b.points.centre
+    L = float(np.linalg.norm(d))
+    e = d / L
+    g = np.zeros(n_params)
+    g[28 * a.points.block:28 * a.points.block + 28] += e @ a.J
+    g[28 * b.points.block:28 * b.points.block + 28] -= e @ b.J
+    return g, e, L
+
+
+def length_budget(a: SightingModel, b: SightingModel, cov: ParameterCovariances, u_certificate_mm: float,
+                  u_bar_temperature_rel: float, u_model_mm: float = 0.0) -> LengthBudget:
+    """Linear (GUM) budget of the length between sightings ``a`` and ``b``;
+    ``u_model_mm`` the model error the cross-validation found (0 when consistent)."""
+    g, e, L = _gradient(a, b, len(cov.scale))
+    u = {
+        "calibration": math.sqrt(max(float(g @ cov.calibration @ g), 0.0)),
+        "artefact CMM": math.sqrt(max(float(g @ cov.cmm @ g), 0.0)),
+        "artefact temperature": abs(float(g @ cov.scale)) * cov.u_scale,
+        "sphere fits": math.sqrt(float(e @ (a.C_fit + b.C_fit) @ e)),
+        "bar certificate": float(u_certificate_mm),
+        "bar temperature": float(u_bar_temperature_rel) * L,
+        "model error (cross-validation)": float(u_model_mm),
+    }
+    return LengthBudget(L, u)
+
+
+def _draw_sqrt(C: np.ndarray) -> np.ndarray:
+    """A factor F with F F^T = C for a positive semi-definite C.
+
+    Decomposed as a correlation matrix (unit diagonal): the parameters' variances span
+    some 20 orders of magnitude (mm^2 of positions, 1e-20 of a k3), so an unscaled
+    eigen-decomposition would swamp the small ones in rounding.
+    """
+    d = np.sqrt(np.clip(np.diag(C), 0, None))
+    s = np.where(d > 0, d, 1.0)
+    lam, V = np.linalg.eigh(0.5 * (C + C.T) / np.outer(s, s))
+    return (V * np.sqrt(np.clip(lam, 0, None))[None, :]) * d[:, None]
+
+
+def _refit(points: np.ndarray, centre: np.ndarray, radius: float, iterations: int = 3) -> np.ndarray:
+    c = centre.copy()
+    for _ in range(iterations):
+        d = points - c
+        r = np.linalg.norm(d, axis=1)
+        A = d / r[:, None]
+        c = c + np.linalg.lstsq(A, r - radius, rcond=None)[0]
+    return c
+
+
+def _scanner_with(s: Scanner, params28: np.ndarray) -> Scanner:
+    return Scanner(s.name, s.camera.with_params(params28[:14]), s.projector.with_params(params28[14:]))
+
+
+def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCovariances, u_certificate_mm: float,
+                        u_bar_temperature_rel: float, draws: int, rng: np.random.Generator,
+                        u_model_mm: float = 0.0) -> np.ndarray:
+    """``draws`` lengths (mm) through the full model (see the module docstring)."""
+    blocks = sorted({a.block, b.block})
+    idx = np.concatenate([np.arange(28 * k, 28 * k + 28) for k in blocks])
+    F = _draw_sqrt(cov.total[np.ix_(idx, idx)])
+    base = {k: np.concatenate([s.scanner.camera.params, s.scanner.projector.params])
+            for k, s in ((a.block, a), (b.block, b))}
+    X0 = {id(s): triangulate_mm(s.scanner, s.cam_mm, s.prj_mm) for s in (a, b)}
+    normals = {id(s): _normals(X0[id(s)], s.centre) for s in (a, b)}
+    out = np.empty(draws)
+    for m in range(draws):
+        dtheta = F @ rng.standard_normal(F.shape[1])
+        centres = []
+        for s in (a, b):
+            j = blocks.index(s.block)
+            sc = _scanner_with(s.scanner, base[s.block] + dtheta[28 * j:28 * j + 28])
+            X = triangulate_mm(sc, s.cam_mm, s.prj_mm)
+            X = X + normals[id(s)] * (s.rms_mm * rng.standard_normal(len(X)))[:, None]
+            centres.append(_refit(X, s.centre, s.radius_mm))
+        L = float(np.linalg.norm(centres[0] - centres[1]))
+        out[m] = (L * (1 + u_bar_temperature_rel * rng.standard_normal()) + u_certificate_mm * rng.standard_normal()
+                  + u_model_mm * rng.standard_normal())
+    return out
+
+
+def refitted_length(a: SightingPoints, b: SightingPoints, params_a: np.ndarray, params_b: np.ndarray) -> float:
+    """The length with other parameters for the two sightings' scanners ((28,) each):
+    every kept pixel re-triangulated and both spheres refitted."""
+    centres = []
+    for s, p in ((a, params_a), (b, params_b)):
+        X = triangulate_mm(_scanner_with(s.scanner, p), s.cam_mm, s.prj_mm)
+        centres.append(_refit(X, s.centre, s.radius_mm))
+    return float(np.linalg.norm(centres[0] - centres[1]))
+
+
+def numerical_tolerance(u: float, significant_digits: int = 2) -> float:
+    """JCGM 101 7.9.2: u written as c x 10^l with ``significant_digits`` digits in c;
+    the tolerance is half a unit of its last digit, 0.5 x 10^l."""
+    if not u > 0:
+        return 0.0
+    exponent = math.floor(math.log10(u)) - (significant_digits - 1)
+    return 0.5 * 10.0**exponent
+
+
+def validate_linear(y: float, u_linear: float, k: float, samples: np.ndarray, blocks: int = 10) -> dict:
+    """JCGM 101 clause 8: the linear interval ``y +- k u`` against the Monte Carlo's
+    probabilistically symmetric interval of the same coverage (k = 2 -> 95.45 %).
+
+    Returns the Monte Carlo's standard uncertainty, interval, the endpoint differences,
+    the tolerance used and ``agree``. The tolerance is ``numerical_tolerance(u)``, or
+    twice the scatter of the endpoints over ``blocks`` blocks of draws when the draws
+    are too few to reach it (then ``tolerance_source`` says so).
+    """
+    p = math.erf(k / math.sqrt(2))
+    q = [(1 - p) / 2, (1 + p) / 2]
+    lo, hi = np.quantile(samples, q)
+    parts = np.array_split(samples, blocks)
+    ends = np.array([np.quantile(s, q) for s in parts])
+    s_end = float(np.max(np.std(ends, axis=0, ddof=1) / math.sqrt(blocks)))
+    delta = numerical_tolerance(u_linear)
+    source = "two significant digits of u"
+    if 2 * s_end > delta:
+        delta, source = 2 * s_end, "twice the Monte Carlo's own scatter of the interval ends"
+    d_low = abs(y - k * u_linear - lo)
+    d_high = abs(y + k * u_linear - hi)
+    u_mc = float(np.std(samples, ddof=1))
+    return {"u_mc_mm": u_mc, "u_linear_mm": float(u_linear), "ratio": u_mc / u_linear if u_linear > 0 else None,
+            "mc_interval_mm": [float(lo), float(hi)], "linear_interval_mm": [y - k * u_linear, y + k * u_linear],
+            "d_low_mm": float(d_low), "d_high_mm": float(d_high), "tolerance_mm": float(delta),
+            "tolerance_source": source, "draws": int(len(samples)), "agree": bool(max(d_low, d_high) <= delta)}

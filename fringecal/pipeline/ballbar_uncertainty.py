@@ -1,0 +1,197 @@
+"""Every ball-bar length with its own uncertainty budget and the ISO 14253-1 verdict.
+
+For each measured length (one per position and pair of scanners) the budget of
+:mod:`fringecal.length_uncertainty` (calibration, artefact CMM, artefact temperature,
+sphere fits, bar certificate, bar temperature), its expanded uncertainty U = k u_c, the
+Monte Carlo check of the linear propagation, and two judgements:
+
+* **ISO 14253-1** (the decision rule for conformity with a specification): conformance
+  is proven only when ``|error| + U <= MPE``, non-conformance only when ``|error| - U >
+  MPE``; in between the length lies in the uncertainty zone and neither is proven.
+* **Covered by the budget**: ``|error| <= U``. A length error beyond its expanded
+  uncertainty means an error source the budget does not hold (an artefact whose scale
+  differs from its table, an unmodelled lens term, ...). For k = 2 about one length in
+  twenty may exceed U by chance; the summary says how many did.
+
+With the cross-validation's half-calibrations, every length is also measured with each
+half and the difference compared with its predicted uncertainty; an RMS of the
+normalised differences above ``CROSSVAL_RMS_Z_MAX`` is model error, and its size
+(per half-calibration, the excess of the differences' mean square over the predicted,
+halved) enters every length's budget as ``model error (cross-validation)``: an
+unmodelled effect that differs between the halves does not average away in the full
+calibration either, so it is kept at its per-half size.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pandas as pd
+
+from ..calibration.propagation import sensor_covariance
+from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, length_budget,
+                                  monte_carlo_lengths, sighting_model, validate_linear)
+from ..rig import Rig
+from ..store import open_store
+from .verify import _store_scanner
+
+__all__ = ["parameter_covariances", "sighting_points", "ballbar_uncertainty", "iso14253_verdict"]
+
+
+def parameter_covariances(arrays: dict, u_scale: float, u_factor: float = 1.0) -> ParameterCovariances:
+    """The sensor-parameter covariances of a run's ``calibration_covariance.npz``
+    (``u_factor`` on the artefact table's uncertainties, ``u_scale`` the relative
+    standard uncertainty of the artefact's scale)."""
+    idx = arrays["sensor_index"]
+    S = arrays["artefact_sensitivity"] * (u_factor * arrays["artefact_u"])[None, :]
+    scale = np.zeros(idx.size)
+    flat = idx.reshape(-1)
+    scale[flat >= 0] = arrays["scale_sensitivity"][flat[flat >= 0]]
+    return ParameterCovariances(sensor_covariance(idx, arrays["covariance"]), sensor_covariance(idx, S @ S.T),
+                                scale, float(u_scale))
+
+
+def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float) -> SightingPoints:
+    """The kept pixels of one sphere fit in image-plane mm, read from its store."""
+    rows, cols = (np.asarray(a, int) for a in pixels)
+    with open_store(store) as ds:
+        sc = _store_scanner(ds, rig.scanner(scanner))
+        tau = np.stack([ds["tau_x"].values[rows, cols], ds["tau_y"].values[rows, cols]], axis=-1).astype(float)
+    block = [s.name for s in rig.scanners].index(scanner)
+    cam = sc.camera.image_mm(np.stack([cols, rows], axis=-1).astype(float))
+    return SightingPoints(sc, block, cam, sc.projector.image_mm(tau), np.asarray(centre, float), float(radius_mm),
+                          float(rms_mm))
+
+
+def iso14253_verdict(error_mm: float, U_mm: float, mpe_mm: float | None) -> str:
+    """``conformance``, ``non-conformance`` or ``uncertainty zone`` (ISO 14253-1)."""
+    if mpe_mm is None or not np.isfinite(error_mm):
+        return "uncertainty zone"
+    if abs(error_mm) + U_mm <= mpe_mm:
+        return "conformance"
+    if abs(error_mm) - U_mm > mpe_mm:
+        return "non-conformance"
+    return "uncertainty zone"
+
+
+def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: Rig, lengths: pd.DataFrame,
+                        reference_length_mm: float, arrays: dict, config, mpe_mm: float | None,
+                        certificate_u_mm: float, ids=("A", "B"), workers: int = 2,
+                        halves: dict | None = None) -> dict:
+    """Budget, expanded uncertainty, Monte Carlo check and verdicts of every length.
+
+    Parameters
+    ----------
+    centres : the ball-bar centres table (``position, scanner, sphere_id, x_mm, ...``)
+    pixels : (position, scanner, sphere_id) -> (rows, cols) of each fit's kept pixels
+    stores : position -> scanner -> store path
+    rig : the calibrated rig; lengths : :func:`fringecal.verification.ballbar_lengths`
+    arrays : the run's ``calibration_covariance.npz``
+    config : :class:`~fringecal.runconfig.LengthUncertaintyConfig`
+    certificate_u_mm : standard uncertainty of the certified length
+    workers : threads for the lengths' Monte Carlo runs
+    halves : the run's ``crossval_halves.npz`` arrays (the lengths are then also
+        cross-validated: measured with each half-calibration and compared)
+
+    Returns a JSON-ready dict: ``lengths`` (one entry per length, in ``lengths`` order),
+    ``budget`` (per contribution the RMS over the lengths and the value at the length
+    of largest error), ``coverage_factor``, ``not_covered`` and ``monte_carlo`` summary.
+    """
+    cov = parameter_covariances(arrays, abs(config.artefact_cte_per_c) * config.artefact_temperature_u_c,
+                                config.artefact_u_factor)
+    std_all = np.sqrt(np.clip(np.diag(cov.total), 0, None))
+    u_bar_rel = abs(config.ballbar_cte_per_c) * config.ballbar_temperature_u_c
+    k = config.coverage_factor
+    models = {}
+    for r in centres.itertuples():
+        key = (str(r.position), str(r.scanner), str(r.sphere_id))
+        pts = sighting_points(stores[key[0]][key[1]], rig, key[1], pixels[key], (r.x_mm, r.y_mm, r.z_mm),
+                              r.radius_mm, r.rms_mm)
+        models[key] = sighting_model(pts, std_all[28 * pts.block:28 * pts.block + 28])
+
+    cross = None if halves is None else _cross_validated(models, lengths, halves, len(cov.scale), ids)
+    u_model = 0.0 if cross is None else cross["model_error_mm"]
+
+    def one(i_row):
+        i, r = i_row
+        a = models[(str(r.position), str(r.scanner_a), ids[0])]
+        b = models[(str(r.position), str(r.scanner_b), ids[1])]
+        budget = length_budget(a, b, cov, certificate_u_mm, u_bar_rel, u_model)
+        u = budget.combined_mm
+        error = float(r.length_mm) - reference_length_mm
+        entry = {"measurement": str(r.measurement), "length_mm": float(r.length_mm), "error_mm": error,
+                 "u_mm": u, "U_mm": k * u, "budget_mm": budget.u_mm,
+                 "iso14253": iso14253_verdict(error, k * u, mpe_mm), "covered": bool(abs(error) <= k * u)}
+        if config.monte_carlo_draws > 0:
+            rng = np.random.default_rng([config.seed, i])  # per length: the same draws in any thread
+            samples = monte_carlo_lengths(a.points, b.points, cov, certificate_u_mm, u_bar_rel,
+                                          config.monte_carlo_draws, rng, u_model)
+            entry["monte_carlo"] = validate_linear(float(r.length_mm), u, k, samples)
+        return entry
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        out = list(pool.map(one, enumerate(lengths.itertuples())))
+    if cross is not None:
+        for entry, c in zip(out, cross["lengths"]):
+            entry["cross_validation"] = c
+    return {"coverage_factor": k, "lengths": out, "budget": _budget(out),
+            "not_covered": [e["measurement"] for e in out if not e["covered"]],
+            "monte_carlo": _mc_summary(out),
+            "cross_validation": None if cross is None else {k_: v for k_, v in cross.items() if k_ != "lengths"}}
+
+
+#: RMS of the halves' normalised length differences above which they disagree: with
+#: the stated uncertainty right it is 1; its scatter over 9 lengths is about 0.25
+CROSSVAL_RMS_Z_MAX = 2.0
+
+
+def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params: int, ids) -> dict:
+    """Every length measured with each half-calibration (``crossval_halves.npz``), the
+    difference against its predicted standard uncertainty sqrt(g^T (C_a + C_b) g): the
+    fits' own noise is common to both and cancels, the calibrations' errors do not."""
+    from ..length_uncertainty import _gradient, refitted_length
+
+    C = halves["covariance_a"] + halves["covariance_b"]
+
+    def params(which: str, block: int) -> np.ndarray:
+        p = halves[f"params_{which}"]
+        return np.concatenate([p[2 * block], p[2 * block + 1]])
+
+    rows = []
+    for r in lengths.itertuples():
+        a = models[(str(r.position), str(r.scanner_a), ids[0])]
+        b = models[(str(r.position), str(r.scanner_b), ids[1])]
+        g, _, _ = _gradient(a, b, n_params)
+        la = refitted_length(a.points, b.points, params("a", a.points.block), params("a", b.points.block))
+        lb = refitted_length(a.points, b.points, params("b", a.points.block), params("b", b.points.block))
+        u = float(np.sqrt(max(g @ C @ g, 0.0)))
+        rows.append({"length_a_mm": la, "length_b_mm": lb, "difference_mm": la - lb, "u_predicted_mm": u,
+                     "z": (la - lb) / u if u > 0 else None})
+    d = np.array([x["difference_mm"] for x in rows])
+    u = np.array([x["u_predicted_mm"] for x in rows])
+    rms_z = float(np.sqrt(np.mean((d / u) ** 2))) if len(d) and np.all(u > 0) else None
+    excess = float(np.sqrt(max(0.0, np.mean(d**2) - np.mean(u**2)) / 2)) if len(d) else 0.0
+    verdict = "consistent" if rms_z is not None and rms_z <= CROSSVAL_RMS_Z_MAX else "model error"
+    return {"lengths": rows, "rms_z": rms_z, "rms_z_max": CROSSVAL_RMS_Z_MAX, "verdict": verdict,
+            "model_error_mm": excess if verdict == "model error" else 0.0}
+
+
+def _budget(entries: list) -> dict:
+    if not entries:
+        return {}
+    worst = max(entries, key=lambda e: abs(e["error_mm"]))
+    rms = {t: float(np.sqrt(np.mean([e["budget_mm"][t] ** 2 for e in entries]))) for t in BUDGET_TERMS}
+    return {"terms": list(BUDGET_TERMS), "rms_mm": rms, "largest_error": {
+        "measurement": worst["measurement"], "error_mm": worst["error_mm"], "u_mm": worst["u_mm"],
+        "U_mm": worst["U_mm"], "budget_mm": worst["budget_mm"], "iso14253": worst["iso14253"]}}
+
+
+def _mc_summary(entries: list) -> dict | None:
+    mc = [e["monte_carlo"] for e in entries if "monte_carlo" in e]
+    if not mc:
+        return None
+    ratios = np.array([m["ratio"] for m in mc], float)
+    return {"draws": mc[0]["draws"], "ratio_min": float(ratios.min()), "ratio_max": float(ratios.max()),
+            "all_agree": bool(all(m["agree"] for m in mc)),
+            "disagree": [e["measurement"] for e in entries if "monte_carlo" in e and not e["monte_carlo"]["agree"]]}

@@ -1,0 +1,145 @@
+"""Task-specific length uncertainty: the artefact sensitivity against re-adjustment, the
+linear propagation against brute force and Monte Carlo, the decision rule."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fringecal.calibration.artefact_sensitivity import artefact_sensitivity
+from fringecal.calibration.bundle import BundleOptions, bundle_adjust
+from fringecal.calibration.model import BundleProblem
+from fringecal.calibration.propagation import sensor_covariance
+from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
+from fringecal.length_uncertainty import (ParameterCovariances, SightingPoints, _draw_sqrt, length_budget,
+                                          monte_carlo_lengths, numerical_tolerance, refitted_length, sighting_model,
+                                          validate_linear)
+from fringecal.pipeline.ballbar_uncertainty import iso14253_verdict
+
+
+@pytest.fixture(scope="module")
+def adjusted():
+    rig, art, poses = thesis_truth()
+    sim = simulate_control_points(rig, art, poses, spacing_px=20, rng=21)
+    return sim, bundle_adjust(BundleProblem.from_tables(rig, art, sim.control_points, poses),
+                              BundleOptions(start="given"))
+
+
+def _readjust(result, artefact, sim):
+    pr = BundleProblem.from_tables(result.rig, artefact, sim.control_points,
+                                   result.problem.poses_frame(result.poses))
+    return bundle_adjust(pr, BundleOptions(start="given"))
+
+
+def test_artefact_sensitivity_predicts_the_readjusted_calibration(adjusted):
+    """The implicit-function sensitivity against adjusting again with a changed table:
+    a 50 ppm scale (the calibration's response is linear in it: agreement to 1e-3 of
+    the largest change) and a random 10 um change of every centre and 5 um of every
+    radius (agreement to 10 % in units of each parameter's uncertainty)."""
+    sim, res = adjusted
+    art = res.problem.artefact
+    sens = artefact_sensitivity(res)
+    c = art.centres.mean(0)
+    s = 50e-6
+    scaled = replace(art, centres=c + (art.centres - c) * (1 + s), diameters=art.diameters * (1 + s))
+    dx = _readjust(res, scaled, sim).x - res.x
+    assert np.abs(dx - s * sens.scale).max() < 1e-3 * np.abs(dx).max()
+    da = np.random.default_rng(1).normal(0, 0.01, (len(art.ids), 4))
+    da[:, 3] *= 0.5
+    moved = replace(art, centres=art.centres + da[:, :3], diameters=art.diameters + 2 * da[:, 3])
+    dx = (_readjust(res, moved, sim).x - res.x) / res.uncertainty.std
+    pred = sens.S @ da.reshape(-1) / res.uncertainty.std
+    assert np.linalg.norm(dx - pred) < 0.1 * np.linalg.norm(dx)
+    # the CMM covariance is S diag(u^2) S^T with the table's 10 um per coordinate
+    assert sens.u_artefact[:4] == pytest.approx([0.01, 0.01, 0.01, 0.005])
+    assert np.allclose(sens.covariance_cmm, (sens.S * sens.u_artefact**2) @ sens.S.T)
+
+
+def _sightings(rig, rng, n=1500, noise_mm=0.05):
+    """Sphere A seen by scanner1, B by scanner2 (the thesis's set-up), about a metre apart:
+    the true surface points' camera pixels and projector phases, the phases with noise
+    equivalent to ``noise_mm`` along the normal."""
+    centres = {"A": np.array([-222.4, 138.9, 10.5]), "B": np.array([-1230.9, 146.7, 130.3])}
+    out = {}
+    for block, (sid, scanner) in enumerate(zip("AB", rig.scanners)):
+        c = centres[sid]
+        view = scanner.camera.pinhole - c
+        view /= np.linalg.norm(view)
+        u = rng.normal(size=(8 * n, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        u = u[u @ view > 0.5][:n]
+        X = c + 25.425 * u
+        cam = scanner.camera.project(X)
+        prj = scanner.projector.project(X)
+        out[sid] = (SightingPoints(scanner, block, cam, prj, c, 25.425, noise_mm), X, u)
+    return out
+
+
+def _with_noise(s: SightingPoints, X, u, rng, sd_mm=0.05):
+    """The sighting as measured: points moved along the normal by ``sd_mm``, re-imaged in
+    the projector (phase noise), triangulated, the centre fitted and the fit's RMS kept."""
+    from fringecal.length_uncertainty import _refit, triangulate_mm
+
+    prj = s.scanner.projector.project(X + u * rng.normal(0, sd_mm, len(X))[:, None])
+    P = triangulate_mm(s.scanner, s.cam_mm, prj)
+    c = _refit(P, s.centre, s.radius_mm)
+    rms = float(np.sqrt(np.mean((np.linalg.norm(P - c, axis=1) - s.radius_mm) ** 2)))
+    return replace(s, prj_mm=prj, centre=c, rms_mm=rms)
+
+
+def test_linear_budget_against_repeated_measurements_and_monte_carlo():
+    """Two sightings with 50 um point noise and a calibration covariance of the thesis
+    rig (from a synthetic adjustment): the fits' term against the scatter of 200
+    repeated noisy measurements (within 15 %: 200 repeats scatter by 5 %), the
+    calibration term against the scatter of lengths re-measured with parameters drawn
+    from the covariance (within 15 %), and Monte Carlo against linear within 10 %."""
+    rig, art, poses = thesis_truth()
+    sim = simulate_control_points(rig, art, poses, spacing_px=20, rng=21)
+    res = bundle_adjust(BundleProblem.from_tables(rig, art, sim.control_points, poses), BundleOptions(start="given"))
+    C = sensor_covariance(res.layout.sensor_index, res.uncertainty.covariance)
+    cov = ParameterCovariances(C, np.zeros_like(C), np.zeros(len(C)), 0.0)
+    rng = np.random.default_rng(5)
+    sights = _sightings(res.rig, rng)
+    std = np.sqrt(np.diag(C))
+    measured = {k: _with_noise(*v, rng) for k, v in sights.items()}
+    models = {k: sighting_model(s, std[28 * s.block:28 * s.block + 28]) for k, s in measured.items()}
+    budget = length_budget(models["A"], models["B"], cov, 0.0, 0.0)
+    assert budget.length_mm == pytest.approx(np.linalg.norm(measured["A"].centre - measured["B"].centre))
+    lengths = [refitted_length(_with_noise(*sights["A"], rng), _with_noise(*sights["B"], rng),
+                               np.r_[res.rig.params[0], res.rig.params[1]], np.r_[res.rig.params[2], res.rig.params[3]])
+               for _ in range(200)]
+    assert np.std(lengths) == pytest.approx(budget.u_mm["sphere fits"], rel=0.15)
+    F = _draw_sqrt(C)
+    drawn = []
+    for _ in range(200):
+        p = res.rig.params.reshape(-1) + F @ rng.standard_normal(F.shape[1])
+        drawn.append(refitted_length(sights["A"][0], sights["B"][0], p[:28], p[28:]))
+    assert np.std(drawn) == pytest.approx(budget.u_mm["calibration"], rel=0.15)
+    samples = monte_carlo_lengths(measured["A"], measured["B"], cov, 0.0, 0.0, 1000, rng)
+    check = validate_linear(budget.length_mm, budget.combined_mm, 2.0, samples)
+    assert check["ratio"] == pytest.approx(1.0, abs=0.1)
+    assert abs(np.mean(samples) - budget.length_mm) < 3 * check["u_mc_mm"] / np.sqrt(1000) + 1e-6
+    # the points were imaged with the adjusted rig itself: only the fits' noise is in the length
+    true_length = np.linalg.norm(sights["A"][0].centre - sights["B"][0].centre)
+    assert abs(budget.length_mm - true_length) < 4 * budget.u_mm["sphere fits"]
+
+
+def test_draws_keep_parameters_of_very_different_scales():
+    """A covariance with variances from 1 to 1e-20 (mm^2 of a position, k3) and strong
+    correlation: the factor reproduces it to 1e-9 of each variance."""
+    sd = np.array([1.0, 1e-3, 1e-10, 1e-6])
+    R = np.array([[1, 0.99, 0.5, 0], [0.99, 1, 0.4, 0], [0.5, 0.4, 1, 0.2], [0, 0, 0.2, 1]])
+    C = R * np.outer(sd, sd)
+    F = _draw_sqrt(C)
+    assert np.allclose((F @ F.T) / np.outer(sd, sd), R, atol=1e-9)
+
+
+def test_iso14253_decision_rule_and_tolerance():
+    assert iso14253_verdict(0.030, 0.020, 0.1) == "conformance"
+    assert iso14253_verdict(-0.085, 0.020, 0.1) == "uncertainty zone"
+    assert iso14253_verdict(0.125, 0.020, 0.1) == "non-conformance"
+    assert iso14253_verdict(0.115, 0.020, 0.1) == "uncertainty zone"
+    assert iso14253_verdict(float("nan"), 0.02, 0.1) == "uncertainty zone"
+    # JCGM 101 7.9.2: u = 0.0123 mm written 1.2e-2 -> tolerance half of 1e-3
+    assert numerical_tolerance(0.0123) == pytest.approx(0.0005)
+    assert numerical_tolerance(0.0123, 1) == pytest.approx(0.005)
