@@ -19,7 +19,7 @@ from ..rig import Rig, Scanner
 from ..triangulation import closest_approach
 
 __all__ = ["sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
-           "STEP_FRACTION"]
+           "point_uncertainty_map", "STEP_FRACTION"]
 
 #: central-difference step as a fraction of each parameter's standard uncertainty
 STEP_FRACTION = 1e-3
@@ -87,3 +87,39 @@ def point_jacobian(scanner: Scanner, cam_mm, prj_mm, std28) -> np.ndarray:
 def point_covariance(J: np.ndarray, cov28: np.ndarray) -> np.ndarray:
     """Covariance (n, 3, 3) of points with Jacobians J (n, 3, 28)."""
     return np.einsum("nij,jk,nlk->nil", J, cov28, J)
+
+
+def point_uncertainty_map(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, valid, block: int = 20000):
+    """Standard uncertainty of every point of a measurement from the calibration.
+
+    Parameters
+    ----------
+    scanner : the calibrated scanner (camera at the measurement's resolution)
+    cov28 : (28, 28) covariance of its parameters (:func:`scanner_block` of
+        :func:`sensor_covariance`; add the artefact's share for a full statement)
+    tau_x, tau_y, valid : (rows, cols) maps of the measurement
+
+    Returns
+    -------
+    xarray.Dataset on dims ``(v, u)``: ``u_mm`` = sqrt(trace of the point's 3 x 3
+    covariance), the 3-D standard uncertainty of its position in mm, and ``u_x_mm``,
+    ``u_y_mm``, ``u_z_mm`` per world axis; NaN where no point was triangulated. The
+    phase noise of the pixel itself is not in it (it is the measurement's own, seen in
+    epsilon-1).
+    """
+    import xarray as xr
+
+    valid = np.asarray(valid, bool) & np.isfinite(tau_x) & np.isfinite(tau_y)
+    rows, cols = np.nonzero(valid)
+    std = np.sqrt(np.clip(np.diag(cov28), 0, None))
+    var = np.full((3,) + valid.shape, np.nan)
+    for a in range(0, len(rows), block):
+        r, c = rows[a:a + block], cols[a:a + block]
+        cam = scanner.camera.image_mm(np.stack([c, r], axis=-1).astype(float))
+        prj = scanner.projector.image_mm(np.stack([np.asarray(tau_x)[r, c], np.asarray(tau_y)[r, c]], axis=-1))
+        C = point_covariance(point_jacobian(scanner, cam, prj, std), cov28)
+        var[:, r, c] = np.clip(np.diagonal(C, axis1=1, axis2=2).T, 0, None)
+    dims = ("v", "u")
+    return xr.Dataset({"u_mm": (dims, np.sqrt(var.sum(axis=0))), "u_x_mm": (dims, np.sqrt(var[0])),
+                       "u_y_mm": (dims, np.sqrt(var[1])), "u_z_mm": (dims, np.sqrt(var[2]))},
+                      attrs={"units": "mm", "what": "standard uncertainty of each point from the calibration"})
