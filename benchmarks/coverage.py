@@ -88,7 +88,6 @@ import numpy as np  # after the thread settings
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-THESIS = ROOT / "configs" / "thesis"
 
 #: The budget of each profile (see the module notes).
 BUDGETS = {
@@ -102,31 +101,10 @@ CREDIBLE = (0.93, 0.97)
 
 
 def write_small_config(d: Path, width: int, poses=(1, 2, 3, 5, 7, 9, 11, 12), positions=(1, 4, 9)) -> Path:
-    """The small simulated thesis rig of ``tests/conftest.py`` (same tables and
-    settings; camera width, poses and ball-bar positions selectable)."""
-    import pandas as pd
-    import yaml
+    """The small simulated thesis rig (:mod:`fringecal.simulate.small_thesis`), eight poses."""
+    from fringecal.simulate.small_thesis import write_small_thesis_config
 
-    table = pd.read_csv(THESIS / "poses_scanner1_table6-1.csv")
-    table[table.measurement.isin(list(poses))].to_csv(d / "poses.csv", index=False)
-    bb = pd.read_csv(THESIS / "ballbar_verification_table6-9.csv")
-    bb[bb.measurement.isin(list(positions))].to_csv(d / "ballbar_positions.csv", index=False)
-    rig = yaml.safe_load((THESIS / "rig.yaml").read_text())
-    for k in ("sensors", "sensors_initial", "artefact", "rods", "ballbar", "materials"):
-        rig[k] = str(THESIS / rig[k])
-    rig["artefact_poses"] = str(d / "poses.csv")
-    (d / "rig.yaml").write_text(yaml.safe_dump(rig))
-    cfg = {
-        "name": "coverage",
-        "simulate": {"rig": str(d / "rig.yaml"),
-                     "acquisition": {"camera_width_px": width, "seed": 11,
-                                     "sequence": {"fringe_counts": [32, 31, 30, 28, 24, 16], "n_steps": 5}},
-                     "verification": {"positions": str(d / "ballbar_positions.csv"), "camera_width_px": width}},
-        "control_points": {"spacing_px": 1},
-    }
-    path = d / "run.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return path
+    return write_small_thesis_config(d, width, poses, positions, name="coverage")
 
 
 def errors_wired() -> bool:

@@ -60,30 +60,10 @@ def rng():
 def write_small_config(d: Path) -> Path:
     """A small simulated thesis rig: four of the twelve poses (four stand-offs), three
     ball-bar positions, 320 px cameras and a short fringe sequence -- the whole pipeline
-    in well under a minute."""
-    import pandas as pd
-    import yaml
+    in well under a minute (:func:`fringecal.simulate.small_thesis.write_small_thesis_config`)."""
+    from fringecal.simulate.small_thesis import write_small_thesis_config
 
-    poses = pd.read_csv(THESIS / "poses_scanner1_table6-1.csv")
-    poses[poses.measurement.isin([1, 5, 9, 12])].to_csv(d / "poses.csv", index=False)
-    bb = pd.read_csv(THESIS / "ballbar_verification_table6-9.csv")
-    bb[bb.measurement.isin([1, 4, 9])].to_csv(d / "ballbar_positions.csv", index=False)
-    rig = yaml.safe_load((THESIS / "rig.yaml").read_text())
-    for k in ("sensors", "sensors_initial", "artefact", "rods", "ballbar", "materials"):
-        rig[k] = str(THESIS / rig[k])
-    rig["artefact_poses"] = str(d / "poses.csv")
-    (d / "rig.yaml").write_text(yaml.safe_dump(rig))
-    cfg = {
-        "name": "small",
-        "simulate": {"rig": str(d / "rig.yaml"),
-                     "acquisition": {"camera_width_px": 320, "seed": 11,
-                                     "sequence": {"fringe_counts": [32, 31, 30, 28, 24, 16], "n_steps": 5}},
-                     "verification": {"positions": str(d / "ballbar_positions.csv"), "camera_width_px": 320}},
-        "control_points": {"spacing_px": 1},
-    }
-    path = d / "run.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return path
+    return write_small_thesis_config(d)
 
 
 @pytest.fixture(scope="session")

@@ -1,6 +1,6 @@
 """A scale error of the artefact never passes silently.
 
-The small simulated thesis rig (conftest ``write_small_config``: 4 poses, 320 px) with
+The small simulated thesis rig (``write_small_thesis_config``: 4 poses, 320 px) with
 ball-bar positions 1 and 9 of table 6-9, rendered without camera noise, once as its table and once with the
 rendered artefact 50 ppm larger than its table (a 21 C artefact whose table is at 20 C,
 expanding by 50e-6 /K: an artefact measured warm, or a wrong CMM scale). The
@@ -22,10 +22,10 @@ import pytest
 from fringecal.report import render_report
 from fringecal.rundir import RunDir
 from fringecal.runconfig import load_run_config
+from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.steps import run_pipeline
 from fringecal.summary import manifest
 
-from conftest import THESIS, write_small_config
 
 SCALE = 50e-6
 
@@ -33,9 +33,8 @@ QUIET = {"simulate": {"acquisition": {"render": {"excess_noise": 0.0, "shot_nois
          "verification": {"uncertainty": {"artefact_u_factor": 0.0, "monte_carlo_draws": 0}}}
 
 
-def _run(config, root, errors: dict, positions):
-    sim = {**QUIET["simulate"], "errors": errors, "verification": {"positions": str(positions), "camera_width_px": 320}}
-    cfg = load_run_config(config, overrides={**QUIET, "simulate": sim})
+def _run(config, root, errors: dict):
+    cfg = load_run_config(config, overrides={**QUIET, "simulate": {**QUIET["simulate"], "errors": errors}})
     rd = RunDir(root).create()
     rd.manifest.save(manifest(cfg))
     run_pipeline(rd, cfg, workers=2, until="verify")
@@ -44,15 +43,10 @@ def _run(config, root, errors: dict, positions):
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    import pandas as pd
-
     d = tmp_path_factory.mktemp("scale")
-    config = write_small_config(d)
-    bb = pd.read_csv(THESIS / "ballbar_verification_table6-9.csv")
-    positions = d / "positions_1_9.csv"
-    bb[bb.measurement.isin([1, 9])].to_csv(positions, index=False)
-    plain = _run(config, d / "plain", {}, positions)
-    scaled = _run(config, d / "scaled", {"artefact_temperature_c": 21.0, "artefact_cte_per_c": SCALE}, positions)
+    config = write_small_thesis_config(d, positions=(1, 9))
+    plain = _run(config, d / "plain", {})
+    scaled = _run(config, d / "scaled", {"artefact_temperature_c": 21.0, "artefact_cte_per_c": SCALE})
     return plain, scaled
 
 
