@@ -923,10 +923,37 @@ def _provenance(run: _Run, execution: dict) -> str:
     return "".join(out)
 
 
+def _crossval(run: _Run) -> str:
+    """The two half-calibrations compared (``crossval.json``)."""
+    cv = run.json(run.rd.crossval)
+    if cv.get("verdict") == "not possible":
+        return _note(f"Not possible: {cv.get('reason')}")
+    out = (f"<p>The measurements split into two halves, each calibrated on its own; both triangulate the same "
+           f"control-point observations and their difference is compared with the uncertainty the two "
+           f"calibrations state (mean z<sup>2</sup>/3 is 1 when it is right). Verdict: "
+           f"<b>{_e(cv['verdict'])}</b>.</p>\n")
+    rows = []
+    for name, sc in cv["scanners"].items():
+        rows.append([name, *(f"{sc[f]['mean_z2_over_3']:.2f} ({_um(sc[f]['rms_difference_mm'])} vs "
+                              f"{_um(sc[f]['rms_predicted_mm'])})" for f in ("scanner", "reference", "world")),
+                     (sc["verdict"], "pass" if sc["verdict"] == "consistent" else "fail"),
+                     _um(sc["model_error_mm"])])
+    out += _table(["Scanner", "Own frame: z²/3 (RMS difference vs predicted)", "Aligned on the reference",
+                   "World (reported only)", "Verdict", "Model error per half"], rows, left=1)
+    par = cv.get("parameters") or {}
+    halves = cv.get("halves") or []
+    out += _kv([("Halves", "; ".join(f"{len(h['measurements'])} measurements, eps1/eps2 {_um(h['rms_eps1_mm'])} / "
+                                     f"{_um(h['rms_eps2_mm'])}" for h in halves) or None),
+                ("Largest parameter difference", f"{par.get('parameter')}: {par.get('max_normalised', 0):.1f} times "
+                                                 f"its combined uncertainty (RMS over all "
+                                                 f"{par.get('rms_normalised', 0):.2f})" if par else None)])
+    return out
+
+
 _SECTIONS = [("rig", "Rig and artefact"), ("timing", "Timing"), ("results", "Calibration results"),
              ("parameters", "Sensor parameters"), ("residuals", "Residuals"),
-             ("verification", "Verification (ball-bar)"), ("truth", "Simulation truth"),
-             ("provenance", "Provenance")]
+             ("crossval", "Cross-validation"), ("verification", "Verification (ball-bar)"),
+             ("truth", "Simulation truth"), ("provenance", "Provenance")]
 
 
 def _rig_section(run: _Run) -> str:
@@ -952,7 +979,8 @@ def render_report(run_dir, timings: dict | None = None, execution: dict | None =
     generated = generated or datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
     execution = _execution(run, execution)
     bodies = {"rig": (_rig_section,), "timing": (_timings, timings), "results": (_results,),
-              "parameters": (_parameters,), "residuals": (_residuals,), "verification": (_verification,),
+              "parameters": (_parameters,), "residuals": (_residuals,), "crossval": (_crossval,),
+              "verification": (_verification,),
               "truth": (_truth,), "provenance": (_provenance, execution)}
     nav = "<nav>" + "".join(f'<a href="#{a}">{_e(t)}</a>' for a, t in _SECTIONS) + "</nav>\n"
     sections = "".join(_section(a, t, bodies[a][0], run, *bodies[a][1:]) for a, t in _SECTIONS)

@@ -529,7 +529,7 @@ class RunDir:
     @property
     def crossval(self) -> JsonFile:
         """Cross-validation of the calibration (two halves of the measurements)."""
-        return self._at(JsonFile, "crossval.json")
+        return self._at(JsonFile, "crossval.json", optional=True)
 
     @property
     def crossval_halves(self) -> ArraysFile:
