@@ -174,12 +174,14 @@ def _draw_sqrt(C: np.ndarray) -> np.ndarray:
 
 
 def _refit(points: np.ndarray, centre: np.ndarray, radius: float, iterations: int = 3) -> np.ndarray:
+    """Fixed-radius sphere centre by Gauss-Newton from ``centre`` (normal equations: the
+    3 x 3 system is well conditioned for any cap the verification keeps)."""
     c = centre.copy()
     for _ in range(iterations):
         d = points - c
-        r = np.linalg.norm(d, axis=1)
+        r = np.sqrt(np.einsum("ij,ij->i", d, d))
         A = d / r[:, None]
-        c = c + np.linalg.lstsq(A, r - radius, rcond=None)[0]
+        c = c + np.linalg.solve(A.T @ A, A.T @ (r - radius))
     return c
 
 

@@ -46,6 +46,7 @@ from .sensor import Sensor
 
 __all__ = [
     "provenance",
+    "triangulate_image_points",
     "CameraRayCache",
     "PointMaps",
     "camera_ray_cache",
@@ -424,3 +425,37 @@ def provenance(camera: Sensor, projector: Sensor) -> dict:
             "method": "midpoint of closest approach; eps1 signed (o_p - o_c) . (d_c x d_p)/|d_c x d_p| "
                       "(fringecal.triangulation); projector undistorted by Newton to a step < 1e-7 mm",
             "units": {"x": "mm", "y": "mm", "z": "mm", "eps1": "mm"}}
+
+
+@nb.njit(cache=True, fastmath=_FASTMATH)
+def _triangulate_points_kernel(cam_mm, prj_mm, Rc, c_cam, o1, cam_int, Rp, c_prj, o2, prj_int, out):
+    """Closest-approach midpoints of (n, 2) camera and projector image-plane mm;
+    ``*_int`` = (xi_h, eta_h, k1, k2, k3, p1, p2). NaN where a point does not undistort
+    or the rays are parallel."""
+    for i in range(cam_mm.shape[0]):
+        ix, iy, ok1 = _undistort_point(cam_mm[i, 0] - cam_int[0], cam_mm[i, 1] - cam_int[1], cam_int[2], cam_int[3],
+                                       cam_int[4], cam_int[5], cam_int[6])
+        px, py, ok2 = _undistort_point(prj_mm[i, 0] - prj_int[0], prj_mm[i, 1] - prj_int[1], prj_int[2], prj_int[3],
+                                       prj_int[4], prj_int[5], prj_int[6])
+        X, Y, Z, _, ok = _ray_pair(ix, iy, px, py, Rc, c_cam, o1, Rp, c_prj, o2)
+        good = ok1 and ok2 and ok
+        out[i, 0] = X if good else np.nan
+        out[i, 1] = Y if good else np.nan
+        out[i, 2] = Z if good else np.nan
+
+
+def triangulate_image_points(camera: Sensor, projector: Sensor, cam_mm, prj_mm) -> np.ndarray:
+    """Points (n, 3) world mm of camera and projector image-plane coordinates (n, 2) mm:
+    :func:`fringecal.triangulation.triangulate` for a list of observations in one compiled
+    loop (NaN where the model does not invert or the rays are parallel). Used where the
+    same points are triangulated with many parameter sets (Monte Carlo, derivatives).
+    """
+    cam_mm = np.ascontiguousarray(cam_mm, float).reshape(-1, 2)
+    prj_mm = np.ascontiguousarray(prj_mm, float).reshape(-1, 2)
+    out = np.empty((len(cam_mm), 3))
+    interior = lambda s: np.ascontiguousarray(np.r_[s.params[6:8], s.params[9:14]])  # noqa: E731
+    _triangulate_points_kernel(cam_mm, prj_mm, np.ascontiguousarray(camera.R), camera.c,
+                               np.ascontiguousarray(camera.pinhole), interior(camera),
+                               np.ascontiguousarray(projector.R), projector.c,
+                               np.ascontiguousarray(projector.pinhole), interior(projector), out)
+    return out

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rig import Rig, Scanner
-from ..triangulation import closest_approach
+from ..pointcloud import triangulate_image_points
 
 __all__ = ["sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
            "point_uncertainty_map", "STEP_FRACTION"]
@@ -53,10 +53,9 @@ def scanner_block(cov_sensors: np.ndarray, rig: Rig, scanner: str) -> np.ndarray
 
 
 def triangulate_mm(scanner: Scanner, cam_mm, prj_mm) -> np.ndarray:
-    """Points (n, 3) of camera and projector image-plane coordinates (n, 2) mm."""
-    o1, d1 = scanner.camera.rays(cam_mm)
-    o2, d2 = scanner.projector.rays(prj_mm)
-    return closest_approach(o1, d1, o2, d2)[0]
+    """Points (n, 3) of camera and projector image-plane coordinates (n, 2) mm (NaN where
+    the model does not invert; compiled, :func:`fringecal.pointcloud.triangulate_image_points`)."""
+    return triangulate_image_points(scanner.camera, scanner.projector, cam_mm, prj_mm)
 
 
 def _with(scanner: Scanner, params28: np.ndarray) -> Scanner:
