@@ -96,7 +96,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
 
     Returns a JSON-ready dict: ``lengths`` (one entry per length, in ``lengths`` order),
     ``budget`` (per contribution the RMS over the lengths and the value at the length
-    of largest error), ``coverage_factor``, ``not_covered`` and ``monte_carlo`` summary.
+    of largest error), ``coverage_factor``, ``not_covered``, the ``monte_carlo`` summary
+    and the ``cross_validation`` summary (None without ``halves``).
     """
     cov = parameter_covariances(arrays, abs(config.artefact_cte_per_c) * config.artefact_temperature_u_c,
                                 config.artefact_u_factor)
