@@ -177,3 +177,31 @@ def test_point_uncertainty_map_against_drawn_calibrations(thesis_rig):
                                    cam, prj) for p in p0 + rng.normal(size=(400, 28)) * np.r_[sd, sd]])
     empirical = np.sqrt(pts.var(axis=0).sum(axis=1))
     assert np.allclose(empirical, m.u_mm.values[r, c], rtol=0.15)
+
+
+def test_length_cross_validation_adds_model_error_only_when_the_points_agree_it_is_there(thesis_rig):
+    """Two half-calibrations whose scanner2 projector differs by 20 um in its principal
+    point while they state 1e-7 of every parameter: the lengths disagree far beyond that. The budget gets
+    the excess only when the points' cross-validation also says model error; with the
+    points consistent the lengths' verdict is inconclusive and nothing is added."""
+    import pandas as pd
+
+    from fringecal.pipeline.ballbar_uncertainty import _cross_validated
+
+    rng = np.random.default_rng(8)
+    sights = _sightings(thesis_rig, rng)
+    std = np.full(56, 1e-4)  # the derivatives' step scale
+    models = {("p", s.scanner.name, k): sighting_model(s, std[:28]) for k, (s, _, _) in sights.items()}
+    lengths = pd.DataFrame({"position": ["p"], "scanner_a": [sights["A"][0].scanner.name],
+                            "scanner_b": [sights["B"][0].scanner.name]})
+    params = thesis_rig.params.copy()
+    shifted = params.copy()
+    shifted[3, 6] += 0.02
+    cov = np.diag((1e-7 * np.abs(params.reshape(-1))) ** 2)  # tiny against every parameter's size
+    halves = {"params_a": params, "params_b": shifted, "covariance_a": cov, "covariance_b": cov}
+    found = _cross_validated(models, lengths, halves, 56, ("A", "B"), "model error")
+    d = found["lengths"][0]["difference_mm"]
+    assert abs(d) > 0.005 and found["verdict"] == "model error"
+    assert found["model_error_mm"] == pytest.approx(np.sqrt(max(d**2 - found["lengths"][0]["u_predicted_mm"]**2, 0) / 2))
+    contradicted = _cross_validated(models, lengths, halves, 56, ("A", "B"), "consistent")
+    assert contradicted["verdict"] == "inconclusive" and contradicted["model_error_mm"] == 0.0

@@ -29,7 +29,7 @@ def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
 
 
 def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm: float, covariance=None,
-                    halves=None):
+                    halves=None, points_verdict=None):
     """Centres, failures and the evaluated lengths of the run's ball-bar with ``rig``;
     with ``covariance`` (the run's ``calibration_covariance.npz`` arrays) also every
     length's uncertainty budget (:func:`fringecal.pipeline.ballbar_uncertainty.ballbar_uncertainty`),
@@ -53,7 +53,7 @@ def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm:
         budget = ballbar_uncertainty(centres, pixels, stores, rig, lengths, reference_length, covariance,
                                      verification.uncertainty, verification.mpe_mm,
                                      verification.certificate_u_mm / verification.certificate_k, bar.ids[:2],
-                                     halves=halves)
+                                     halves=halves, points_verdict=points_verdict)
     return centres, failures, result, budget
 
 
@@ -65,7 +65,7 @@ class Verify(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
-        return [rd.calibration, rd.covariance, rd.crossval_halves, rd.ballbar, rd.bundle_summary,
+        return [rd.calibration, rd.covariance, rd.crossval, rd.crossval_halves, rd.ballbar, rd.bundle_summary,
                 rd.acquisition] + stores
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
@@ -78,10 +78,11 @@ class Verify(Step):
             log.warning("no ball-bar measurements: the calibration is not verified")
             return
         diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
+        halves = rd.crossval_halves.load() if rd.crossval_halves.exists() else None
+        points_verdict = rd.crossval.load().get("verdict") if rd.crossval.exists() else None
         centres, failures, result, budget = measure_ballbar(rd, rd.calibration.load(), cfg.extraction.rejection,
                                                             cfg.verification, diagonal, rd.covariance.load(),
-                                                            rd.crossval_halves.load() if rd.crossval_halves.exists()
-                                                            else None)
+                                                            halves, points_verdict)
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner, f.reason)
         rd.ballbar_centres.save(centres)
