@@ -44,11 +44,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .calibration.propagation import point_jacobian, triangulate_mm
+from .calibration.propagation import point_jacobian, scanner_with, triangulate_mm
 from .rig import Scanner
 
 __all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
-           "monte_carlo_lengths", "refitted_length", "numerical_tolerance", "validate_linear", "BUDGET_TERMS"]
+           "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
+           "BUDGET_TERMS"]
 
 #: the contributions of a length's budget, in report order
 BUDGET_TERMS = ("calibration", "artefact CMM", "artefact temperature", "sphere fits", "bar certificate",
@@ -132,7 +133,7 @@ class ParameterCovariances:
         return self.calibration + self.cmm + self.u_scale**2 * np.outer(self.scale, self.scale)
 
 
-def _gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[np.ndarray, np.ndarray, float]:
+def length_gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[np.ndarray, np.ndarray, float]:
     """(dL/dtheta over all sensor parameters, e, L)."""
     d = a.points.centre - b.points.centre
     L = float(np.linalg.norm(d))
@@ -147,7 +148,7 @@ def length_budget(a: SightingModel, b: SightingModel, cov: ParameterCovariances,
                   u_bar_temperature_rel: float, u_model_mm: float = 0.0) -> LengthBudget:
     """Linear (GUM) budget of the length between sightings ``a`` and ``b``;
     ``u_model_mm`` the model error the cross-validation found (0 when consistent)."""
-    g, e, L = _gradient(a, b, len(cov.scale))
+    g, e, L = length_gradient(a, b, len(cov.scale))
     u = {
         "calibration": math.sqrt(max(float(g @ cov.calibration @ g), 0.0)),
         "artefact CMM": math.sqrt(max(float(g @ cov.cmm @ g), 0.0)),
@@ -185,10 +186,6 @@ def _refit(points: np.ndarray, centre: np.ndarray, radius: float, iterations: in
     return c
 
 
-def _scanner_with(s: Scanner, params28: np.ndarray) -> Scanner:
-    return Scanner(s.name, s.camera.with_params(params28[:14]), s.projector.with_params(params28[14:]))
-
-
 def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCovariances, u_certificate_mm: float,
                         u_bar_temperature_rel: float, draws: int, rng: np.random.Generator,
                         u_model_mm: float = 0.0) -> np.ndarray:
@@ -206,7 +203,7 @@ def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCova
         centres = []
         for s in (a, b):
             j = blocks.index(s.block)
-            sc = _scanner_with(s.scanner, base[s.block] + dtheta[28 * j:28 * j + 28])
+            sc = scanner_with(s.scanner, base[s.block] + dtheta[28 * j:28 * j + 28])
             X = triangulate_mm(sc, s.cam_mm, s.prj_mm)
             X = X + normals[id(s)] * (s.rms_mm * rng.standard_normal(len(X)))[:, None]
             centres.append(_refit(X, s.centre, s.radius_mm))
@@ -221,7 +218,7 @@ def refitted_length(a: SightingPoints, b: SightingPoints, params_a: np.ndarray, 
     every kept pixel re-triangulated and both spheres refitted."""
     centres = []
     for s, p in ((a, params_a), (b, params_b)):
-        X = triangulate_mm(_scanner_with(s.scanner, p), s.cam_mm, s.prj_mm)
+        X = triangulate_mm(scanner_with(s.scanner, p), s.cam_mm, s.prj_mm)
         centres.append(_refit(X, s.centre, s.radius_mm))
     return float(np.linalg.norm(centres[0] - centres[1]))
 

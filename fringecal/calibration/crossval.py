@@ -345,8 +345,6 @@ class CrossValidation:
 
     Attributes
     ----------
-    full : BundleResult
-        The calibration that was cross-validated.
     halves : (BundleResult, BundleResult)
         The two half-calibrations (``.rig``, ``.uncertainty.covariance``, ``.layout``;
         :meth:`sensor_covariances` gives their sensor covariances).
@@ -356,7 +354,6 @@ class CrossValidation:
         scanner name -> {frame -> :class:`PointComparison`} for every frame of ``FRAMES``.
     """
 
-    full: BundleResult
     halves: tuple
     measurements: tuple
     comparisons: dict
@@ -413,18 +410,19 @@ class CrossValidation:
                 "parameters": self.parameter_differences()}
 
 
-def cross_validate(result: BundleResult, options: BundleOptions | None = None, n_points_per_scanner: int = 2000,
+def cross_validate(problem: BundleProblem, options: BundleOptions | None = None, n_points_per_scanner: int = 2000,
                    seed: int = 0, split: tuple | None = None) -> CrossValidation:
-    """Calibrate two halves of ``result``'s measurements and compare their points.
+    """Calibrate two halves of ``problem``'s measurements and compare their points.
 
     Parameters
     ----------
-    result : BundleResult
-        The full calibration; its problem is split and its solution (rig, poses) is each
-        half's start (the halves are independent data; the start only needs to be in the
-        basin, and starting there is fast).
+    problem : BundleProblem
+        The full calibration's problem with its solution (rig, poses) as start values
+        (``result.problem.with_start(result.rig, result.poses)``): each half starts
+        there (the halves are independent data; the start only needs to be in the basin,
+        and starting there is fast).
     options : BundleOptions, optional
-        Default: the full calibration's options with ``start="given"``.
+        The halves' adjustment; default ``BundleOptions(start="given")``.
     n_points_per_scanner : int
         Control points of each scanner sampled (without replacement, uniformly over the
         full problem) for the comparison; all if it has fewer.
@@ -440,11 +438,9 @@ def cross_validate(result: BundleResult, options: BundleOptions | None = None, n
     if n_points_per_scanner < 10:
         raise ValueError(f"n_points_per_scanner must be at least 10 (a rigid alignment and per-point covariances "
                          f"need them), got {n_points_per_scanner}")
-    problem = result.problem
     halves = split_measurements(problem) if split is None else tuple(tuple(str(m) for m in h) for h in split)
-    opts = replace(result.options, start="given") if options is None else options
-    start = problem.with_start(result.rig, result.poses)
-    fits = tuple(bundle_adjust(subproblem(start, h), opts) for h in halves)
+    opts = BundleOptions(start="given") if options is None else options
+    fits = tuple(bundle_adjust(subproblem(problem, h), opts) for h in halves)
     rng = np.random.default_rng(seed)
     index, scanner_of = [], []
     for si in range(len(problem.rig.scanners)):
@@ -464,4 +460,4 @@ def cross_validate(result: BundleResult, options: BundleOptions | None = None, n
         for sc, rows in zip(problem.rig.scanners, own):
             comparisons[sc.name][frame] = PointComparison.of(sc.name, frame, index[rows], d[rows], R1[rows], R2[rows],
                                                              S1, S2)
-    return CrossValidation(result, fits, tuple(tuple(h) for h in halves), comparisons)
+    return CrossValidation(fits, tuple(tuple(h) for h in halves), comparisons)

@@ -19,7 +19,7 @@ from ..rig import Rig, Scanner
 from ..pointcloud import triangulate_image_points
 
 __all__ = ["sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
-           "point_uncertainty_map", "STEP_FRACTION"]
+           "point_uncertainty_map", "scanner_with", "STEP_FRACTION"]
 
 #: central-difference step as a fraction of each parameter's standard uncertainty
 STEP_FRACTION = 1e-3
@@ -58,7 +58,8 @@ def triangulate_mm(scanner: Scanner, cam_mm, prj_mm) -> np.ndarray:
     return triangulate_image_points(scanner.camera, scanner.projector, cam_mm, prj_mm)
 
 
-def _with(scanner: Scanner, params28: np.ndarray) -> Scanner:
+def scanner_with(scanner: Scanner, params28: np.ndarray) -> Scanner:
+    """``scanner`` with other parameters (28,: camera 14, then projector 14)."""
     return Scanner(scanner.name, scanner.camera.with_params(params28[:14]), scanner.projector.with_params(params28[14:]))
 
 
@@ -76,9 +77,9 @@ def point_jacobian(scanner: Scanner, cam_mm, prj_mm, std28) -> np.ndarray:
         h = STEP_FRACTION * float(std28[j])
         p = p0.copy()
         p[j] += h
-        plus = triangulate_mm(_with(scanner, p), cam_mm, prj_mm)
+        plus = triangulate_mm(scanner_with(scanner, p), cam_mm, prj_mm)
         p[j] -= 2 * h
-        minus = triangulate_mm(_with(scanner, p), cam_mm, prj_mm)
+        minus = triangulate_mm(scanner_with(scanner, p), cam_mm, prj_mm)
         J[:, :, j] = (plus - minus) / (2 * h)
     return J
 

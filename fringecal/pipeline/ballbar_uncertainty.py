@@ -30,8 +30,8 @@ import numpy as np
 import pandas as pd
 
 from ..calibration.propagation import sensor_covariance
-from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, length_budget,
-                                  monte_carlo_lengths, sighting_model, validate_linear)
+from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, length_budget, length_gradient,
+                                  monte_carlo_lengths, refitted_length, sighting_model, validate_linear)
 from ..rig import Rig
 from ..store import open_store
 from .verify import _store_scanner
@@ -160,8 +160,6 @@ def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params
     calibrations of few poses each (4 and 3 at 320 px), whose weak directions make the
     linear prediction of their difference far too small (a 6.6 mm "model error" in one
     of 50 simulated ideal experiments); that is no model error of the full calibration."""
-    from ..length_uncertainty import _gradient, refitted_length
-
     C = halves["covariance_a"] + halves["covariance_b"]
 
     def params(which: str, block: int) -> np.ndarray:
@@ -172,7 +170,7 @@ def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params
     for r in lengths.itertuples():
         a = models[(str(r.position), str(r.scanner_a), ids[0])]
         b = models[(str(r.position), str(r.scanner_b), ids[1])]
-        g, _, _ = _gradient(a, b, n_params)
+        g, _, _ = length_gradient(a, b, n_params)
         la = refitted_length(a.points, b.points, params("a", a.points.block), params("a", b.points.block))
         lb = refitted_length(a.points, b.points, params("b", a.points.block), params("b", b.points.block))
         u = float(np.sqrt(max(g @ C @ g, 0.0)))

@@ -37,7 +37,6 @@ class CrossValidate(Step):
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         from dataclasses import replace
 
-        from ..calibration import bundle_adjust
         from ..calibration.crossval import cross_validate, split_measurements
         from ..calibration.model import POSE_COLUMNS
 
@@ -51,9 +50,8 @@ class CrossValidate(Step):
             rd.crossval_halves.remove()
             return
         poses = rd.poses_calibrated.load().set_index("measurement").loc[list(problem.measurements), list(POSE_COLUMNS)]
-        start = problem.with_start(problem.rig.with_params(rd.calibration.load().params), poses.to_numpy(float))
-        full = bundle_adjust(start, replace(b.options(), start="given"))
-        cv = cross_validate(full)
+        solved = problem.with_start(problem.rig.with_params(rd.calibration.load().params), poses.to_numpy(float))
+        cv = cross_validate(solved, replace(b.options(), start="given"))
         doc = cv.to_dict()
         for name, s in doc["scanners"].items():
             if s["verdict"] != "consistent":
@@ -63,4 +61,4 @@ class CrossValidate(Step):
         (c1, c2) = cv.sensor_covariances()
         rd.crossval_halves.save({"params_a": cv.halves[0].rig.params, "params_b": cv.halves[1].rig.params,
                                  "covariance_a": c1, "covariance_b": c2,
-                                 "sensor_names": np.array([s.name for s in full.rig.sensors], dtype=str)})
+                                 "sensor_names": np.array([s.name for s in problem.rig.sensors], dtype=str)})
