@@ -233,6 +233,31 @@ class SimulatedVerificationConfig(StrictModel):
     seed: int = 99
 
 
+class SimulatedAcceptanceConfig(StrictModel):
+    """The acceptance test's objects in a simulation (VDI/VDE 2634 parts 2 and 3).
+
+    ``standards``: their certificates (default ``configs/thesis/acceptance.yaml``); the
+    rendered objects are built exactly to them. Positions are planned per scanner from
+    the true rig's measurement volumes (:mod:`fringecal.acceptance.plan`): ``sphere``
+    positions of the probing sphere, ``dumbbell`` positions (the guideline's seven:
+    four space diagonals and three face diagonals of the volume's box) and ``flat``
+    positions of the flat [U: about 10, 7 and 6 in the guideline]. ``enabled: false``
+    renders none (the run then has no acceptance test). ``camera_width_px``: as the
+    ball-bar's (``simulate.verification.camera_width_px``) when None.
+    """
+
+    enabled: bool = True
+    standards: Optional[Path] = None
+    sphere: int = Field(10, ge=0)
+    dumbbell: int = Field(7, ge=0, le=7)
+    flat: int = Field(6, ge=0)
+    camera_width_px: Optional[int] = Field(None, ge=16)
+    seed: int = 98
+
+    def standards_path(self) -> Path:
+        return self.standards or thesis_dir() / "acceptance.yaml"
+
+
 class RunnerConfig(StrictModel):
     """Where tasks run: bounded threads here, or a Dask cluster through prefect-dask."""
 
@@ -258,6 +283,7 @@ class SimulationConfig(StrictModel):
     prior: PriorCalibrationConfig = Field(default_factory=PriorCalibrationConfig)
     verification: SimulatedVerificationConfig = Field(default_factory=SimulatedVerificationConfig)
     errors: SimulationErrors = Field(default_factory=SimulationErrors)
+    acceptance: SimulatedAcceptanceConfig = Field(default_factory=SimulatedAcceptanceConfig)
 
     def rig_config(self) -> RigConfig:
         return load_yaml_model(self.rig, RigConfig)
@@ -294,6 +320,7 @@ class RunConfig(StrictModel):
     control_points: ControlPointConfig = Field(default_factory=ControlPointConfig)
     bundle: BundleConfig = Field(default_factory=BundleConfig)
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
+    acceptance: "AcceptanceConfig" = Field(default_factory=lambda: AcceptanceConfig())
     runner: RunnerConfig = Field(default_factory=RunnerConfig)
 
     @model_validator(mode="before")
@@ -312,6 +339,7 @@ class RunConfig(StrictModel):
         return "dataset" if self.dataset is not None else "simulated"
 
 
+from .acceptance.standards import AcceptanceConfig  # noqa: E402  (after the forward reference)
 from .engineering.corrections import ArtefactCorrections  # noqa: E402  (after the forward reference)
 
 SimulationConfig.model_rebuild()

@@ -15,6 +15,7 @@ bound to the file's schema and written by the one atomic writer
       ballbar.csv                the verification ball-bar (CMM table, spheres A and B)
       calibration.xml/.json      the calibrated sensors with uncertainties
       bundle_summary.json, verification.json, evaluation.json (simulated runs)
+      acceptance.json            the acceptance test (VDI/VDE 2634 parts 2 and 3); acceptance_standards.json
       calibration_covariance.npz the adjustment's covariance and its sensitivity to the artefact
       crossval.json, crossval_halves.npz  cross-validation of the calibration over two halves
       measurements/<id>.zarr     acquisition stores, one per (measurement, scanner) or (position, scanner);
@@ -329,6 +330,14 @@ class TruthDir:
         return self._at(TableFile, "ballbar_positions.csv", schema=PosePlanTable)
 
     @property
+    def acceptance_positions(self) -> TableFile:
+        """``T_world_<object>`` of each acceptance-test position (``measurement``: the
+        position), with its ``test`` (sphere, dumbbell, flat) and ``scanner``."""
+        from schemas import PosePlanTable
+
+        return self._at(TableFile, "acceptance_positions.csv", schema=PosePlanTable)
+
+    @property
     def hexapod_moves(self) -> TableFile:
         """The hexapod's log of a simulated data set (a run keeps it in its tables)."""
         return self._at(TableFile, "hexapod_moves.csv")
@@ -554,6 +563,22 @@ class RunDir:
     def evaluation(self) -> JsonFile:
         """Simulated runs: the calibration against the truth."""
         return self._at(JsonFile, "evaluation.json", optional=True)
+
+    @property
+    def acceptance_standards(self) -> JsonFile:
+        """Certificates of the acceptance test's objects
+        (:class:`fringecal.acceptance.standards.AcceptanceStandards` as JSON)."""
+        return self._at(JsonFile, "acceptance_standards.json", optional=True)
+
+    @property
+    def acceptance(self) -> JsonFile:
+        """The acceptance test per VDI/VDE 2634 parts 2 and 3 (:mod:`fringecal.acceptance`)."""
+        return self._at(JsonFile, "acceptance.json", optional=True)
+
+    @property
+    def acceptance_values(self) -> TableFile:
+        """Every acceptance measurement's raw value (one row per position and scanner)."""
+        return self._table("tables/acceptance_values.csv", None, optional=True)
 
     @property
     def ballbar_centres_true(self) -> TableFile:

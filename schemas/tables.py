@@ -494,12 +494,13 @@ class HexapodMovesTable(AcquiredPosesTable):
 
 class AcquisitionTable(_Base):
     """Every acquisition store of a run: id ``<group>-<scanner>``, ``kind`` (``artefact``:
-    a calibration measurement; ``ballbar``: a verification position), the measurement
+    a calibration measurement; ``ballbar``: a verification position; ``sphere``,
+    ``dumbbell``, ``flat``: an acceptance-test position), the measurement
     or position (``pose``), the scanner, the store (relative to the run directory) and
     where its data came from (``simulated``, or the stack's path in the data set)."""
 
     measurement: Series[str] = pa.Field(unique=True)
-    kind: Series[str] = pa.Field(isin=["artefact", "ballbar"])
+    kind: Series[str] = pa.Field(isin=["artefact", "ballbar", "sphere", "dumbbell", "flat"])
     pose: Series[str] = pa.Field()
     scanner: Series[str] = pa.Field()
     store: Series[str] = pa.Field(str_length={"min_value": 1})

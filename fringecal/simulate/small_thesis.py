@@ -17,7 +17,7 @@ __all__ = ["write_small_thesis_config"]
 
 
 def write_small_thesis_config(d: Path, width: int = 320, poses=(1, 5, 9, 12), positions=(1, 4, 9),
-                              name: str = "small") -> Path:
+                              name: str = "small", acceptance: dict | None = None) -> Path:
     """Write the small rig's files into folder ``d``; returns the run config's path.
 
     ``poses`` are measurements of table 6-1, ``positions`` of table 6-9. Four poses are
@@ -43,7 +43,8 @@ def write_small_thesis_config(d: Path, width: int = 320, poses=(1, 5, 9, 12), po
         "simulate": {"rig": str(d / "rig.yaml"),
                      "acquisition": {"camera_width_px": width, "seed": 11,
                                      "sequence": {"fringe_counts": [32, 31, 30, 28, 24, 16], "n_steps": 5}},
-                     "verification": {"positions": str(d / "ballbar_positions.csv"), "camera_width_px": width}},
+                     "verification": {"positions": str(d / "ballbar_positions.csv"), "camera_width_px": width},
+                     "acceptance": {"enabled": False} if acceptance is None else acceptance},
         "control_points": {"spacing_px": 1},
     }
     path = d / "run.yaml"
