@@ -214,23 +214,32 @@ def flatness_error(signed_residuals_mm, exclude_fraction: float = 0.003) -> floa
     return float(r.max() - r.min())
 
 
-def seven_ballbar_positions(volume_min, volume_max, length_mm: float) -> np.ndarray:
+def seven_ballbar_positions(volume_min, volume_max, length_mm: float, directions: str = "face") -> np.ndarray:
     """The guideline's seven ball-bar positions in a box-shaped measurement volume.
 
-    Four along the space diagonals and three parallel to the x, y and z axes, each
-    centred in the volume.
+    Four along the space diagonals of the box, (+,+,+), (-,+,+), (+,-,+), (+,+,-)
+    times its half sizes, and three more, each bar centred in the box. VDI/VDE
+    2634 part 2 puts the three along face diagonals (``directions="face"``): one in
+    each of the faces spanned by x-y, x-z and y-z, i.e. (+,+,0), (+,0,+), (0,+,+)
+    times the half sizes. ``directions="axes"`` puts them parallel to the x, y and z
+    axes instead.
 
     Returns
     -------
     ndarray, shape (7, 2, 3)
-        Centres of spheres A and B per position.
+        Centres of spheres A and B per position (B - A along the direction).
     """
+    if directions not in ("face", "axes"):
+        raise ValueError(f"directions must be 'face' or 'axes', not {directions!r}")
     lo = np.asarray(volume_min, float)
     hi = np.asarray(volume_max, float)
     centre = (lo + hi) / 2
     half = (hi - lo) / 2
     dirs = [np.array(d, float) * half for d in ((1, 1, 1), (-1, 1, 1), (1, -1, 1), (1, 1, -1))]
-    dirs += [np.eye(3)[i] for i in range(3)]
+    if directions == "face":
+        dirs += [np.array(d, float) * half for d in ((1, 1, 0), (1, 0, 1), (0, 1, 1))]
+    else:
+        dirs += [np.eye(3)[i] for i in range(3)]
     out = []
     for d in dirs:
         u = d / np.linalg.norm(d)

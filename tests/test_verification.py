@@ -56,7 +56,13 @@ def test_seven_positions_span_the_volume():
     np.testing.assert_allclose(pos.mean(axis=1), [[0, 0, 2500]] * 7)
     d = pos[:, 1] - pos[:, 0]
     assert np.all(np.abs(d[:4]).min(axis=1) > 100)  # space diagonals
-    assert np.count_nonzero(np.abs(d[4:]) > 1e-9) == 3  # axis-parallel
+    # face diagonals (VDI/VDE 2634 part 2): in the x-y, x-z and y-z faces, along the box's half sizes
+    np.testing.assert_allclose(d[4:] / np.linalg.norm(d[4:], axis=1, keepdims=True),
+                               [[500 / 640.3124, 400 / 640.3124, 0], [500 / 707.1068, 0, 500 / 707.1068],
+                                [0, 400 / 640.3124, 500 / 640.3124]], atol=1e-6)
+    axes = seven_ballbar_positions([-500, -400, 2000], [500, 400, 3000], 1000.0, directions="axes")
+    np.testing.assert_allclose(axes[:4], pos[:4])
+    assert np.count_nonzero(np.abs(axes[4:, 1] - axes[4:, 0]) > 1e-9) == 3  # axis-parallel
 
 
 def test_cli_json(thesis_dir):

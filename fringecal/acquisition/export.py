@@ -4,11 +4,15 @@ The data set is exactly what a real cell would deliver (:mod:`fringecal.dataset`
 the CMM table (with the artefact corrections and temperature in ``dataset.yaml``),
 rods, each scanner's prior calibration, the planned poses, one image stack per
 (measurement, scanner) rendered at the pose the hexapod reached, the ball-bar's CMM
-table and its image stacks. ``dataset.yaml`` carries the simulation config's
+table and its image stacks, and the acceptance test's certificates
+(``verification/acceptance/standards.yaml``) and image stacks
+(``verification/acceptance/<test>/<position>/<scanner>/``, each position by the
+scanner it was planned for; none when ``simulate.acceptance`` plans nothing).
+``dataset.yaml`` carries the simulation config's
 processing settings, so ``fringecal run --dataset`` processes it as ``fringecal run``
 processes the simulation. The truth goes to a separate folder that the data set
 does not reference (true sensors, the artefact and ball-bar as built, scanner
-frames, reached poses, hexapod moves, ball-bar positions), laid out as a run
+frames, reached poses, hexapod moves, ball-bar and acceptance positions), laid out as a run
 directory's ``truth/`` (:class:`~fringecal.rundir.TruthDir`).
 
 Both doors render with the same functions, the same measurement ids and noise
@@ -24,6 +28,7 @@ import shutil
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import pandas as pd
 import yaml
 
 from .. import dataset as layout
@@ -34,7 +39,7 @@ from ..frames import frame_rows, frames_from_rows
 from ..fringe.importer import write_frames
 from ..rundir import TruthDir, measurement_id
 from ..simulate.resolution import scaled_scanner
-from ..simulate.scenes import artefact_scene
+from ..simulate.scenes import acceptance_scene, artefact_scene
 from ..simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
 from .measure import render_frames
 from .plan import move_hexapod, poses_table
@@ -42,7 +47,7 @@ from .simulated import load_simulated_rig
 
 __all__ = ["write_dataset", "PROCESSING_SECTIONS"]
 
-PROCESSING_SECTIONS = ("decode", "extraction", "control_points", "bundle", "verification")
+PROCESSING_SECTIONS = ("decode", "extraction", "control_points", "bundle", "verification", "acceptance")
 
 
 def _dataset_yaml(cfg) -> dict:
@@ -69,6 +74,9 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
     image stack is written. Refuses to overwrite an existing ``out`` or ``truth_out``.
     """
     from schemas import ArtefactTable, PosePlanTable, RodsTable, SensorParametersTable, read_table, write_table
+
+    from ..acceptance.plan import PLAN_COLUMNS
+    from ..acceptance.standards import load_standards
 
     out, truth_out = Path(out), Path(truth_out)
     for p in (out, truth_out):
@@ -101,12 +109,21 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         known.poses.save(frame_rows({m.pose: m.reached for m in moves}))
         known.hexapod_moves.save(poses_table(moves))
         known.ballbar_positions.save(frame_rows({p.name: p.T_world_ballbar for p in sr.positions}))
+        planned_acceptance = sr.acceptance if sr.acceptance is not None else pd.DataFrame(columns=list(PLAN_COLUMNS))
+        known.acceptance_positions.save(planned_acceptance)
+        acceptance_dir = verification / layout.ACCEPTANCE_DIR
+        if not planned_acceptance.empty:
+            acceptance_dir.mkdir(parents=True)
+            (acceptance_dir / layout.STANDARDS_FILE).write_text(yaml.safe_dump(
+                sr.acceptance_standards.model_dump(mode="json", exclude_none=True), sort_keys=False))
         truth = known.sensors.load()
         built = known.artefact.load()
         rods = load_rods(tmp / layout.RODS_FILE, built) if rc.rods is not None else None
         bar = known.ballbar.load()
         reached = frames_from_rows(known.poses.load())
         positions = frames_from_rows(known.ballbar_positions.load())
+        acceptance = known.acceptance_positions.load()
+        standards = load_standards(acceptance_dir / layout.STANDARDS_FILE) if not acceptance.empty else None
 
         acq = sim.acquisition
         v_acq = acq.model_copy(update={"seed": sim.verification.seed})
@@ -127,6 +144,19 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
                     s = scaled_scanner(s, sim.verification.camera_width_px)
                 jobs.append((measurement_id(name, scanner), s, scene, v_acq, verification / name / scanner,
                              render_errors(errors, s, T, "ballbar", scene.sphere_ids, native)))
+        # the acceptance objects as simulate-sphere/-dumbbell/-flat render them: the
+        # acceptance's camera width (else the verification's) and noise seed
+        a_acq = acq.model_copy(update={"seed": sim.acceptance.seed})
+        a_width = sim.acceptance.camera_width_px if sim.acceptance.camera_width_px is not None \
+            else sim.verification.camera_width_px
+        for (name, T), row in zip(frames_from_rows(acceptance).items(), acceptance.itertuples(index=False)):
+            scene = acceptance_scene(row.test, standards, T, sr.hardware)
+            s = truth.scanner(row.scanner)
+            if a_width is not None:
+                s = scaled_scanner(s, a_width)
+            jobs.append((measurement_id(name, row.scanner), s, scene, a_acq,
+                         acceptance_dir / row.test / name / row.scanner,
+                         render_errors(errors, s, T, row.test, scene.sphere_ids, native)))
 
         def render(job):
             mid, scanner, scene, settings, folder, errs = job

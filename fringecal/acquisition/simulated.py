@@ -18,12 +18,19 @@ choice; for the others it is decided by visibility, as an operator would: a scan
 records the position when the centre of at least one bar sphere lies in front of its
 camera and inside its image. On the thesis rig this gives
 thesis table 6-9's arrangement (sphere A seen by scanner one, B by scanner two).
+
+The acceptance test's positions (sphere, dumbbell, flat; ``simulate.acceptance``) are
+planned in each scanner's measurement volume from the true rig and the planned poses
+(:func:`fringecal.acceptance.plan.plan_acceptance`, seeded by
+``simulate.acceptance.seed``); each is recorded by the scanner it was planned for. A
+position asked for that does not fit is refused with a message, never dropped.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -40,8 +47,11 @@ from ..simulate.scenes import ArtefactHardware
 from ..simulate.unmodelled import emitted_harmonics
 from ..simulate.world import as_built_artefact, as_built_ballbar
 
+if TYPE_CHECKING:
+    from ..acceptance.standards import AcceptanceStandards
+
 __all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "sphere_sightings",
-           "acquisition_table"]
+           "acquisition_table", "true_volumes", "acceptance_plan"]
 
 
 @dataclass(frozen=True)
@@ -66,6 +76,12 @@ class SimulatedRig:
     built, ballbar_built : Artefact
         The artefact and ball-bar as built (rendered); ``artefact`` and ``ballbar``
         are the CMM table and the certificate the run uses.
+    acceptance_standards : AcceptanceStandards or None
+        The acceptance objects' certificates (None: no acceptance test simulated).
+    acceptance : DataFrame or None
+        The acceptance positions (:data:`fringecal.acceptance.plan.PLAN_COLUMNS`:
+        measurement = position, test, scanner, ``T_world_<object>``); each is recorded
+        by its ``scanner`` only.
     """
 
     truth: Rig
@@ -80,13 +96,18 @@ class SimulatedRig:
     recorders: dict
     built: Artefact | None = None
     ballbar_built: Artefact | None = None
+    acceptance_standards: AcceptanceStandards | None = None
+    acceptance: pd.DataFrame | None = None
 
 
 def input_files(sim) -> list[Path]:
     """Every file a simulated rig is built from (rig YAML, the tables it names, the
-    verification positions, files named by the artefact corrections)."""
+    verification positions, the acceptance standards, files named by the artefact
+    corrections)."""
     rc = sim.rig_config()
     files = [sim.rig, sim.ballbar_path()] + ([] if sim.verification.scheme == "planned" else [sim.positions_path()])
+    if sim.acceptance.enabled:
+        files.append(sim.acceptance.standards_path())
     files += [p for p in (rc.sensors, rc.artefact, rc.rods, rc.artefact_poses, rc.materials) if p is not None]
     sag = sim.artefact_corrections.sag if sim.artefact_corrections is not None else None
     if sag is not None:
@@ -111,12 +132,20 @@ def sphere_sightings(rig: Rig, artefact: Artefact, poses: dict) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["measurement", "scanner", "sphere_id"])
 
 
+def true_volumes(truth: Rig, artefact: Artefact, planned: dict) -> dict:
+    """Each scanner's measurement volume (:class:`~fringecal.ballbar_plan.MeasurementVolume`)
+    from the true rig: the artefact spheres it sees in the planned poses."""
+    from ..ballbar_plan import volumes_from_observations
+
+    return volumes_from_observations(truth, sphere_sightings(truth, artefact, planned), planned, artefact)
+
+
 def _planned_positions(sim, truth: Rig, artefact: Artefact, planned: dict, ballbar: Artefact):
     """Positions planned from the true rig's measurement volumes: the spheres each
     scanner sees in the planned poses."""
-    from ..ballbar_plan import plan_positions, volumes_from_observations
+    from ..ballbar_plan import plan_positions
 
-    volumes = volumes_from_observations(truth, sphere_sightings(truth, artefact, planned), planned, artefact)
+    volumes = true_volumes(truth, artefact, planned)
     v = sim.verification
     plan = plan_positions(truth, volumes, float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0])),
                           v.per_pair, v.per_scanner, seed=v.seed)
@@ -141,6 +170,26 @@ def _positions(sim, truth: Rig, ballbar: Artefact, artefact: Artefact, planned: 
         placed.append(BallBarPosition(p.name, p.T_world_ballbar, scanner_of))
         recorders[p.name] = [s.name for s in truth.scanners if any(s.name in names for names in seen)]
     return placed, recorders
+
+
+def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict):
+    """(standards, positions) of the simulated acceptance test; (None, None) when
+    ``simulate.acceptance`` is disabled. Raises ConfigError, naming every position
+    that does not fit, when the plan falls short of the counts asked for."""
+    from ..acceptance.plan import TESTS, plan_acceptance
+    from ..acceptance.standards import load_standards
+
+    a = sim.acceptance
+    if not a.enabled:
+        return None, None
+    standards = load_standards(a.standards_path())
+    counts = {t: getattr(a, t) for t in TESTS}
+    plan = plan_acceptance(truth, true_volumes(truth, artefact, planned), standards, counts, seed=a.seed)
+    if plan.uncovered:
+        raise ConfigError(f"{a.standards_path()}: the acceptance positions asked for do not fit the rig "
+                          f"{sim.rig}: {'; '.join(plan.uncovered)} (lower simulate.acceptance.<test>, or set "
+                          "simulate.acceptance.enabled: false)")
+    return standards, plan.positions
 
 
 def load_simulated_rig(sim) -> SimulatedRig:
@@ -181,17 +230,23 @@ def load_simulated_rig(sim) -> SimulatedRig:
     except ValueError as err:
         raise ConfigError(f"simulate.errors.projector_gamma: {err}") from None
     built, ballbar_built = as_built_artefact(sim, sim.errors), as_built_ballbar(ballbar, sim.errors)
+    standards, acceptance = acceptance_plan(sim, truth, artefact, planned)
     return SimulatedRig(truth, prior, frames, artefact, rods, hardware, planned, ballbar, positions, recorders,
-                        built, ballbar_built)
+                        built, ballbar_built, standards, acceptance)
 
 
 def acquisition_table(sr: SimulatedRig) -> pd.DataFrame:
     """Every store the simulation records (``schemas.AcquisitionTable``): each planned
-    measurement seen by every scanner, then each ball-bar position by its recorders."""
+    measurement seen by every scanner, then each ball-bar position by its recorders,
+    then each acceptance position (kind ``sphere``, ``dumbbell`` or ``flat``) by the
+    scanner it was planned for."""
     rows = [{"measurement": measurement_id(m, s.name), "kind": "artefact", "pose": m, "scanner": s.name}
             for m in sr.planned for s in sr.truth.scanners]
     rows += [{"measurement": measurement_id(p, s), "kind": "ballbar", "pose": p, "scanner": s}
              for p, scanners in sr.recorders.items() for s in scanners]
+    if sr.acceptance is not None:
+        rows += [{"measurement": measurement_id(r.measurement, r.scanner), "kind": r.test, "pose": r.measurement,
+                  "scanner": r.scanner} for r in sr.acceptance.itertuples(index=False)]
     df = pd.DataFrame(rows, columns=["measurement", "kind", "pose", "scanner"])
     df["source"] = "simulated"
     return df

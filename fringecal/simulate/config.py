@@ -74,6 +74,9 @@ class Material(StrictModel):
 
 #: Dusted chrome-steel spheres are matt; machined mild-steel end caps brighter and
 #: glossier; carbon-fibre tubes dark with a weak sheen; the chapter-5 plate is ground steel.
+#: The acceptance test's ``flat`` is a matt-coated (sprayed white) ceramic or steel flat:
+#: Lambertian, albedo 0.8, no specular lobe -- assumed values (VDI/VDE 2634 asks for a
+#: diffusely reflecting, matt surface; no measured reflectance is at hand).
 DEFAULT_MATERIALS: dict[str, Material] = {
     "sphere": Material(albedo=0.7),
     "end_cap": Material(albedo=0.8, specular=0.6, shininess=20.0),
@@ -81,6 +84,7 @@ DEFAULT_MATERIALS: dict[str, Material] = {
     "plate": Material(albedo=0.6, specular=0.1, shininess=10.0),
     "stalk": Material(albedo=0.6, specular=0.3, shininess=20.0),
     "background": Material(albedo=0.3),
+    "flat": Material(albedo=0.8),
 }
 
 

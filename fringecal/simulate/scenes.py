@@ -1,5 +1,6 @@
-"""Scene builders: the large-volume artefact, the chapter-5 sphere-plate artefact and
-a backdrop.
+"""Scene builders: the large-volume artefact, the chapter-5 sphere-plate artefact, the
+acceptance test's objects (sphere, dumbbell, flat; :func:`acceptance_scene`) and a
+backdrop.
 
 The artefact (thesis chapter 3): chrome-steel spheres (diameters from the artefact
 definition), carbon-fibre tubes of 21.8 mm between them, and a mild-steel end cap
@@ -31,6 +32,10 @@ __all__ = [
     "backdrop",
     "sphere_plate_scene",
     "sphere_plate_pose",
+    "sphere_scene",
+    "dumbbell_scene",
+    "flat_scene",
+    "acceptance_scene",
     "SPHERE_PLATE_SEPARATION_MM",
 ]
 
@@ -162,3 +167,59 @@ def sphere_plate_pose(scanner: Scanner, sphere_centre, tilt_rad: float, rotation
     R = np.stack([x, y, z])
     return Frame.from_matrix(R, s - separation_mm * z)
 
+
+
+# -- the acceptance test's objects (VDI/VDE 2634 parts 2 and 3) -------------------------
+
+def sphere_scene(standard, T_world_sphere: Frame, background: Plane | None = None) -> Scene:
+    """The probing sphere (:class:`~fringecal.acceptance.standards.SphereStandard`) of
+    its calibrated diameter, centred at ``T_world_sphere``'s origin (no stand): one
+    object ``sphere:S`` (kind and material ``sphere``, sphere id ``S``)."""
+    objects = [SceneObject("sphere:S", "sphere", "sphere", (Sphere(T_world_sphere.t, standard.diameter_mm / 2),), "S")]
+    if background is not None:
+        objects.append(SceneObject("background", "background", "background", (background,)))
+    return Scene(tuple(objects))
+
+
+def dumbbell_scene(standard, T_world_dumbbell: Frame, hardware: ArtefactHardware | None = None,
+                   background: Plane | None = None) -> Scene:
+    """The dumbbell (:class:`~fringecal.acceptance.standards.DumbbellStandard`): spheres
+    ``A`` at ``T_world_dumbbell``'s origin and ``B`` at (length_mm, 0, 0), joined like
+    the ball-bar (:func:`artefact_scene`) by a rod of the dumbbell's rod diameter with
+    end caps of that diameter and ``hardware``'s end-cap length."""
+    from ..ballbar import ballbar_rods
+
+    hw = (hardware or ArtefactHardware()).model_copy(update={"tube_diameter_mm": standard.rod_diameter_mm,
+                                                             "end_cap_diameter_mm": standard.rod_diameter_mm})
+    bar = standard.artefact()
+    return artefact_scene(bar, ballbar_rods(bar), T_world_dumbbell, hw, background)
+
+
+def flat_scene(standard, T_world_flat: Frame, background: Plane | None = None) -> Scene:
+    """The flat (:class:`~fringecal.acceptance.standards.FlatStandard`) as a box: its
+    measured face is z = 0 of ``T_world_flat`` (normal +z, |x| <= length/2 along its
+    length, |y| <= width/2), the body -thickness <= z <= 0. One object ``flat`` (kind
+    and material ``flat``), perfectly flat (built to its certificate)."""
+    R = T_world_flat.R  # rows: the flat's axes in the world
+    box = Box(T_world_flat.to_world([0.0, 0.0, -standard.thickness_mm / 2]), R,
+              (standard.length_mm / 2, standard.width_mm / 2, standard.thickness_mm / 2))
+    objects = [SceneObject("flat", "flat", "flat", (box,))]
+    if background is not None:
+        objects.append(SceneObject("background", "background", "background", (background,)))
+    return Scene(tuple(objects))
+
+
+def acceptance_scene(test: str, standards, T_world_object: Frame, hardware: ArtefactHardware | None = None,
+                     background: Plane | None = None) -> Scene:
+    """The scene of one acceptance position: ``test`` is ``sphere``, ``dumbbell`` or
+    ``flat``, ``standards`` the :class:`~fringecal.acceptance.standards.AcceptanceStandards`
+    whose object is placed by ``T_world_object``."""
+    standard = getattr(standards, test, None) if test in ("sphere", "dumbbell", "flat") else None
+    if standard is None:
+        raise ValueError(f"no acceptance object {test!r} in the standards (have "
+                         f"{', '.join(t for t in ('sphere', 'dumbbell', 'flat') if getattr(standards, t, None))})")
+    if test == "sphere":
+        return sphere_scene(standard, T_world_object, background)
+    if test == "dumbbell":
+        return dumbbell_scene(standard, T_world_object, hardware, background)
+    return flat_scene(standard, T_world_object, background)

@@ -7,14 +7,23 @@ sensors at the simulated resolution, each scanner frame's true placement, the
 ball-bar positions, the artefact and ball-bar as built, which differ from the CMM
 table and the certificate when ``simulate.errors`` says so). See
 :mod:`fringecal.acquisition.simulated`.
+
+The acceptance test (``simulate.acceptance``): the objects' certificates go to
+``acceptance_standards.json`` (what a recorded data set's
+``verification/acceptance/standards.yaml`` brings; removed when no acceptance
+position is simulated), the planned positions to ``truth/acceptance_positions.csv``
+(empty when none) and their stores to the acquisition table.
 """
 
 from __future__ import annotations
 
+import pandas as pd
+
+from ..acceptance.plan import PLAN_COLUMNS
 from ..acquisition.simulated import acquisition_table, input_files, load_simulated_rig
 from ..frames import frame_rows
+from ..runconfig import AcquisitionConfig, SimulatedAcceptanceConfig, SimulatedVerificationConfig, SimulationConfig
 from ..rundir import RunDir
-from ..runconfig import AcquisitionConfig, SimulatedVerificationConfig, SimulationConfig
 from ..simulate.errors import ARTEFACT_SWITCHES, errors_subset, switch_settings
 from .base import Settings, Step, save_or_remove
 
@@ -23,25 +32,34 @@ __all__ = ["SimulatePrepare", "simulation_of"]
 
 def simulation_of(cfg: Settings) -> SimulationConfig:
     """The simulation config rebuilt from what :class:`SimulatePrepare` declares (render
-    and decoding settings and the render-time error switches, which it does not use,
-    at their defaults)."""
+    and decoding settings, the render-time error switches and the verification's and
+    acceptance's camera widths, which it does not use, at their defaults)."""
     s = cfg.simulate
-    v = s.verification
+    v, a = s.verification, s.acceptance
     return SimulationConfig(rig=s.rig, artefact_corrections=s.artefact_corrections, temperature_c=s.temperature_c,
                             prior=s.prior, acquisition=AcquisitionConfig(camera_width_px=s.acquisition.camera_width_px),
                             verification=SimulatedVerificationConfig(ballbar=v.ballbar, positions=v.positions,
-                                                                     scheme=v.scheme),
-                            errors=errors_subset(s.errors, ARTEFACT_SWITCHES))
+                                                                     scheme=v.scheme, per_pair=v.per_pair,
+                                                                     per_scanner=v.per_scanner, seed=v.seed),
+                            errors=errors_subset(s.errors, ARTEFACT_SWITCHES),
+                            acceptance=SimulatedAcceptanceConfig(enabled=a.enabled, standards=a.standards,
+                                                                 sphere=a.sphere, dumbbell=a.dumbbell, flat=a.flat,
+                                                                 seed=a.seed))
 
 
 class SimulatePrepare(Step):
     name = "simulate-prepare"
     title = "simulated rig"
     settings = ("simulate.artefact_corrections", "simulate.temperature_c", "simulate.prior",
-                "simulate.acquisition.camera_width_px", "simulate.verification.scheme") \
+                "simulate.acquisition.camera_width_px", "simulate.verification.scheme",
+                "simulate.verification.per_pair", "simulate.verification.per_scanner", "simulate.verification.seed",
+                "simulate.acceptance.enabled", "simulate.acceptance.sphere", "simulate.acceptance.dumbbell",
+                "simulate.acceptance.flat", "simulate.acceptance.seed") \
         + switch_settings(ARTEFACT_SWITCHES)
-    locations = ("simulate.rig", "simulate.verification.ballbar", "simulate.verification.positions")
-    modules = ("fringecal.acquisition.simulated", "fringecal.simulate.world")
+    locations = ("simulate.rig", "simulate.verification.ballbar", "simulate.verification.positions",
+                 "simulate.acceptance.standards")
+    modules = ("fringecal.acquisition.simulated", "fringecal.simulate.world", "fringecal.acceptance.plan",
+               "fringecal.acceptance.standards")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return input_files(simulation_of(cfg))
@@ -49,7 +67,7 @@ class SimulatePrepare(Step):
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.artefact, rd.rods, rd.ballbar, rd.sensors_prior, rd.poses_planned, rd.acquisition,
                 rd.truth.sensors, rd.truth.artefact, rd.truth.ballbar, rd.truth.scanner_frames,
-                rd.truth.ballbar_positions]
+                rd.truth.ballbar_positions, rd.truth.acceptance_positions, rd.acceptance_standards]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         sr = load_simulated_rig(simulation_of(cfg))
@@ -66,3 +84,7 @@ class SimulatePrepare(Step):
         rd.truth.ballbar.save(sr.ballbar_built)
         rd.truth.scanner_frames.save(frame_rows(sr.scanner_frames, key="scanner"))
         rd.truth.ballbar_positions.save(frame_rows({p.name: p.T_world_ballbar for p in sr.positions}))
+        acceptance = sr.acceptance if sr.acceptance is not None else pd.DataFrame(columns=list(PLAN_COLUMNS))
+        rd.truth.acceptance_positions.save(acceptance)
+        save_or_remove(rd.acceptance_standards, None if acceptance.empty else
+                       sr.acceptance_standards.model_dump(mode="json"))
