@@ -7,7 +7,9 @@ clear message before any heavy work starts. The layout is the contract::
 
     DATASET/
       dataset.yaml            name, reference_scanner; optional description, temperature_c,
-                              artefact_corrections, processing (unknown keys are errors)
+                              artefact_corrections, processing (overrides of the run config's
+                              decode, extraction, control_points, bundle, verification and
+                              acceptance sections; unknown keys are errors)
       artefact.csv            CMM table: sphere_id, x_mm, y_mm, z_mm, diameter_mm[, u_mm]
                               (at least 3 spheres)
       rods.csv                optional: rod_id, sphere_a, sphere_b, length_mm (rods masked
@@ -27,10 +29,21 @@ clear message before any heavy work starts. The layout is the contract::
                                                    (artefact table, exactly spheres A and B)
       verification/<position>/<scanner>/           image stacks (or <scanner>.zarr) of the ball-bar
                                                    at each position; any subset of the scanners
+                                                   (length measurement error E)
+      verification/acceptance/standards.yaml       the certificates of the acceptance test's objects
+                                                   (VDI/VDE 2634 parts 2 and 3):
+                                                   :class:`~fringecal.acceptance.standards.AcceptanceStandards`
+                                                   with optional ``sphere``, ``dumbbell``, ``flat``
+      verification/acceptance/sphere/<position>/<scanner>/    stacks (or <scanner>.zarr) of the
+                                                   sphere (probing errors P_F and P_S)
+      verification/acceptance/dumbbell/<position>/<scanner>/  of the dumbbell (sphere-spacing error SD)
+      verification/acceptance/flat/<position>/<scanner>/      of the flat (flatness measurement error F)
 
 A *measurement* is one artefact pose seen by every scanner: every measurement folder
 holds a stack for every scanner of ``sensors_prior.csv``. The stack of (measurement
-``m``, scanner ``s``) has the id ``f"{m}-{s}"`` (:attr:`StackSource.id`).
+``m``, scanner ``s``) has the id ``f"{m}-{s}"`` (:attr:`StackSource.id`). A *position*
+is one placement of the ball-bar or of an acceptance object; its stack of scanner ``s``
+has the id ``f"{position}-{s}"``.
 
 Decisions
 ---------
@@ -45,16 +58,48 @@ Decisions
   e.g. ``bb1``); such collisions are refused with both folders named.
 - Measurement and position names sort naturally (``"2"`` before ``"10"``); stacks within
   one are in the order of the scanners in ``sensors_prior.csv``.
-- Every stack (calibration and verification) must use the same fringe sequence.
+- Every stack (calibration, ball-bar and acceptance) must use the same fringe sequence.
 - A calibration stack must have its camera's format of ``sensors_prior.csv``. A
-  verification stack may have another pixel count over the same sensor (binning), but
-  must keep the camera's aspect ratio within one pixel.
+  ball-bar or acceptance stack may have another pixel count over the same sensor
+  (binning), but must keep the camera's aspect ratio within one pixel.
 - ``dataset.yaml`` problems raise :class:`DataSetError` with the message of
   :func:`fringecal.config.load_yaml_model` (file and key path). Table problems
   (:class:`schemas.TableError`), frame-folder problems
   (:class:`~fringecal.fringe.importer.FrameStackError`) and store problems
   (:class:`~fringecal.store.StoreError`) propagate unchanged: they already name the
   file, line and column. All of them are ``ValueError``.
+
+Verification and acceptance
+---------------------------
+- ``verification/`` may hold the ball-bar (``ballbar.csv`` and position folders), the
+  acceptance test (``acceptance/``), or both. Position folders need ``ballbar.csv``;
+  ``ballbar.csv`` needs at least one position folder (a certificate without
+  measurements is an incomplete data set, not a skipped test: remove it to skip E).
+  A verification folder holding only ``acceptance/`` has no ball-bar
+  (:attr:`DataSet.ballbar` is None).
+- ``acceptance`` is a reserved name in ``verification/``, never a ball-bar position; a
+  position spelt like it in another case (``Acceptance``) is refused as a likely typo.
+- ``acceptance/`` needs ``standards.yaml`` and at least one test folder; its only
+  sub-folders are the test folders ``sphere``, ``dumbbell`` and ``flat`` (any other is
+  refused, naming the allowed ones); regular files besides ``standards.yaml`` are
+  ignored, as elsewhere. A test folder needs at least one position folder, a position
+  folder at least one scanner stack (any subset of the scanners: each stack is one
+  measurement of the object by that scanner, evaluated on its own), and a test folder
+  with positions needs its object's certificate in ``standards.yaml``. A certificate
+  without a test folder is allowed: the certificate file may describe every object of
+  the laboratory, and an object without positions is simply not tested.
+- A stack directly inside a test folder (``sphere/scanner1/`` with ``sequence.yaml``,
+  or ``sphere/scanner1.zarr``) is refused: stacks go in ``<test>/<position>/<scanner>/``.
+- Acceptance stacks are :class:`StackSource` of kind ``"sphere"``, ``"dumbbell"`` or
+  ``"flat"`` with the position as group; they are listed test by test (sphere,
+  dumbbell, flat: the order of the guideline's parameters P, SD, F), positions in
+  natural order, scanners in rig order.
+- A position name stands for one placement of one object: it is used once in the whole
+  ``verification/`` folder (ball-bar and the three tests), and store ids stay unique
+  over the whole data set (measurements, ball-bar and acceptance stacks); both
+  refusals name the two folders.
+- ``standards.yaml`` errors (unknown keys, a missing or non-positive value) raise
+  :class:`DataSetError` with the message of :func:`fringecal.config.load_yaml_model`.
 """
 
 from __future__ import annotations
@@ -65,6 +110,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Literal, Optional
 
+from fringecal.acceptance.standards import (STANDARDS_FILE, DumbbellStandard, FlatStandard, SphereStandard,
+                                            load_standards)
 from fringecal.artefact import load_artefact, load_rods
 from fringecal.config import ConfigError, StrictModel, load_yaml_model
 from fringecal.engineering.corrections import ArtefactCorrections
@@ -77,8 +124,8 @@ from schemas import HexapodMovesTable, PosePlanTable, TableError, read_table
 __all__ = [
     "DATASET_FILE", "ARTEFACT_FILE", "RODS_FILE", "SENSORS_PRIOR_FILE", "POSES_PLANNED_FILE",
     "HEXAPOD_MOVES_FILE", "MEASUREMENTS_DIR", "VERIFICATION_DIR", "BALLBAR_FILE", "STORE_SUFFIX", "STORE_VARIABLES",
-    "BALLBAR_SPHERES", "DataSetError", "ProcessingOverrides", "DatasetConfig", "StackSource", "DataSet",
-    "natural_key",
+    "BALLBAR_SPHERES", "ACCEPTANCE_DIR", "ACCEPTANCE_TESTS", "STANDARDS_FILE", "DataSetError", "ProcessingOverrides",
+    "DatasetConfig", "StackSource", "DataSet", "natural_key",
 ]
 
 DATASET_FILE = "dataset.yaml"
@@ -95,6 +142,12 @@ STORE_SUFFIX = ".zarr"
 STORE_VARIABLES = ("tau_x", "tau_y", "valid")
 #: sphere ids of the ball-bar
 BALLBAR_SPHERES = ("A", "B")
+#: the acceptance test's folder inside ``verification/`` (a reserved name there)
+ACCEPTANCE_DIR = "acceptance"
+#: its test folders, in the order they are listed; each is also the stacks' kind and
+#: the object's key in ``standards.yaml``
+ACCEPTANCE_TESTS = ("sphere", "dumbbell", "flat")
+_STANDARD_MODELS = {"sphere": SphereStandard, "dumbbell": DumbbellStandard, "flat": FlatStandard}
 MIN_SPHERES = 3
 
 
@@ -111,6 +164,7 @@ class ProcessingOverrides(StrictModel):
     control_points: Optional[dict] = None
     bundle: Optional[dict] = None
     verification: Optional[dict] = None
+    acceptance: Optional[dict] = None
 
 
 class DatasetConfig(StrictModel):
@@ -130,8 +184,9 @@ class StackSource:
 
     Attributes
     ----------
-    kind : {"artefact", "ballbar"}
-        Calibration measurement or verification position.
+    kind : {"artefact", "ballbar", "sphere", "dumbbell", "flat"}
+        Calibration measurement, ball-bar position or acceptance-test position (the
+        test folder's name).
     group : str
         Measurement name (its folder) or position name.
     scanner : str
@@ -143,7 +198,7 @@ class StackSource:
     sequence : FringeSequence
     """
 
-    kind: Literal["artefact", "ballbar"]
+    kind: Literal["artefact", "ballbar", "sphere", "dumbbell", "flat"]
     group: str
     scanner: str
     path: Path
@@ -165,7 +220,12 @@ class StackSource:
 
 @dataclass(frozen=True)
 class DataSet:
-    """A validated recorded data set (see the module notes for the layout)."""
+    """A validated recorded data set (see the module notes for the layout).
+
+    ``verification`` holds the ball-bar's stacks, ``acceptance`` those of the acceptance
+    test's objects (kinds ``sphere``, ``dumbbell``, ``flat``) and ``acceptance_standards``
+    the path of their ``standards.yaml`` (None without ``verification/acceptance/``).
+    """
 
     root: Path
     config: DatasetConfig
@@ -178,6 +238,8 @@ class DataSet:
     measurements: tuple[StackSource, ...]
     verification: tuple[StackSource, ...]
     hexapod_moves: Optional[Path] = None
+    acceptance_standards: Optional[Path] = None
+    acceptance: tuple[StackSource, ...] = ()
 
     @classmethod
     def open(cls, root) -> "DataSet":
@@ -207,19 +269,31 @@ class DataSet:
         moves = _optional_file(root / HEXAPOD_MOVES_FILE)
         if moves is not None:
             _check_moves(moves, root / MEASUREMENTS_DIR, measurements)
-        ballbar, verification = _open_verification(root / VERIFICATION_DIR, rig, prior)
-        _check_sequences(measurements + verification)
-        _check_unique_ids(measurements + verification)
+        ballbar, verification, standards, acceptance = _open_verification(root / VERIFICATION_DIR, rig, prior)
+        _check_sequences(measurements + verification + acceptance)
+        _check_unique_ids(measurements + verification + acceptance)
+        _check_unique_positions(verification + acceptance)
         return cls(root, config, artefact_path, rods, prior, poses, ballbar,
-                   tuple(s.name for s in rig.scanners), measurements, verification, moves)
+                   tuple(s.name for s in rig.scanners), measurements, verification, moves, standards, acceptance)
+
+    def stacks(self) -> tuple[StackSource, ...]:
+        """Every stack: measurements, then ball-bar positions, then acceptance positions."""
+        return self.measurements + self.verification + self.acceptance
 
     def measurement_names(self) -> list[str]:
         """Measurement names in natural order."""
         return _groups(self.measurements)
 
     def position_names(self) -> list[str]:
-        """Verification position names in natural order (empty without verification)."""
+        """Ball-bar position names in natural order (empty without them)."""
         return _groups(self.verification)
+
+    def acceptance_position_names(self, test: str) -> list[str]:
+        """Position names of one acceptance test (``"sphere"``, ``"dumbbell"`` or
+        ``"flat"``) in natural order (empty when the test was not measured)."""
+        if test not in ACCEPTANCE_TESTS:
+            raise ValueError(f"no acceptance test {test!r}; the tests are {', '.join(ACCEPTANCE_TESTS)}")
+        return _groups(s for s in self.acceptance if s.kind == test)
 
 
 def natural_key(name: str) -> tuple:
@@ -441,21 +515,43 @@ def _check_moves(path: Path, folder: Path, sources: tuple[StackSource, ...]) -> 
 
 # -- verification --------------------------------------------------------------
 
-def _open_verification(folder: Path, rig: Rig, prior: Path) -> tuple[Optional[Path], tuple[StackSource, ...]]:
+def _open_verification(folder: Path, rig: Rig, prior: Path
+                       ) -> tuple[Optional[Path], tuple[StackSource, ...], Optional[Path], tuple[StackSource, ...]]:
+    """(ballbar.csv, ball-bar stacks, standards.yaml, acceptance stacks) of ``verification/``."""
     if not folder.exists():
-        return None, ()
+        return None, (), None, ()
     if not folder.is_dir():
         raise DataSetError(f"{folder}: not a folder")
     visible = [p for p in folder.iterdir() if not p.name.startswith(".")]
     if not visible:
         raise DataSetError(f"{folder}: empty verification folder; it needs {BALLBAR_FILE} and at least one "
-                           "position folder (remove it when there is no verification)")
+                           f"position folder, or {ACCEPTANCE_DIR}/ (remove it when there is no verification)")
+    acceptance_dir = folder / ACCEPTANCE_DIR
+    if acceptance_dir.exists() and not acceptance_dir.is_dir():
+        raise DataSetError(f"{acceptance_dir}: not a folder; {ACCEPTANCE_DIR!r} is reserved in {VERIFICATION_DIR}/ "
+                           f"for the acceptance test ({STANDARDS_FILE} and {', '.join(ACCEPTANCE_TESTS)} folders)")
+    positions = [p for p in _entries(folder) if p.name != ACCEPTANCE_DIR]
+    ballbar, ballbar_sources = None, ()
+    if positions or (folder / BALLBAR_FILE).exists() or not acceptance_dir.is_dir():
+        ballbar, ballbar_sources = _open_ballbar(folder, positions, rig, prior)
+    standards, acceptance = (None, ())
+    if acceptance_dir.is_dir():
+        standards, acceptance = _open_acceptance(acceptance_dir, rig, prior)
+    return ballbar, ballbar_sources, standards, acceptance
+
+
+def _open_ballbar(folder: Path, positions: list[Path], rig: Rig, prior: Path
+                  ) -> tuple[Path, tuple[StackSource, ...]]:
     ballbar = _required_file(folder / BALLBAR_FILE, "the ball-bar's CMM table, spheres A and B")
     spheres = load_artefact(ballbar)
     if sorted(spheres.ids) != list(BALLBAR_SPHERES):
         raise DataSetError(f"{ballbar}: a ball-bar has exactly two spheres with ids "
                            f"{' and '.join(BALLBAR_SPHERES)}; found {list(spheres.ids)}")
-    groups = {p.name: _scan_group(p, rig, prior) for p in _entries(folder)}
+    for p in positions:
+        if p.name.casefold() == ACCEPTANCE_DIR:
+            raise DataSetError(f"{p}: a ball-bar position named like the reserved acceptance folder; name the "
+                               f"acceptance test's folder {ACCEPTANCE_DIR!r} (lower case) or rename the position")
+    groups = {p.name: _scan_group(p, rig, prior) for p in positions}
     if not groups:
         raise DataSetError(f"{folder}: no position folder; expected {VERIFICATION_DIR}/<position>/<scanner>/")
     for p, stacks in groups.items():
@@ -467,3 +563,73 @@ def _open_verification(folder: Path, rig: Rig, prior: Path) -> tuple[Optional[Pa
     for src in sources:
         _check_size(src, rig, prior)
     return ballbar, sources
+
+
+def _open_acceptance(folder: Path, rig: Rig, prior: Path) -> tuple[Path, tuple[StackSource, ...]]:
+    """``standards.yaml`` and the stacks of ``verification/acceptance/``."""
+    tests = ", ".join(f"{t}/" for t in ACCEPTANCE_TESTS)
+    if not any(not p.name.startswith(".") for p in folder.iterdir()):
+        raise DataSetError(f"{folder}: empty acceptance folder; it needs {STANDARDS_FILE} and at least one of the "
+                           f"test folders {tests} (remove it when there is no acceptance test)")
+    path = folder / STANDARDS_FILE
+    if path.exists() and not path.is_file():
+        raise DataSetError(f"{path}: not a file")
+    if not path.exists():
+        raise DataSetError(f"{path}: missing; {folder} needs {STANDARDS_FILE}, the certificates of its test "
+                           f"objects ({', '.join(ACCEPTANCE_TESTS)})")
+    try:
+        standards = load_standards(path)
+    except ConfigError as err:
+        raise DataSetError(str(err)) from err
+    found = {}
+    for entry in _entries(folder):
+        if entry.name not in ACCEPTANCE_TESTS:
+            raise DataSetError(f"{entry}: unknown acceptance test folder; the test folders are {tests} "
+                               f"({VERIFICATION_DIR}/{ACCEPTANCE_DIR}/<test>/<position>/<scanner>/)")
+        found[entry.name] = entry
+    if not found:
+        raise DataSetError(f"{folder}: no test folder; expected one or more of {tests} with "
+                           f"<position>/<scanner>/ stacks")
+    sources: list[StackSource] = []
+    for test in (t for t in ACCEPTANCE_TESTS if t in found):
+        sources += _open_test(found[test], test, standards, path, rig, prior)
+    for src in sources:
+        _check_size(src, rig, prior)
+    return path, tuple(sources)
+
+
+def _open_test(folder: Path, test: str, standards, standards_path: Path, rig: Rig, prior: Path
+               ) -> list[StackSource]:
+    """The stacks of one test folder (``sphere``, ``dumbbell`` or ``flat``)."""
+    positions = _entries(folder)
+    if not positions:
+        raise DataSetError(f"{folder}: no position folder; expected {ACCEPTANCE_DIR}/{test}/<position>/<scanner>/ "
+                           f"(remove the folder when the {test} was not measured)")
+    if getattr(standards, test) is None:
+        required = [k for k, f in _STANDARD_MODELS[test].model_fields.items() if f.is_required()]
+        raise DataSetError(f"{standards_path}: no certificate {test!r}, but {folder} holds {len(positions)} "
+                           f"position folder(s); add the key {test!r} ({', '.join(required)}, ...) or remove "
+                           "the folder")
+    sources = []
+    for p in positions:
+        if p.name.endswith(STORE_SUFFIX) or (p / SEQUENCE_FILE).exists():
+            raise DataSetError(f"{p}: a stack directly in the test folder; stacks go in "
+                               f"{ACCEPTANCE_DIR}/{test}/<position>/<scanner>/")
+        stacks = _scan_group(p, rig, prior)
+        if not stacks:
+            raise DataSetError(f"{p}: position folder without scanner stacks (expected folders or "
+                               f"{STORE_SUFFIX} stores named after the scanners of {prior.name})")
+        sources += [_read_source(test, p.name, s, path, fmt) for s, (path, fmt) in stacks.items()]
+    return sources
+
+
+def _check_unique_positions(sources: tuple[StackSource, ...]) -> None:
+    """A position name stands for one placement of one object: one folder in the whole
+    ``verification/`` (ball-bar and acceptance tests)."""
+    seen: dict[str, Path] = {}
+    for src in sources:
+        folder = src.path.parent
+        other = seen.setdefault(src.group, folder)
+        if other != folder:
+            raise DataSetError(f"{folder}: position name {src.group!r} is also that of {other}; a position names "
+                               "one placement of one object: rename one of them")

@@ -27,7 +27,7 @@ def source_files(cfg) -> list:
 
     ds = DataSet.open(cfg.dataset)
     return [p for p in (ds.root / "dataset.yaml", ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned,
-                        ds.ballbar) if p is not None]
+                        ds.ballbar, ds.acceptance_standards) if p is not None]
 
 
 def manifest(cfg) -> dict:

@@ -1,5 +1,9 @@
 """Recorded data set, step 2: decode every image stack into its measurement store.
 
+Every stack of the acquisition table is decoded alike, whatever its kind: calibration
+measurements, ball-bar positions and the acceptance test's positions (sphere,
+dumbbell, flat).
+
 A frame folder (``sequence.yaml`` + frames) is read and decoded
 (:func:`fringecal.fringe.measurement.decode_folder`); a stack the data set already
 holds decoded (``<scanner>.zarr``) is copied in (hard links where possible). Either
@@ -19,6 +23,11 @@ __all__ = ["Decode"]
 
 log = logging.getLogger(__name__)
 
+#: the kinds of the acquisition table (schemas.AcquisitionTable), in the order decoded;
+#: spelt here, not imported from fringecal.dataset, so that an edit of the data-set
+#: checks does not change this step's key
+KINDS = ("artefact", "ballbar", "sphere", "dumbbell", "flat")
+
 
 class Decode(Step):
     name = "decode"
@@ -28,7 +37,7 @@ class Decode(Step):
     modules = ("fringecal.fringe.measurement",)
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
-        return stores_of_kind(rd, "artefact") + stores_of_kind(rd, "ballbar")
+        return [m for kind in KINDS for m in stores_of_kind(rd, kind)]
 
     def _source(self, rd: RunDir, cfg: Settings, item: str) -> Path:
         return Path(cfg.dataset) / store_fields(rd, item)["source"]

@@ -3,8 +3,12 @@
 The run keeps its own copy of every input table, so it can be reproduced and
 reported on without the data set: the artefact (the CMM table with the corrections
 of ``dataset.yaml``, if any), its rods, each scanner's prior calibration, the
-planned poses, the ball-bar, and the list of stacks to decode
-(:class:`~fringecal.dataset.DataSet` validates all of it first).
+planned poses, the ball-bar, the acceptance objects' certificates
+(``verification/acceptance/standards.yaml`` as ``acceptance_standards.json``) and the
+list of stacks to decode with their kinds (``artefact``, ``ballbar``, ``sphere``,
+``dumbbell``, ``flat``) (:class:`~fringecal.dataset.DataSet` validates all of it first).
+An optional input the data set lacks removes the run's copy, so no earlier run's file
+is left behind.
 
 The reference scanner's frame is the world (the data-set contract), so its camera's
 six external parameters are fixed whatever ``sensors_prior.csv`` says.
@@ -18,6 +22,7 @@ import pandas as pd
 
 from schemas import PosePlanTable, read_table
 
+from ..acceptance.standards import load_standards
 from ..artefact import load_artefact, load_rods
 from ..dataset import DataSet
 from ..rig import load_rig
@@ -30,7 +35,7 @@ __all__ = ["Ingest"]
 def _stacks(ds: DataSet) -> list[dict]:
     return [{"measurement": s.id, "kind": s.kind, "pose": s.group, "scanner": s.scanner,
              "source": str(s.path.relative_to(ds.root)), "format": s.format}
-            for s in ds.measurements + ds.verification]
+            for s in ds.stacks()]
 
 
 class Ingest(Step):
@@ -42,14 +47,16 @@ class Ingest(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         ds = DataSet.open(cfg.dataset)
-        files = [ds.root / "dataset.yaml", ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned, ds.ballbar]
+        files = [ds.root / "dataset.yaml", ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned, ds.ballbar,
+                 ds.acceptance_standards]
         sag = ds.config.artefact_corrections.sag if ds.config.artefact_corrections else None
         if sag is not None:
             files += [p for p in (sag.rods, sag.materials) if p is not None]
         return [f for f in files if f is not None] + [Value("stacks", _stacks(ds))]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
-        return [rd.artefact, rd.rods, rd.ballbar, rd.sensors_prior, rd.poses_planned, rd.acquisition]
+        return [rd.artefact, rd.rods, rd.ballbar, rd.acceptance_standards, rd.sensors_prior, rd.poses_planned,
+                rd.acquisition]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         from ..engineering.corrections import apply_corrections
@@ -60,6 +67,8 @@ class Ingest(Step):
         rd.artefact.save(artefact)
         save_or_remove(rd.rods, ds.rods and load_rods(ds.rods, artefact))
         save_or_remove(rd.ballbar, ds.ballbar and load_artefact(ds.ballbar))
+        save_or_remove(rd.acceptance_standards,
+                       ds.acceptance_standards and load_standards(ds.acceptance_standards).model_dump(mode="json"))
         save_or_remove(rd.poses_planned, ds.poses_planned and read_table(ds.poses_planned, PosePlanTable))
         prior = load_rig(ds.sensors_prior, reference=cfg.reference_scanner)
         free = prior.free.copy()
