@@ -101,3 +101,64 @@ def plan(
     if result.uncovered:
         raise UserInputError(f"no ball-bar position fits {', '.join(result.uncovered)}: the bar is longer than "
                              "those measurement volumes allow")
+
+
+def acceptance_table(doc: dict) -> Table:
+    """The certificate of ``acceptance.json`` as a rich table."""
+    colour = {"conformance": "green", "non-conformance": "red", "uncertainty zone": "yellow"}
+    t = Table(title="acceptance test, VDI/VDE 2634 parts 2 and 3 (decision rule ISO 14253-1, "
+                    f"k = {doc['coverage_factor']:g})")
+    for c in ("test", "scanner", "positions", "measured (um)", "limit (um)", "U (um)", "verdict"):
+        t.add_column(c, justify="left" if c in ("test", "scanner", "verdict") else "right",
+                     no_wrap=c in ("test", "verdict"))
+    for p in doc["parameters"]:
+        limit = "-" if p["mpe_mm"] is None else f"{p['mpe_mm'] * 1000:.0f}"
+        u = p["U_mm"]
+        c = colour.get(p["verdict"], "white")
+        t.add_row(p["name"], p["scanner"], str(p["positions"]), f"{p['measured_mm'] * 1000:+.1f}",
+                  limit, "-" if u != u else f"{u * 1000:.1f}", f"[{c}]{p['verdict']}[/]")
+    t.caption = "P_F probing error form, P_S probing error size, SD sphere-spacing error, " \
+        "E length measurement error, F flatness measurement error"
+    return t
+
+
+@app.command("acceptance")
+@guarded
+def acceptance(
+    run: Path = typer.Option(..., "--run", "-r", help="A calibrated run directory (fringecal run)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML (default: the run's "
+                                          "manifest); its acceptance section sets limits and rules."),
+    as_json: bool = typer.Option(False, "--json", help="Print acceptance.json instead of the table."),
+):
+    """The acceptance test of a calibrated cell: P_F, P_S, SD, E and F per VDI/VDE 2634
+    parts 2 and 3, each against its limit with its uncertainty and the ISO 14253-1
+    verdict (runs the run's acceptance step if its result is not current).
+
+    Exit status 0 when the cell is accepted (every limited parameter's conformance
+    proven), 3 when it is not, 2 on bad input.
+    """
+    from fringecal.rundir import RunDir
+    from fringecal.steps import get_step, run_step
+
+    from .cli_step import run_config_of
+
+    rd = RunDir(run)
+    cfg = run_config_of(run, config)
+    if not rd.calibration.exists():
+        raise UserInputError(f"{run}: not a calibrated run (no {rd.calibration.path.name}); run `fringecal run` first")
+    step = get_step("acceptance")
+    run_step(step, rd, cfg, "")
+    if not rd.acceptance.exists():
+        raise UserInputError(f"{run}: no acceptance test: the run has no acceptance measurements and no verified "
+                             "ball-bar (or acceptance.enabled is false)")
+    doc = rd.acceptance.load()
+    if as_json:
+        print(json.dumps(doc, indent=2))
+    else:
+        console.print(acceptance_table(doc))
+        for f in doc["failures"]:
+            console.print(f"[yellow]not measured[/]: {f['test']} {f['position']} ({f['scanner']}): {f['reason']}")
+        console.print("[green]ACCEPTED[/] (conformance proven for every parameter)" if doc["accepted"] else
+                      "[red]NOT ACCEPTED[/] (a parameter is outside its limit or inside the uncertainty zone)")
+    if not doc["accepted"]:
+        raise typer.Exit(3)

@@ -34,7 +34,7 @@ from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPo
                                   monte_carlo_lengths, refitted_length, sighting_model, validate_linear)
 from ..rig import Rig
 from ..store import open_store
-from .verify import _store_scanner
+from .verify import store_scanner
 
 __all__ = ["parameter_covariances", "sighting_points", "ballbar_uncertainty", "iso14253_verdict"]
 
@@ -56,7 +56,7 @@ def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: fl
     """The kept pixels of one sphere fit in image-plane mm, read from its store."""
     rows, cols = (np.asarray(a, int) for a in pixels)
     with open_store(store) as ds:
-        sc = _store_scanner(ds, rig.scanner(scanner))
+        sc = store_scanner(ds, rig.scanner(scanner))
         tau = np.stack([ds["tau_x"].values[rows, cols], ds["tau_y"].values[rows, cols]], axis=-1).astype(float)
     block = [s.name for s in rig.scanners].index(scanner)
     cam = sc.camera.image_mm(np.stack([cols, rows], axis=-1).astype(float))

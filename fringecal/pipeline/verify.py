@@ -24,7 +24,7 @@ from ..spheres.fit import FitError
 from ..store import open_store
 from .extract import measurement_maps
 
-__all__ = ["measure_position", "measure_positions", "store_sightings", "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
+__all__ = ["measure_position", "measure_positions", "store_sightings", "store_scanner", "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
 
 #: Columns of the centres and failures tables of :func:`measure_position`.
 CENTRE_COLUMNS = ["position", "scanner", "sphere_id", "x_mm", "y_mm", "z_mm", "radius_mm", "rms_mm", "n_points"]
@@ -34,7 +34,7 @@ FAILURE_COLUMNS = ["position", "scanner", "sphere_id", "reason"]
 # -- measuring a position from its stores alone --------------------------------------------
 
 
-def _store_scanner(ds, scanner: Scanner) -> Scanner:
+def store_scanner(ds, scanner: Scanner) -> Scanner:
     """``scanner`` with its camera resampled to the store's image size (dims ``v, u``)
     if that differs from its format: the same sensor binned, as a real scanner can."""
     rows, cols = int(ds.sizes["v"]), int(ds.sizes["u"])
@@ -49,7 +49,7 @@ def store_sightings(store, scanner: Scanner, ballbar, rejection_config,
     """The bar spheres one store shows (:func:`fringecal.ballbar.find_sightings`),
     triangulated with ``scanner`` (world frame) at the store's image size."""
     with open_store(store) as ds:
-        scanner = _store_scanner(ds, scanner)
+        scanner = store_scanner(ds, scanner)
     ds, maps, valid = measurement_maps(store, scanner)
     ds.close()
     return find_sightings(maps, valid, scanner, ballbar, rejection_config, config)

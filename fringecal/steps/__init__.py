@@ -7,16 +7,19 @@ with one entry point over the run directory and its typed settings
 
 =====================  ====================================================================
 simulated source       ``simulate-prepare`` -> ``simulate-hexapod`` -> ``simulate-render``
-                       -> ``simulate-ballbar``
+                       -> ``simulate-ballbar`` -> ``simulate-sphere`` -> ``simulate-dumbbell``
+                       -> ``simulate-flat``
 recorded data set      ``ingest`` -> ``decode``
 every run              ``spheres-first`` -> ``label`` -> ``spheres-second`` -> ``initialise``
-                       -> ``bundle`` -> ``cross-validate`` -> ``verify`` -> (simulated: ``evaluate``)
+                       -> ``bundle`` -> ``cross-validate`` -> ``verify`` -> ``acceptance``
+                       -> (simulated: ``evaluate``)
                        -> ``report``
 =====================  ====================================================================
 """
 
 from __future__ import annotations
 
+from .acceptance import Acceptance
 from .base import Rows, Settings, Step, StepError, Value
 from .bundle import Bundle
 from .crossval import CrossValidate
@@ -27,6 +30,7 @@ from .initialise import Initialise
 from .keys import current_record, run_step, step_key
 from .label import Label
 from .report import Report
+from .simulate_acceptance import SimulateDumbbell, SimulateFlat, SimulateSphere
 from .simulate_ballbar import SimulateBallbar
 from .simulate_hexapod import SimulateHexapod
 from .simulate_prepare import SimulatePrepare
@@ -38,9 +42,10 @@ from .verify import Verify
 __all__ = ["STEPS", "SIMULATED_SOURCE", "DATASET_SOURCE", "COMMON", "pipeline", "get_step", "run_pipeline", "Step",
            "Settings", "Rows", "Value", "StepError", "run_step", "step_key", "current_record"]
 
-SIMULATED_SOURCE = (SimulatePrepare(), SimulateHexapod(), SimulateRender(), SimulateBallbar())
+SIMULATED_SOURCE = (SimulatePrepare(), SimulateHexapod(), SimulateRender(), SimulateBallbar(), SimulateSphere(),
+                    SimulateDumbbell(), SimulateFlat())
 DATASET_SOURCE = (Ingest(), Decode())
-COMMON = (SpheresFirst(), Label(), SpheresSecond(), Initialise(), Bundle(), CrossValidate(), Verify())
+COMMON = (SpheresFirst(), Label(), SpheresSecond(), Initialise(), Bundle(), CrossValidate(), Verify(), Acceptance())
 EVALUATION = (Evaluate(),)
 REPORT = (Report(),)
 
