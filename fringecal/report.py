@@ -3,8 +3,9 @@
 :func:`write_report` reads only files of the run directory, each through its
 :class:`~fringecal.rundir.RunDir` accessor (the manifest, the artefact and ball-bar,
 the acquisition, hexapod, labelling, link and DLT tables, the calibration, the
-bundle summary, the residual tables and histograms, the verification and, for a
-simulated run, the evaluation against the truth), and renders what is there: a
+bundle summary, the residual tables and histograms, the verification, the
+acceptance test of VDI/VDE 2634 parts 2 and 3 and, for a simulated run, the
+evaluation against the truth), and renders what is there: a
 missing optional file (the evaluation of a run of a recorded data set, which has
 no truth; the verification of a run without ball-bar recordings) gives its section
 a "not available" note, a malformed one a "could not be shown" note naming the file
@@ -59,6 +60,7 @@ table.kv th{text-align:left;font-weight:600;width:18em}table.kv td{text-align:le
  letter-spacing:.05em;font-size:1.1em}
 .pass{background:#1a7f37}.fail{background:#cf222e}.none{background:#6e7781}
 td.pass,td.fail{color:#fff;text-align:center;font-weight:600}
+td.warn{text-align:center;font-weight:600}
 .note{background:#f6f8fa;border-left:4px solid #8c959f;padding:.4em .8em;color:#57606a}
 .warn{background:#fff8c5;border-left:4px solid #bf8700;padding:.4em .8em}
 .meta{color:#57606a}.fixed{color:#6e7781}code,pre{font-size:.92em}
@@ -856,6 +858,228 @@ def _verification(run: _Run) -> str:
     return out
 
 
+# -- acceptance test (VDI/VDE 2634 parts 2 and 3) ----------------------------------------------
+#: ISO 14253-1 verdict of acceptance.json -> CSS class of its cell (not limited: plain).
+_ACCEPTANCE_CLASSES = {"conformance": "pass", "non-conformance": "fail", "uncertainty zone": "warn"}
+
+#: Colour of each acceptance object (and of the ball-bar) in the positions figure.
+_TEST_COLOURS = {"sphere": "tab:blue", "dumbbell": "tab:orange", "flat": "tab:green", "ballbar": "tab:purple"}
+
+
+def _acceptance(run: _Run) -> str:
+    """The acceptance section: certificate, positions figure, raw values and failures.
+
+    Parameters
+    ----------
+    run : the run directory as the report reads it
+
+    Returns
+    -------
+    HTML; a note when the run has no ``acceptance.json``.
+    """
+    f = run.rd.acceptance
+    if not f.exists():
+        return _note(f"No acceptance test in this run ({f.rel} is not in the run directory).")
+    doc = run.json(f)
+    return (_acceptance_certificate(doc)
+            + "<h3>Positions in the measurement volume</h3>\n" + _guard(_acceptance_figure, run, doc)
+            + "<h3>Values per position</h3>\n" + _acceptance_values(doc))
+
+
+def _percent(fraction) -> str:
+    """A fraction as a percentage.
+
+    >>> _percent(0.003), _percent(None)
+    ('0.3 %', 'n/a')
+    """
+    return _num(100 * fraction if _finite(fraction) else fraction, ".3g", "%")
+
+
+def _acceptance_verdict(v) -> tuple | str:
+    """The verdict cell: coloured as the verification's PASS/FAIL (uncertainty zone: warning)."""
+    klass = _ACCEPTANCE_CLASSES.get(str(v))
+    return (str(v), klass) if klass else str(v)
+
+
+def _acceptance_row(p: dict) -> list:
+    """One certificate row of a parameter of ``acceptance.json``."""
+    mpe = p.get("mpe_mm")
+    return [f"{p.get('name')} {p.get('title') or ''}".strip(), p.get("scanner"), p.get("positions"),
+            _um(p.get("measured_mm")), _um(mpe) if mpe is not None else "not limited", _um(p.get("U_mm")),
+            _acceptance_verdict(p.get("verdict"))]
+
+
+def _acceptance_certificate(doc: dict) -> str:
+    """The certificate table and the decision: accepted or not under ISO 14253-1."""
+    params = doc.get("parameters") or []
+    k = _num(doc.get("coverage_factor"), "g")
+    out = (f"<p>Quality parameters of {_e(doc.get('standard', 'VDI/VDE 2634 parts 2 and 3'))}: P<sub>F</sub>, "
+           f"P<sub>S</sub>, SD and F inside each scanner's volume (part 2), E across the cell (part 3). Each is the "
+           f"value of largest magnitude over its positions, with that position's expanded uncertainty U "
+           f"(k = {_e(k)}), judged position by position against the maximum permissible error (MPE). "
+           f"Decision rule: {_e(doc.get('decision_rule', 'ISO 14253-1'))}.</p>\n")
+    out += _table(["Test", "Scanner", "Positions", "Measured", "Limit (MPE)", f"U (k = {k})", "Verdict"],
+                  [_acceptance_row(p) for p in params], left=2)
+    return out + _acceptance_decision(doc, params, k)
+
+
+def _acceptance_decision(doc: dict, params: list, k: str) -> str:
+    """ACCEPTED / NOT ACCEPTED with the settings, and the simple comparison when it differs."""
+    accepted = _truthy(doc.get("accepted"))
+    badge = f'<span class="badge {"pass" if accepted else "fail"}">{"ACCEPTED" if accepted else "NOT ACCEPTED"}</span>'
+    limited = [p for p in params if p.get("mpe_mm") is not None]
+    if not limited:
+        why = "no parameter has a limit (MPE) to conform to"
+    elif accepted:
+        why = "conformance proven for every limited parameter"
+    else:
+        short = [f"{p.get('name')} ({p.get('scanner')}): {p.get('verdict')}" for p in limited
+                 if p.get("verdict") != "conformance"]
+        why = "conformance not proven for " + (", ".join(short) or "every limited parameter")
+    out = (f"<p>The cell is {badge} under ISO 14253-1: {_e(why)} (coverage factor k = {_e(k)}; "
+           f"{_e(_percent(doc.get('exclude_fraction')))} of the points of each sphere and flat measurement "
+           f"excluded as outliers).</p>\n")
+    within = doc.get("within_mpe")
+    if within is not None and _truthy(within) != accepted:
+        out += _warn(f"The simple comparison (every value within its MPE, uncertainty not considered) would "
+                     f"{'accept' if _truthy(within) else 'not accept'} the cell.")
+    return out
+
+
+def _acceptance_values(doc: dict) -> str:
+    """The raw value of every position, then the positions not measured as warnings."""
+    def count(n, parameter):
+        return int(n) if _finite(n) and (n > 0 or parameter not in ("SD", "E")) else "–"
+
+    rows = [[v.get("test"), v.get("parameter"), v.get("position"), v.get("scanner"), _um(v.get("value_mm")),
+             _um(v.get("U_mm")), count(v.get("n_points"), v.get("parameter")),
+             count(v.get("n_excluded"), v.get("parameter"))] for v in doc.get("values") or []]
+    out = (_table(["Test", "Parameter", "Position", "Scanner", "Value", "U", "Points", "Excluded"], rows, left=4)
+           if rows else _note("No value was measured."))
+    fails = doc.get("failures") or []
+    if fails:
+        out += f"<h3>Positions not measured ({len(fails)})</h3>\n" + "".join(
+            _warn(f"{f.get('test')} position {f.get('position')}, scanner {f.get('scanner')}: {f.get('reason')}")
+            for f in fails)
+    return out
+
+
+def _acceptance_figure(run: _Run, doc: dict) -> str:
+    """The positions drawn in the world frame, or a note when none are stated."""
+    positions = doc.get("positions") or []
+    if not positions:
+        return _note(f"No positions to draw: {run.rd.acceptance.rel} states no placements of the objects "
+                     "(a recorded data set holds its measurements, not where the objects stood).")
+    standards = run.maybe_json(run.rd.acceptance_standards) or {}
+    shapes = [s for s in (_placement(p, standards) for p in positions) if s is not None]
+    pinholes = _pinholes(run)
+    png = _acceptance_png(shapes, pinholes, _ballbar_segments(run))
+    frame = f"the reference scanner {_e(pinholes[0][2])}'s frame" if pinholes else "the world frame"
+    return (f'<div class="figs">{_img(png, "acceptance test positions in the measurement volume")}</div>\n'
+            f'<p class="meta">{len(shapes)} positions as placed (T<sub>world_object</sub> of '
+            f"{_e(run.rd.acceptance.rel)}) in {frame} (mm); triangles: the scanners' camera pinholes.</p>\n")
+
+
+def _placement(row: dict, standards: dict) -> dict | None:
+    """One position as world points to draw: ``test``, ``points`` (k, 3) and ``radius``
+    (spheres); an object of unknown size is drawn as a point at its frame's origin."""
+    from .frames import POSE_COLUMNS, Frame
+
+    try:
+        T = Frame.from_params([float(row[c]) for c in POSE_COLUMNS])
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not np.all(np.isfinite(T.params)):
+        return None
+    test = str(row.get("test"))
+    size = standards.get(test) if isinstance(standards.get(test), dict) else {}
+    local = np.zeros((1, 3))
+    radius = None
+    if test == "sphere" and _finite(size.get("diameter_mm")):
+        radius = size["diameter_mm"] / 2
+    elif test == "dumbbell" and _finite(size.get("length_mm")):
+        local = np.array([[0.0, 0.0, 0.0], [size["length_mm"], 0.0, 0.0]])
+    elif test == "flat" and _finite(size.get("length_mm")) and _finite(size.get("width_mm")):
+        u, v = size["length_mm"] / 2, size["width_mm"] / 2
+        local = np.array([[-u, -v, 0.0], [u, -v, 0.0], [u, v, 0.0], [-u, v, 0.0], [-u, -v, 0.0]])
+    return {"test": test, "points": T.to_world(local), "radius": radius}
+
+
+def _pinholes(run: _Run) -> list[tuple]:
+    """(scanner, camera pinhole, reference scanner) of the calibration; none without one."""
+    try:
+        rig = run.load(run.rd.calibration)
+    except (_Missing, ValueError, KeyError, OSError):
+        return []
+    return [(sc.name, np.asarray(sc.camera.pinhole, float), rig.reference) for sc in rig.scanners]
+
+
+def _ballbar_segments(run: _Run) -> list[np.ndarray]:
+    """The ball-bar (E) positions as their sphere centres (mean over the scanners)."""
+    try:
+        t = _numeric(run.table(run.rd.ballbar_centres))
+        mean = t.groupby(["position", "sphere_id"], sort=True)[["x_mm", "y_mm", "z_mm"]].mean()
+    except (_Missing, ValueError, KeyError, OSError):
+        return []
+    return [g.to_numpy(float) for _, g in mean.groupby(level="position", sort=False)]
+
+
+#: The two views of the positions figure: title, (horizontal, vertical) world axis.
+_VIEWS = (("top view", (0, 2)), ("side view", (2, 1)))
+
+
+def _acceptance_png(shapes: list[dict], pinholes: list[tuple], bars: list[np.ndarray]) -> bytes:
+    """The positions in two views of the world frame (PNG): spheres as circles,
+    dumbbells as segments with their spheres, flats as outlines, coloured per test."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    fig = Figure(figsize=(10, 5.2), dpi=100)
+    FigureCanvasAgg(fig)
+    names = "xyz"
+    for j, (title, (h, v)) in enumerate(_VIEWS):
+        ax = fig.add_subplot(1, 2, j + 1)
+        for s in shapes:
+            _draw_shape(ax, s, h, v)
+        for pts in bars:
+            ax.plot(pts[:, h], pts[:, v], "-o", color=_TEST_COLOURS["ballbar"], lw=1, ms=3, alpha=0.6)
+        for i, (name, p, _) in enumerate(pinholes):  # labels staggered: pinholes may coincide in a view
+            ax.plot(p[h], p[v], "^", color="k", ms=8)
+            ax.annotate(name, (p[h], p[v]), textcoords="offset points", xytext=(6, 6 - 11 * i), fontsize=8)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(f"{title} (world {names[h]}-{names[v]})", fontsize=10)
+        ax.set_xlabel(f"world {names[h]} (mm)")
+        ax.set_ylabel(f"world {names[v]} (mm)")
+        ax.grid(True, lw=0.3)
+    tests = [t for t in _TEST_COLOURS if any(s["test"] == t for s in shapes) or (t == "ballbar" and bars)]
+    handles = [Line2D([], [], color=_TEST_COLOURS[t], marker="o", label=t) for t in tests]
+    if pinholes:
+        handles.append(Line2D([], [], color="k", marker="^", ls="", label="camera pinhole"))
+    fig.legend(handles=handles, fontsize=8, loc="lower center", ncol=len(handles), frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
+def _draw_shape(ax, shape: dict, h: int, v: int) -> None:
+    """One position in the view of world axes ``h`` (horizontal) and ``v`` (vertical)."""
+    from matplotlib.patches import Circle
+
+    colour = _TEST_COLOURS.get(shape["test"], "tab:gray")
+    pts = shape["points"]
+    if shape["radius"]:
+        ax.add_patch(Circle((pts[0, h], pts[0, v]), shape["radius"], fill=False, color=colour, lw=1.2))
+        ax.plot(pts[0, h], pts[0, v], "+", color=colour, ms=4)
+    elif shape["test"] == "dumbbell" and len(pts) == 2:
+        ax.plot(pts[:, h], pts[:, v], "-o", color=colour, lw=1.5, ms=4)
+    elif len(pts) > 1:
+        ax.plot(pts[:, h], pts[:, v], "-", color=colour, lw=1.2)
+    else:
+        ax.plot(pts[0, h], pts[0, v], "o", color=colour, ms=4)
+
+
 def _truth(run: _Run) -> str:
     ev = run.evaluation()
     bs = run.maybe_json(run.rd.bundle_summary) or {}
@@ -953,6 +1177,7 @@ def _crossval(run: _Run) -> str:
 _SECTIONS = [("rig", "Rig and artefact"), ("timing", "Timing"), ("results", "Calibration results"),
              ("parameters", "Sensor parameters"), ("residuals", "Residuals"),
              ("crossval", "Cross-validation"), ("verification", "Verification (ball-bar)"),
+             ("acceptance", "Acceptance test (VDI/VDE 2634 parts 2 and 3)"),
              ("truth", "Simulation truth"), ("provenance", "Provenance")]
 
 
@@ -981,6 +1206,7 @@ def render_report(run_dir, timings: dict | None = None, execution: dict | None =
     bodies = {"rig": (_rig_section,), "timing": (_timings, timings), "results": (_results,),
               "parameters": (_parameters,), "residuals": (_residuals,), "crossval": (_crossval,),
               "verification": (_verification,),
+              "acceptance": (_acceptance,),
               "truth": (_truth,), "provenance": (_provenance, execution)}
     nav = "<nav>" + "".join(f'<a href="#{a}">{_e(t)}</a>' for a, t in _SECTIONS) + "</nav>\n"
     sections = "".join(_section(a, t, bodies[a][0], run, *bodies[a][1:]) for a, t in _SECTIONS)

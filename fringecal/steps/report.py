@@ -19,7 +19,8 @@ def report_inputs(rd: RunDir) -> list:
     return [rd.manifest, rd.artefact, rd.rods, rd.ballbar, rd.acquisition, rd.hexapod_moves,
             rd.label_outcomes, rd.scanner_links, rd.dlt, rd.calibration, rd.bundle_summary,
             rd.residuals_per_sphere, rd.residuals_per_measurement, rd.histogram("eps1"), rd.histogram("eps2"),
-            rd.crossval, rd.verification, rd.evaluation]
+            rd.crossval, rd.verification, rd.ballbar_centres, rd.acceptance, rd.acceptance_standards,
+            rd.evaluation]
 
 
 class Report(Step):
