@@ -74,7 +74,7 @@ def test_rerun_is_all_cache_hits_and_bundle_weights_rerun_only_what_depends_on_t
     assert again["rms_F_mm_after"] == first["rms_F_mm_after"]
     changed = run_flow(str(small_config), str(run_dir), overrides={"bundle": {"gamma2": 0.5}})
     ran = {name.split(":")[0] for name in changed["tasks"]["ran"]}
-    assert ran == {"bundle", "cross-validate", "verify", "evaluate", "report"}
+    assert ran == {"bundle", "cross-validate", "verify", "acceptance", "evaluate", "report"}
     assert changed["rms_F_mm_after"] != first["rms_F_mm_after"]
     # back to the first settings: the files on disk are the other weights', so those steps
     # are recomputed (to the same numbers), and nothing else

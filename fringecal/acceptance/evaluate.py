@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pandas as pd
 
 from .standards import PARAMETERS, AcceptanceLimits
@@ -68,15 +67,9 @@ def verdict(value_mm: float, U_mm: float, mpe_mm: float | None) -> str:
     >>> verdict(0.06, 0.03, 0.1), verdict(0.14, 0.03, 0.1), verdict(-0.09, 0.03, 0.1)
     ('conformance', 'non-conformance', 'uncertainty zone')
     """
-    if mpe_mm is None:
-        return "not limited"
-    if not np.isfinite(value_mm):
-        return "uncertainty zone"
-    if abs(value_mm) + U_mm <= mpe_mm:
-        return "conformance"
-    if abs(value_mm) - U_mm > mpe_mm:
-        return "non-conformance"
-    return "uncertainty zone"
+    from ..pipeline.ballbar_uncertainty import iso14253_verdict
+
+    return "not limited" if mpe_mm is None else iso14253_verdict(value_mm, U_mm, mpe_mm)
 
 
 def _combine(verdicts: list[str]) -> str:
