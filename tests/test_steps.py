@@ -85,14 +85,14 @@ def test_one_setting_reruns_the_steps_that_declare_it(data_run, tmp_path):
     own = tmp_path / "run.yaml"
     own.write_text("bundle:\n  gamma2: 0.5\n")
     records = run_pipeline(rd, load_run_config(own, dataset=data))
-    assert steps_that_ran(records) == {"bundle", "cross-validate", "verify", "report"}
+    assert steps_that_ran(records) == {"bundle", "cross-validate", "verify", "acceptance", "report"}
     back = run_pipeline(rd, load_run_config(dataset=data))
-    assert steps_that_ran(back) == {"bundle", "cross-validate", "verify", "report"}
+    assert steps_that_ran(back) == {"bundle", "cross-validate", "verify", "acceptance", "report"}
 
 
 @pytest.mark.parametrize("module, expected", [
     ("fringecal.report", {"report"}),
-    ("fringecal.verification", {"verify"}),  # same numbers, so the report stays current
+    ("fringecal.verification", {"verify", "acceptance"}),  # same numbers, so the report stays current
 ])
 def test_a_changed_module_reruns_only_the_steps_that_run_it(data_run, tmp_path, monkeypatch, module, expected):
     data, rd, _ = data_run
