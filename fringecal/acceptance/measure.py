@@ -40,12 +40,10 @@ from scipy import ndimage
 
 from ..artefact import Artefact
 from ..ballbar import SightingConfig, find_sightings
-from ..pipeline.extract import measurement_maps
-from ..pipeline.verify import store_scanner
+from ..pipeline.verify import store_maps
 from ..rig import Scanner
 from ..spheres.fit import FitError, PlaneModel, SphereModel
 from ..spheres.regions import boundary_flags
-from ..store import open_store
 from .standards import FlatStandard, SphereStandard
 
 __all__ = ["SphereMeasurement", "FlatMeasurement", "trim_by_residual", "probe_sphere", "probe_flat",
@@ -187,10 +185,9 @@ def probe_flat(points, exclude_fraction: float = 0.003, toward=None) -> FlatMeas
 
 
 def _points(store, scanner: Scanner):
-    with open_store(store) as ds:
-        scanner = store_scanner(ds, scanner)
-    ds, maps, valid = measurement_maps(store, scanner)
-    ds.close()
+    """The store's scanner, maps, usable pixels, points (rows, cols, 3) and the usable
+    pixels that are no edge pixels."""
+    scanner, maps, valid = store_maps(store, scanner)
     ok = maps.valid & valid
     xyz = np.stack([maps.x, maps.y, maps.z], axis=-1)
     return scanner, maps, ok, xyz, ok & ~boundary_flags(ok)

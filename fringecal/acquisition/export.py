@@ -43,7 +43,7 @@ from ..simulate.scenes import acceptance_scene, artefact_scene
 from ..simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
 from .measure import render_frames
 from .plan import move_hexapod, poses_table
-from .simulated import load_simulated_rig
+from .simulated import acceptance_camera_width, load_simulated_rig
 
 __all__ = ["write_dataset", "PROCESSING_SECTIONS"]
 
@@ -147,8 +147,7 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         # the acceptance objects as simulate-sphere/-dumbbell/-flat render them: the
         # acceptance's camera width (else the verification's) and noise seed
         a_acq = acq.model_copy(update={"seed": sim.acceptance.seed})
-        a_width = sim.acceptance.camera_width_px if sim.acceptance.camera_width_px is not None \
-            else sim.verification.camera_width_px
+        a_width = acceptance_camera_width(sim)
         for (name, T), row in zip(frames_from_rows(acceptance).items(), acceptance.itertuples(index=False)):
             scene = acceptance_scene(row.test, standards, T, sr.hardware)
             s = truth.scanner(row.scanner)

@@ -50,7 +50,7 @@ from ..simulate.world import as_built_artefact, as_built_ballbar
 if TYPE_CHECKING:
     from ..acceptance.standards import AcceptanceStandards
 
-__all__ = ["SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "sphere_sightings",
+__all__ = ["acceptance_camera_width", "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "sphere_sightings",
            "acquisition_table", "true_volumes", "acceptance_plan"]
 
 
@@ -98,6 +98,15 @@ class SimulatedRig:
     ballbar_built: Artefact | None = None
     acceptance_standards: AcceptanceStandards | None = None
     acceptance: pd.DataFrame | None = None
+
+
+def acceptance_camera_width(simulate) -> int | None:
+    """The camera width (px) the acceptance stores are recorded at:
+    ``simulate.acceptance.camera_width_px``, else the verification's; None: as the
+    acquisition (both doors: the ``simulate-sphere/-dumbbell/-flat`` steps and
+    :mod:`fringecal.acquisition.export`)."""
+    a, v = simulate.acceptance.camera_width_px, simulate.verification.camera_width_px
+    return a if a is not None else v
 
 
 def input_files(sim) -> list[Path]:

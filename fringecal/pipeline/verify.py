@@ -24,7 +24,7 @@ from ..spheres.fit import FitError
 from ..store import open_store
 from .extract import measurement_maps
 
-__all__ = ["measure_position", "measure_positions", "store_sightings", "store_scanner", "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
+__all__ = ["measure_position", "measure_positions", "store_sightings", "store_scanner", "store_maps", "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
 
 #: Columns of the centres and failures tables of :func:`measure_position`.
 CENTRE_COLUMNS = ["position", "scanner", "sphere_id", "x_mm", "y_mm", "z_mm", "radius_mm", "rms_mm", "n_points"]
@@ -44,14 +44,21 @@ def store_scanner(ds, scanner: Scanner) -> Scanner:
     return scaled_scanner(scanner, cols, rows)
 
 
-def store_sightings(store, scanner: Scanner, ballbar, rejection_config,
-                    config: SightingConfig | None = None) -> tuple[list[Sighting], list[str]]:
-    """The bar spheres one store shows (:func:`fringecal.ballbar.find_sightings`),
-    triangulated with ``scanner`` (world frame) at the store's image size."""
+def store_maps(store, scanner: Scanner):
+    """A store triangulated with ``scanner`` (world frame) at the store's image size:
+    the scanner as resampled to it, the point maps and the store's validity mask."""
     with open_store(store) as ds:
         scanner = store_scanner(ds, scanner)
     ds, maps, valid = measurement_maps(store, scanner)
     ds.close()
+    return scanner, maps, valid
+
+
+def store_sightings(store, scanner: Scanner, ballbar, rejection_config,
+                    config: SightingConfig | None = None) -> tuple[list[Sighting], list[str]]:
+    """The bar spheres one store shows (:func:`fringecal.ballbar.find_sightings`),
+    triangulated with ``scanner`` (world frame) at the store's image size."""
+    scanner, maps, valid = store_maps(store, scanner)
     return find_sightings(maps, valid, scanner, ballbar, rejection_config, config)
 
 

@@ -129,7 +129,7 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
     return pd.DataFrame(rows, columns=VALUE_COLUMNS), failures
 
 
-def _positions(rd: RunDir, stores: dict) -> list[dict]:
+def _positions(rd: RunDir) -> list[dict]:
     """Where each position was (simulated runs: the planned placement), for the report."""
     if not rd.truth.acceptance_positions.exists():
         return []
@@ -198,7 +198,7 @@ def acceptance_document(rd: RunDir, rig, standards, config, rejection: dict, len
         values = pd.concat([values, e], ignore_index=True) if len(values) else e
     scanners = [s.name for s in rig.scanners]
     doc = certificate(values, config.limits, config.coverage_factor, config.exclude_fraction, scanners, failures,
-                      _positions(rd, stores))
+                      _positions(rd))
     return doc, values
 
 

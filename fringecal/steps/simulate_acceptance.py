@@ -14,22 +14,14 @@ at their session-start placement (no session drift), as for the ball-bar.
 from __future__ import annotations
 
 from ..acceptance.standards import AcceptanceStandards
+from ..acquisition.simulated import acceptance_camera_width
 from ..rundir import RunDir, TableFile
 from ..simulate.resolution import scaled_scanner
 from ..simulate.scenes import ArtefactHardware, Scene, acceptance_scene
 from .base import Settings
 from .simulate_render import RenderStores
 
-__all__ = ["SimulateSphere", "SimulateDumbbell", "SimulateFlat", "acceptance_camera_width"]
-
-
-def acceptance_camera_width(simulate) -> int | None:
-    """The camera width (px) the acceptance stores are recorded at:
-    ``simulate.acceptance.camera_width_px``, else the verification's; None: as the
-    acquisition (``fringecal simulate`` applies the same rule,
-    :mod:`fringecal.acquisition.export`)."""
-    a, v = simulate.acceptance.camera_width_px, simulate.verification.camera_width_px
-    return a if a is not None else v
+__all__ = ["SimulateSphere", "SimulateDumbbell", "SimulateFlat"]
 
 
 class _SimulateAcceptance(RenderStores):
