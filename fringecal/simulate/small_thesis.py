@@ -23,7 +23,7 @@ def write_small_thesis_config(d: Path, width: int = 320, poses=(1, 5, 9, 12), po
     ``poses`` are measurements of table 6-1, ``positions`` of table 6-9. Four poses are
     the tests' default (four stand-offs); cross-validation needs at least three
     measurements of every scanner in each half, which eight poses give
-    (``benchmarks/coverage.py``).
+    (``benchmarks/length_coverage.py``).
     """
     import pandas as pd
     import yaml

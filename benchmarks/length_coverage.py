@@ -42,8 +42,9 @@ calibration, so the standard error over seeds -- of the per-seed covered counts,
 ``seed_cluster_se`` -- is given too), the mean U, the RMS of
 ``z = (length_mm - true) / u_mm`` (about 1 when u is right) and per seed every length.
 
-The file's name shadows the ``coverage`` package (numba imports it), so the script
-drops its own folder from ``sys.path`` first; do not import it as ``coverage``.
+The JSON files of benchmarks/results/ made before the script was renamed (it was
+``benchmarks/coverage.py``, a name that shadowed the ``coverage`` package numba imports
+for every script in this folder) record the old name in their ``command``.
 
 BLAS and numba run on one thread unless the environment says otherwise (two profiles
 run side by side on the shared 2-core machine).
@@ -75,10 +76,7 @@ import time
 import traceback
 from pathlib import Path
 
-# this file's name shadows the ``coverage`` package, which numba imports: drop its folder
-# (sys.path[0] when run as a script) from the import path before anything imports numba
 _HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
