@@ -19,12 +19,29 @@ Layout::
 Each parameter is a leaf ``<x0 unit="mm" free="false" u="0.012">694.018</x0>``; values
 are written with Python's shortest round-trip representation, so reading a file back
 gives the same floats bit for bit.
+
+The JSON document also carries, like mrcal's models, what a user of the calibration
+needs to state uncertainties and to trace it (the XML keeps the thesis layout only):
+
+* ``covariance`` -- the covariance of every sensor parameter (rig order, 14 per sensor,
+  fixed parameters with zero rows; ``parameters`` names them ``<sensor>.<parameter>``),
+  split as the length budget splits it (:class:`fringecal.length_uncertainty.ParameterCovariances`):
+  ``adjustment`` (observation noise through the bundle adjustment), ``artefact_cmm``
+  (the artefact table's CMM uncertainty scaled by ``artefact_u_factor``),
+  ``artefact_scale`` (parameter change per unit relative scale of the artefact) with
+  ``artefact_scale_u_rel`` (its relative standard uncertainty: CTE times the
+  temperature uncertainty). :func:`read_calibration` gives them back.
+* ``provenance`` -- the digests of the adjustment's input files, its settings and their
+  digest, the package versions. The run's whole configuration is in its
+  ``manifest.json``; a calibration depends only on the settings listed here and on its
+  inputs (whose digests tie it to the data it came from).
 """
 
 from __future__ import annotations
 
 import json
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +51,8 @@ from .rig import Rig, Scanner
 from .sensor import PARAM_NAMES, Sensor, SensorFormat
 
 __all__ = ["write_calibration_xml", "xml_text", "read_calibration_xml", "write_calibration_json",
-           "read_calibration_json", "rig_to_dict", "rig_from_dict", "CalibrationFileError"]
+           "read_calibration_json", "rig_to_dict", "rig_from_dict", "CalibrationFileError", "Calibration",
+           "read_calibration", "covariance_document", "parameter_names"]
 
 _GROUPS = {
     "external": ("x0", "y0", "z0", "omega", "phi", "kappa"),
@@ -50,11 +68,37 @@ class CalibrationFileError(ValueError):
     """A calibration file is malformed; the message names the file and element."""
 
 
-def rig_to_dict(rig: Rig, metadata: dict | None = None) -> dict:
+def parameter_names(rig: Rig) -> list[str]:
+    """``<sensor>.<parameter>`` of every sensor parameter in rig order (14 per sensor)."""
+    return [f"{sensor.name}.{n}" for scanner in rig.scanners for sensor in scanner.sensors for n in PARAM_NAMES]
+
+
+def covariance_document(rig: Rig, covariances) -> dict:
+    """The ``covariance`` block of a calibration document from
+    :class:`~fringecal.length_uncertainty.ParameterCovariances` (matrices (14 n, 14 n))."""
+    n = 14 * sum(len(s.sensors) for s in rig.scanners)
+    for name in ("calibration", "cmm"):
+        if np.shape(getattr(covariances, name)) != (n, n):
+            raise ValueError(f"covariance {name!r} has shape {np.shape(getattr(covariances, name))}, expected {(n, n)}")
+    return {"parameters": parameter_names(rig),
+            "adjustment": np.asarray(covariances.calibration, float).tolist(),
+            "artefact_cmm": np.asarray(covariances.cmm, float).tolist(),
+            "artefact_scale": np.asarray(covariances.scale, float).tolist(),
+            "artefact_scale_u_rel": float(covariances.u_scale)}
+
+
+def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None) -> dict:
+    """The JSON document of ``rig``; ``covariances``
+    (:class:`~fringecal.length_uncertainty.ParameterCovariances`) and ``provenance`` are
+    added when given (see the module notes)."""
     from . import __version__
 
     out = {"software": "fringecal", "version": __version__, "reference_scanner": rig.reference,
            "scanners": [], "metadata": dict(metadata or {})}
+    if covariances is not None:
+        out["covariance"] = covariance_document(rig, covariances)
+    if provenance is not None:
+        out["provenance"] = dict(provenance)
     k = 0
     for scanner in rig.scanners:
         entry = {"name": scanner.name, "sensors": []}
@@ -98,17 +142,73 @@ def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
         raise CalibrationFileError(f"{source}: malformed calibration ({type(err).__name__}: {err})") from None
 
 
-def write_calibration_json(rig: Rig, path, metadata: dict | None = None) -> Path:
-    return write_text(Path(path), json.dumps(rig_to_dict(rig, metadata), indent=2) + "\n")
+def write_calibration_json(rig: Rig, path, metadata: dict | None = None, covariances=None,
+                           provenance: dict | None = None) -> Path:
+    return write_text(Path(path), json.dumps(rig_to_dict(rig, metadata, covariances, provenance), indent=2) + "\n")
+
+
+def _json_document(path: Path) -> dict:
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise CalibrationFileError(f"{path}: not UTF-8 text ({err})") from None
+    except json.JSONDecodeError as err:
+        raise CalibrationFileError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(d, dict):
+        raise CalibrationFileError(f"{path}: a calibration is a JSON object, found {type(d).__name__}")
+    return d
 
 
 def read_calibration_json(path) -> Rig:
     path = Path(path)
+    return rig_from_dict(_json_document(path), str(path))
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A calibration file read whole: the rig, the covariance of its sensor parameters
+    (:class:`~fringecal.length_uncertainty.ParameterCovariances`, None when the file has
+    none, e.g. the XML), the provenance and the metadata."""
+
+    rig: Rig
+    covariances: object | None = None
+    provenance: dict = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
+
+
+def _covariances(doc: dict, rig: Rig, source: str):
+    from .length_uncertainty import ParameterCovariances
+
+    names = parameter_names(rig)
+    n = len(names)
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as err:
-        raise CalibrationFileError(f"{path}: not valid JSON ({err})") from None
-    return rig_from_dict(d, str(path))
+        if doc["parameters"] != names:
+            raise ValueError(f"parameters do not name the sensors of the calibration in order ({n} expected)")
+        arrays = {k: np.asarray(doc[k], float) for k in ("adjustment", "artefact_cmm", "artefact_scale")}
+        u_scale = float(doc["artefact_scale_u_rel"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CalibrationFileError(f"{source}: covariance: {type(err).__name__}: {err}") from None
+    for key, shape in (("adjustment", (n, n)), ("artefact_cmm", (n, n)), ("artefact_scale", (n,))):
+        if arrays[key].shape != shape:
+            raise CalibrationFileError(f"{source}: covariance {key!r} has shape {arrays[key].shape}, expected {shape}")
+        if not np.isfinite(arrays[key]).all():
+            raise CalibrationFileError(f"{source}: covariance {key!r} holds non-finite values")
+    if not np.isfinite(u_scale) or u_scale < 0:
+        raise CalibrationFileError(f"{source}: covariance 'artefact_scale_u_rel' must be finite and >= 0, got {u_scale}")
+    return ParameterCovariances(arrays["adjustment"], arrays["artefact_cmm"], arrays["artefact_scale"], u_scale)
+
+
+def read_calibration(path) -> Calibration:
+    """A calibration file (``.json`` with covariance and provenance, or the ``.xml``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationFileError(f"{path}: no such file" if not path.exists() else f"{path}: not a file")
+    if path.suffix.lower() == ".xml":
+        return Calibration(read_calibration_xml(path))
+    d = _json_document(path)
+    rig = rig_from_dict(d, str(path))
+    cov = _covariances(d["covariance"], rig, str(path)) if "covariance" in d else None
+    return Calibration(rig, cov, dict(d.get("provenance") or {}), dict(d.get("metadata") or {}))
 
 
 def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:

@@ -169,13 +169,17 @@ def covariance_arrays(result: BundleResult) -> dict:
             "artefact_u": sens.u_artefact, "scale_sensitivity": sens.scale}
 
 
-def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, extra: dict | None = None) -> list:
+def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, extra: dict | None = None,
+                  covariances=None, provenance: dict | None = None) -> list:
     """Write the calibration files, tables, histograms and summary of ``result`` into the
     run directory ``rd`` (:class:`fringecal.rundir.RunDir`), all or nothing.
 
     Every file is first written under a temporary name; only when all are complete
     are they renamed into place. ``extra`` is merged into the summary (e.g. the
-    adjustment's wall time). Returns the files written.
+    adjustment's wall time). ``covariances(arrays)``, given the covariance arrays,
+    returns the :class:`~fringecal.length_uncertainty.ParameterCovariances` that
+    ``calibration.json`` carries with ``provenance``
+    (:mod:`fringecal.calibration_file`). Returns the files written.
     """
     import io
 
@@ -191,12 +195,14 @@ def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, ex
     for term, path in zip(("eps1", "eps2"), (io.BytesIO(), io.BytesIO())):
         figures[rd.histogram(term)] = path
     plot_histograms(result, *figures.values())
+    cov_arrays = covariance_arrays(result)
     arrays = io.BytesIO()
-    np.savez(arrays, **covariance_arrays(result))
+    np.savez(arrays, **cov_arrays)
+    cov = covariances(cov_arrays) if covariances is not None else None
     files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary, rd.covariance]
     with atomic_paths([f.path for f in files]) as tmps:
         tmp = dict(zip([f.rel for f in files], tmps))
-        tmp[rd.calibration.rel].write_text(json.dumps(rig_to_dict(result.rig, meta), indent=2) + "\n")
+        tmp[rd.calibration.rel].write_text(json.dumps(rig_to_dict(result.rig, meta, cov, provenance), indent=2) + "\n")
         tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta))
         for f, df in tables.items():
             df.to_csv(tmp[f.rel], index=False, float_format="%.10g")

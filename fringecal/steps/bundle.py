@@ -42,8 +42,10 @@ def load_problem(rd: RunDir, reference: str | None, gamma1: float = 1.0, gamma2:
 class Bundle(Step):
     name = "bundle"
     title = "bundle adjustment"
-    settings = ("bundle", "reference_scanner")
-    modules = ("fringecal.calibration",)
+    # the artefact's share of the calibration's covariance, carried by calibration.json
+    settings = ("bundle", "reference_scanner", "verification.uncertainty.artefact_u_factor",
+                "verification.uncertainty.artefact_temperature_u_c", "verification.uncertainty.artefact_cte_per_c")
+    modules = ("fringecal.calibration", "fringecal.pipeline.ballbar_uncertainty")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial]
@@ -66,4 +68,23 @@ class Bundle(Step):
             log.warning("%s: %s", d.kind, d.message)
         log.info("F RMS %.4f -> %.4f mm in %d iterations (start: %s)", result.before.rms_f_mm, result.after.rms_f_mm,
                  result.iterations, result.extra.get("start"))
-        write_outputs(result, rd, b.volume_diagonal_mm, {"bundle_seconds": seconds})
+        write_outputs(result, rd, b.volume_diagonal_mm, {"bundle_seconds": seconds},
+                      covariances=self._covariances(cfg), provenance=self.provenance(rd, cfg, item))
+
+    @staticmethod
+    def _covariances(cfg: Settings):
+        from ..pipeline.ballbar_uncertainty import parameter_covariances
+
+        u = cfg.verification.uncertainty
+        u_scale = abs(u.artefact_cte_per_c) * u.artefact_temperature_u_c
+        return lambda arrays: parameter_covariances(arrays, u_scale, u.artefact_u_factor)
+
+    def provenance(self, rd: RunDir, cfg: Settings, item: str) -> dict:
+        """What the calibration was computed from: its input files' digests, its
+        settings (and their digest), the package versions."""
+        from ..digests import digest_path, digest_value
+        from ..rundir import package_versions
+
+        settings = cfg.keyed()
+        return {"inputs": {f.rel: digest_path(f.path) for f in self.reads(rd, cfg, item)},
+                "settings": settings, "settings_digest": digest_value(settings), "versions": package_versions()}
