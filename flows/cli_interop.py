@@ -1,0 +1,158 @@
+"""``fringecal export opencv`` and ``fringecal import opencv``: calibrations to and from
+OpenCV (:mod:`fringecal.interop`). They answer at once: no Prefect."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from rich.table import Table
+
+from .common import UserInputError, console, guarded
+
+export_app = typer.Typer(no_args_is_help=True, help="Export a calibration to other software.")
+import_app = typer.Typer(no_args_is_help=True, help="Import calibrations from other software.")
+
+
+def _opencv_errors():
+    from fringecal.interop.opencv_storage import OpenCVFileError
+
+    return (OpenCVFileError,)
+
+
+def _read_rig(path: Path):
+    from fringecal.calibration_file import read_calibration_json, read_calibration_xml
+    from fringecal.rig import load_rig
+
+    if not path.is_file():
+        raise UserInputError(f"{path}: no such file")
+    readers = {".json": read_calibration_json, ".xml": read_calibration_xml, ".csv": load_rig}
+    reader = readers.get(path.suffix.lower())
+    if reader is None:
+        raise UserInputError(f"{path}: expected a calibration .json or .xml (a run's calibration file) or a "
+                             f"sensor-parameter .csv (e.g. a data set's sensors_prior.csv)")
+    return reader(path)
+
+
+def _size(text: Optional[str], option: str) -> Optional[tuple[int, int]]:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UserInputError(f"{option}: expected WIDTHxHEIGHT in pixels like 2048x2048, got {text!r}") from None
+    if w < 2 or h < 2:
+        raise UserInputError(f"{option}: at least 2x2 pixels, got {text!r}")
+    return w, h
+
+
+def _print(rows: list[dict], title: str, as_json: bool, extra: dict) -> None:
+    """JSON of ``extra`` and ``rows``, or a table of the rows (files listed below it)."""
+    if as_json:
+        print(json.dumps({**extra, "sensors": rows}, indent=2))
+        return
+    t = Table(title=title)
+    cols = [c for c in rows[0] if c != "file"]
+    for c in cols:
+        t.add_column(c, justify="right")
+    for r in rows:
+        t.add_row(*[f"{r[c]:.3g}" if isinstance(r[c], float) else str(r[c]) for c in cols])
+    console.print(t)
+    for f in dict.fromkeys(r["file"] for r in rows):
+        console.print(f"  {f}", highlight=False, soft_wrap=True)
+
+
+@export_app.command("opencv")
+def export_opencv(
+    calibration: Path = typer.Option(..., "--calibration", "-c", help="calibration.json or .xml of a run, or a "
+                                     "sensor-parameter CSV (e.g. a data set's sensors_prior.csv)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder for <scanner>.yml (created if missing)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+):
+    """One OpenCV FileStorage YAML per scanner (cv2.stereoCalibrate layout: cameraMatrix1/2,
+    distCoeffs1/2, R, T, plus each sensor's world pose); prints each sensor's model
+    difference to fringecal's projection in pixels."""
+    guarded(_export, extra=_opencv_errors())(calibration, out, as_json)
+
+
+def _export(calibration: Path, out: Path, as_json: bool) -> None:
+    from fringecal.interop.opencv_storage import write_rig
+
+    rig = _read_rig(calibration)
+    if out.exists() and not out.is_dir():
+        raise UserInputError(f"{out}: exists and is not a folder")
+    try:
+        written = write_rig(rig, out)
+    except ValueError as err:  # a lens model that folds over inside the format
+        raise UserInputError(f"{calibration}: {err}") from None
+    rows = [{"scanner": name, "sensor": m.name, "role": m.role, "image_px": f"{m.image_size[0]}x{m.image_size[1]}",
+             "worst_px": m.worst_px, "rms_px": m.rms_px, "file": str(path)}
+            for name, (path, cam, prj) in written.items() for m in (cam, prj)]
+    _print(rows, "OpenCV model vs fringecal's projection (pixels), written to:", as_json,
+           {"calibration": str(calibration), "out": str(out)})
+
+
+@import_app.command("opencv")
+def import_opencv(
+    stereo: List[Path] = typer.Option(..., "--stereo", "-s", help="A stereo calibration (cv2.FileStorage YAML/XML: "
+                                      "cameraMatrix1 = camera, cameraMatrix2 = projector, R, T); one per scanner."),
+    scanner: Optional[List[str]] = typer.Option(None, "--scanner", help="Scanner name of each --stereo, in order "
+                                                "(default: the file's 'scanner' key, else its stem)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Prior table to write (a data set's sensors_prior.csv)."),
+    reference: Optional[str] = typer.Option(None, "--reference", help="Reference scanner (default: the first)."),
+    camera_size: Optional[str] = typer.Option(None, "--camera-size", help="Camera WIDTHxHEIGHT px where a file "
+                                              "has no imageSize1."),
+    projector_size: Optional[str] = typer.Option(None, "--projector-size", help="Projector WIDTHxHEIGHT px where "
+                                                 "a file has no imageSize2."),
+    camera_width_mm: Optional[float] = typer.Option(None, "--camera-width-mm", help="Camera format width (mm) where "
+                                                    "a file has no sensorSizeMm1 (default 15.1, the thesis's)."),
+    projector_width_mm: Optional[float] = typer.Option(None, "--projector-width-mm", help="Projector format width "
+                                                       "(mm) where a file has no sensorSizeMm2 (default 19.0)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+):
+    """Each scanner's prior calibration in its own frame (camera at the origin) from
+    OpenCV stereo calibrations, written as a data set's sensors_prior.csv."""
+    guarded(_import, extra=_opencv_errors())(stereo, scanner or [], out, reference, camera_size, projector_size,
+                                             camera_width_mm, projector_width_mm, as_json)
+
+
+def _import(stereo, names, out, reference, camera_size, projector_size, camera_width_mm, projector_width_mm,
+            as_json) -> None:
+    from fringecal.interop.opencv_storage import prior_scanner, read_stereo
+    from fringecal.rig import Rig
+    from fringecal.rundir import RigFile
+
+    if names and len(names) != len(stereo):
+        raise UserInputError(f"--scanner: {len(names)} name(s) for {len(stereo)} --stereo file(s); give one name per "
+                             "file, in the same order, or none")
+    for option, value in (("--camera-width-mm", camera_width_mm), ("--projector-width-mm", projector_width_mm)):
+        if value is not None and not value > 0:
+            raise UserInputError(f"{option}: must be positive, got {value}")
+    sizes = {"camera_size": _size(camera_size, "--camera-size"),
+             "projector_size": _size(projector_size, "--projector-size")}
+    files = [read_stereo(p) for p in stereo]
+    names = names or [f.scanner or f.path.stem for f in files]
+    for i, n in enumerate(names):
+        if names.index(n) != i:
+            raise UserInputError(f"scanner name {n!r} given twice ({stereo[names.index(n)]} and {stereo[i]}); "
+                                 "name them with --scanner")
+    scanners, rows = [], []
+    for i, (f, name) in enumerate(zip(files, names), 1):
+        sc, cam, prj = prior_scanner(f, name, f.camera_name or f"C{i}", f.projector_name or f"P{i}", **sizes,
+                                     camera_width_mm=camera_width_mm, projector_width_mm=projector_width_mm)
+        scanners.append(sc)
+        rows += [{"scanner": name, "sensor": imp.sensor.name, "role": imp.sensor.role, "worst_px": imp.worst_px,
+                  "rms_px": imp.rms_px, "distortion": "fitted" if imp.fitted else "exact", "file": str(f.path)}
+                 for imp in (cam, prj)]
+    reference = reference or scanners[0].name
+    try:
+        rig = Rig(tuple(scanners), reference)
+    except ValueError as err:  # duplicate sensor names, unknown reference
+        raise UserInputError(f"{err}") from None
+    RigFile(out.parent, out.name).save(rig)
+    _print(rows, "fringecal model vs OpenCV's projection (pixels), read from:", as_json,
+           {"out": str(out), "reference": reference})
+    if not as_json:
+        console.print(f"prior calibration (reference {reference}): {out}", highlight=False, soft_wrap=True)
