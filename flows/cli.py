@@ -62,8 +62,8 @@ def pose(
 
 def _register_subcommands():
     """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
-    from . import (cli_acquire, cli_artefact, cli_decode, cli_fit, cli_hexapod, cli_report, cli_run, cli_simulate,
-                   cli_step, cli_verify)
+    from . import (cli_acquire, cli_artefact, cli_decode, cli_fit, cli_hexapod, cli_interop, cli_measure, cli_report,
+                   cli_run, cli_simulate, cli_step, cli_verify)
 
     app.command("run")(cli_run.run_command)
     app.command("reproduce")(cli_run.reproduce_command)
@@ -78,6 +78,9 @@ def _register_subcommands():
     app.add_typer(cli_hexapod.app, name="hexapod")
     app.add_typer(cli_artefact.app, name="artefact")
     app.command("report")(cli_report.report_command)
+    app.add_typer(cli_interop.export_app, name="export")
+    app.add_typer(cli_interop.import_app, name="import")
+    app.command("measure")(cli_measure.measure_command)
 
 
 if __name__ != "__main__":

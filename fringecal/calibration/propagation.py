@@ -19,10 +19,13 @@ from ..rig import Rig, Scanner
 from ..pointcloud import triangulate_image_points
 
 __all__ = ["sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
-           "point_uncertainty_map", "scanner_with", "STEP_FRACTION"]
+           "point_uncertainty_map", "scanner_with", "STEP_FRACTION", "rigid_motion_basis", "frame_free_covariance",
+           "ATTITUDE_WEIGHT_MM"]
 
 #: central-difference step as a fraction of each parameter's standard uncertainty
 STEP_FRACTION = 1e-3
+#: in the frame-free datum, a sensor attitude change of 1 rad counts as this many mm
+ATTITUDE_WEIGHT_MM = 1000.0
 
 
 def sensor_covariance(sensor_index: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -123,3 +126,56 @@ def point_uncertainty_map(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, val
     return xr.Dataset({"u_mm": (dims, np.sqrt(var.sum(axis=0))), "u_x_mm": (dims, np.sqrt(var[0])),
                        "u_y_mm": (dims, np.sqrt(var[1])), "u_z_mm": (dims, np.sqrt(var[2]))},
                       attrs={"units": "mm", "what": "standard uncertainty of each point from the calibration"})
+
+
+def rigid_motion_basis(rig: Rig, eps: float = 1e-6) -> np.ndarray:
+    """How every sensor parameter changes when the whole rig moves rigidly: shape
+    (n_sensors * 14, 6), columns per unit translation along world x, y, z (mm) and
+    rotation about them (rad, about the centroid of the projection centres)."""
+    from ..frames import Frame
+    from ..rotation import angles_from_matrix
+
+    sensors = rig.sensors
+    pivot = np.mean([s.pinhole for s in sensors], axis=0)
+
+    def moved(xi):
+        T = Frame.from_params(xi)
+        out = []
+        for s in sensors:
+            p = np.array(s.params, float)
+            p[:3] = T.to_world((s.pinhole - pivot)[None])[0] + pivot
+            p[3:6] = angles_from_matrix(s.R @ T.R, near=s.angles)
+            out.append(p)
+        return np.concatenate(out)
+
+    G = np.zeros((14 * len(sensors), 6))
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = eps
+        G[:, k] = (moved(xi) - moved(-xi)) / (2 * eps)
+    return G
+
+
+def frame_free_covariance(rig: Rig, covariance: np.ndarray) -> np.ndarray:
+    """The sensor covariance (n_sensors * 14 square) moved to the frame realised by the
+    sensors themselves (an S-transformation to inner constraints).
+
+    The adjustment's datum holds one camera's exterior orientation fixed, so the
+    uncertainty of that camera's principal point (a few um, i.e. ~0.5 mrad of its
+    axis) turns every point's position in the world frame by that much: 1.6 mm at
+    3.5 m for the thesis rig, an uncertainty of how the frame is defined, not of what
+    is measured. Here the rigid motions of the whole rig (:func:`rigid_motion_basis`,
+    which no observation can see) are projected out so that the sensors' projection
+    centres and attitudes (1 rad weighted as ``ATTITUDE_WEIGHT_MM`` mm) do not move on
+    average: ``P C P^T`` with ``P = I - G (G^T W G)^-1 G^T W``. Lengths, shapes and the
+    registration between scanners keep their uncertainty exactly (a rigid motion
+    changes none of them); a point's uncertainty becomes that relative to the rig.
+    """
+    G = rigid_motion_basis(rig)
+    w = np.zeros(G.shape[0])
+    for i in range(G.shape[0] // 14):
+        w[14 * i:14 * i + 3] = 1.0
+        w[14 * i + 3:14 * i + 6] = ATTITUDE_WEIGHT_MM ** 2
+    WG = G * w[:, None]
+    P = np.eye(G.shape[0]) - G @ np.linalg.solve(G.T @ WG, WG.T)
+    return P @ np.asarray(covariance, float) @ P.T

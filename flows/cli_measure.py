@@ -1,0 +1,89 @@
+"""``fringecal measure``: one measurement of every scanner -> one registered point cloud.
+
+No Prefect: a measurement is seconds of work and answers at once.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from .common import UserInputError, console, err_console, guarded
+
+
+def _settings(decimate: int, max_eps1_mm: Optional[float], uncertainty: bool):
+    from fringecal.measure import MeasureSettings
+
+    try:
+        return MeasureSettings(decimate, max_eps1_mm, uncertainty)
+    except ValueError as err:
+        raise UserInputError(f"--{str(err).split()[0].replace('_', '-')}: {err}") from None
+
+
+def _print(summary: dict) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"{summary['points']:,} points -> {summary['out']}")
+    for col in ("scanner", "points", "RMS eps1 (um)", "median u (um)", "stores"):
+        t.add_column(col, justify="right" if col not in ("scanner", "stores") else "left")
+    for name, s in summary["scanners"].items():
+        u = "-" if s["u_mm_median"] is None else f"{1000 * s['u_mm_median']:.1f}"
+        t.add_row(name, f"{s['points']:,}", f"{1000 * s['eps1_rms_mm']:.1f}", u, str(len(s["sources"])))
+    console.print(t)
+    console.print(f"uncertainty: {summary['uncertainty']}")
+    if summary["overlap"]:
+        o = Table(title="overlap: distance of one scanner's points from the other's surface")
+        for col in ("points of", "from surface of", "n", "mean (um)", "RMS (um)", "95 % |d| (um)"):
+            o.add_column(col, justify="right")
+        for r in summary["overlap"]:
+            o.add_row(r["of"], r["to"], f"{r['n_points']:,}", f"{1000 * r['mean_mm']:+.1f}",
+                      f"{1000 * r['rms_mm']:.1f}", f"{1000 * r['p95_abs_mm']:.1f}")
+        console.print(o)
+    elif len(summary["measurements"]) == 1:
+        console.print("overlap: no two scanners see the same surface")
+    console.print(f"{summary['seconds']['total']:.1f} s")
+
+
+@guarded
+def measure_command(
+    calibration: Path = typer.Option(..., "--calibration", "-c",
+                                     help="Calibration file (a run's calibration.json; .xml has no covariance)."),
+    frames: Optional[list[Path]] = typer.Option(None, "--frames", "-f",
+                                                help="Measurement folder: one frame folder per scanner, named after "
+                                                     "it (repeat for several measurements)."),
+    stores: Optional[list[Path]] = typer.Option(None, "--stores", "-s",
+                                                help="Measurement folder: one decoded store <scanner>.zarr per "
+                                                     "scanner (repeat for several measurements)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Cloud to write: CLOUD.ply (binary PLY) or CLOUD.zarr."),
+    decimate: int = typer.Option(1, "--decimate", help="Keep every n-th pixel in rows and columns."),
+    max_eps1_mm: Optional[float] = typer.Option(None, "--max-eps1-mm",
+                                                help="Drop points whose two rays pass farther apart (mm)."),
+    uncertainty: bool = typer.Option(True, "--uncertainty/--no-uncertainty",
+                                     help="Per-point standard uncertainty from the calibration's covariance."),
+    datum: str = typer.Option("rig", "--datum",
+                              help="u_mm relative to the frame the sensors realise ('rig') or to the calibration's "
+                                   "own world frame, the reference camera as given ('calibration')."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+):
+    """Triangulate every valid pixel of every scanner in the global frame into one point cloud
+    (per point: scanner, camera pixel, eps1, modulation, standard uncertainty)."""
+    from fringecal.measure import MeasurementSourceError
+    from fringecal.measure.run import measure_folder
+
+    if bool(frames) == bool(stores):
+        raise UserInputError("give measurement folders either as --frames DIR or as --stores DIR (not both, not none)")
+    settings = _settings(decimate, max_eps1_mm, uncertainty)
+    kind, folders = ("frames", frames) if frames else ("stores", stores)
+    try:
+        summary = measure_folder(calibration, folders, kind, out, settings, datum=datum)
+    except MeasurementSourceError as err:
+        raise UserInputError(str(err)) from None
+    if as_json:
+        print(json.dumps(summary, indent=2))
+        return
+    if summary["uncertainty"].startswith("none"):
+        err_console.print(f"[yellow]{calibration}: no covariance in the calibration file; u_mm is NaN[/]")
+    _print(summary)

@@ -1,0 +1,230 @@
+"""One registered point cloud from a measurement of several scanners.
+
+Every valid camera pixel of every scanner's store (decoded phases ``tau_x``,
+``tau_y``, ``valid``) is triangulated with that scanner's calibrated sensors in the
+global frame (:func:`fringecal.pointcloud.triangulate_maps`, the compiled kernel the
+pipeline uses). Per point the cloud keeps what a user filters and colours by:
+
+=========== ===== =========================================================
+field       dtype meaning
+=========== ===== =========================================================
+x, y, z     f4    world coordinates, mm (float32: 0.5 um steps at 4 m, far
+                  below any scanner's noise)
+scanner     u1    index into :attr:`Cloud.scanners`
+measurement u2    index into :attr:`Cloud.measurements` (the folders measured)
+u, v        u2    camera pixel (column, row) of the store
+eps1        f4    signed closest-approach distance of the two rays, mm
+modulation  f4    the weaker of the two orientations' fringe modulation (DN)
+u_mm        f4    standard uncertainty of the point's position from the
+                  calibration (3-D: sqrt of the trace of its covariance), mm;
+                  NaN when the calibration carries no covariance
+=========== ===== =========================================================
+
+The uncertainty is the calibration's covariance (adjustment, artefact CMM and
+artefact scale, :class:`fringecal.length_uncertainty.ParameterCovariances`) propagated
+through the triangulation (:func:`fringecal.calibration.propagation.point_jacobian`).
+``fringecal measure`` first moves it to the frame the sensors realise
+(:func:`fringecal.calibration.propagation.frame_free_covariance`): the adjustment's
+datum (one camera's exterior orientation held fixed) would otherwise add ~1 mm at
+3.5 m that describes how the frame is defined, not the measurement. What is left is
+the point's uncertainty relative to the rig (thesis rig, default run: about 0.6 mm
+at 3.5 m, dominated by the orientation of the scanners, 1e-4 rad); distances
+between points, and thus lengths and shapes, are far better known (the ball-bar's
+calibration term: 30-50 um over 1 m), because a common orientation error cancels.
+That costs 56 triangulations per point, so it is computed exactly on a grid of every
+``UNCERTAINTY_STEP``-th pixel and interpolated bilinearly between the grid nodes that
+lie on the same surface (within ``SAME_SURFACE_MM`` of the point); a pixel without
+such a node (edges, small islands) gets its own exact value. The uncertainty changes
+by well under 1 % over a few pixels of a surface (``tests/test_measure.py`` checks the
+interpolation against the exact value everywhere). The phase noise of the pixel itself
+is not in ``u_mm``: it is the measurement's own (its size shows in ``eps1``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..calibration.propagation import point_covariance, point_jacobian, scanner_block
+from ..pointcloud import triangulate_maps
+from ..rig import Rig, Scanner
+
+__all__ = ["POINT_DTYPE", "Cloud", "MeasureSettings", "scanner_points", "measure_cloud", "point_uncertainty",
+           "UNCERTAINTY_STEP", "SAME_SURFACE_MM"]
+
+POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scanner", "u1"), ("measurement", "<u2"),
+                        ("u", "<u2"), ("v", "<u2"),
+                        ("eps1", "<f4"), ("modulation", "<f4"), ("u_mm", "<f4")])
+#: pixel spacing of the grid on which the uncertainty is computed exactly
+UNCERTAINTY_STEP = 4
+#: a grid node within this distance of a point lies on its surface (mm)
+SAME_SURFACE_MM = 5.0
+
+
+@dataclass(frozen=True)
+class MeasureSettings:
+    """``decimate``: keep every n-th pixel in rows and columns (1 keeps all);
+    ``max_eps1_mm``: drop points whose rays pass farther apart (None keeps all);
+    ``uncertainty``: compute ``u_mm`` (needs the calibration's covariance)."""
+
+    decimate: int = 1
+    max_eps1_mm: float | None = None
+    uncertainty: bool = True
+
+    def __post_init__(self):
+        if int(self.decimate) != self.decimate or self.decimate < 1:
+            raise ValueError(f"decimate must be a whole number >= 1, got {self.decimate}")
+        if self.max_eps1_mm is not None and not (np.isfinite(self.max_eps1_mm) and self.max_eps1_mm > 0):
+            raise ValueError(f"max_eps1_mm must be a finite length > 0, got {self.max_eps1_mm}")
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """Points (structured array of :data:`POINT_DTYPE`, shape (n,)), the scanner names
+    their ``scanner`` field indexes and the measurement names of ``measurement``."""
+
+    points: np.ndarray
+    scanners: tuple[str, ...]
+    measurements: tuple[str, ...] = ("",)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def xyz(self, scanner: str | None = None) -> np.ndarray:
+        """Coordinates (n, 3) in mm, float64; of one scanner if named."""
+        p = self.points if scanner is None else self.points[self.points["scanner"] == self.scanners.index(scanner)]
+        return np.stack([p["x"], p["y"], p["z"]], axis=-1).astype(float)
+
+    def counts(self) -> dict[str, int]:
+        n = np.bincount(self.points["scanner"], minlength=len(self.scanners))
+        return {s: int(n[i]) for i, s in enumerate(self.scanners)}
+
+
+def point_uncertainty(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, rows, cols) -> np.ndarray:
+    """Exact standard uncertainty (n,) in mm of the points at pixels (rows, cols) of a
+    store with phases ``tau_x``, ``tau_y`` (maps); ``cov28`` (28, 28) the scanner's
+    parameter covariance (camera 14, projector 14)."""
+    rows, cols = np.asarray(rows, int), np.asarray(cols, int)
+    if rows.size == 0:
+        return np.zeros(0)
+    cam = scanner.camera.image_mm(np.stack([cols, rows], axis=-1).astype(float))
+    prj = scanner.projector.image_mm(np.stack([np.asarray(tau_x)[rows, cols], np.asarray(tau_y)[rows, cols]],
+                                              axis=-1).astype(float))
+    std = np.sqrt(np.clip(np.diag(cov28), 0, None))
+    out = np.empty(len(rows))
+    for a in range(0, len(rows), 20000):
+        C = point_covariance(point_jacobian(scanner, cam[a:a + 20000], prj[a:a + 20000], std), cov28)
+        out[a:a + 20000] = np.sqrt(np.clip(np.trace(C, axis1=1, axis2=2), 0, None))
+    return out
+
+
+def _interpolated_uncertainty(scanner, cov28, tau_x, tau_y, xyz, keep, step: int) -> np.ndarray:
+    """``u_mm`` map (rows, cols), NaN outside ``keep``: exact on the grid nodes, bilinear
+    between nodes on the same surface, exact where no node is."""
+    h, w = keep.shape
+    out = np.full((h, w), np.nan)
+    node = np.zeros_like(keep)
+    node[::step, ::step] = True
+    node &= keep
+    r, c = np.nonzero(node)
+    out[r, c] = point_uncertainty(scanner, cov28, tau_x, tau_y, r, c)
+    r, c = np.nonzero(keep & ~node)
+    if r.size == 0:
+        return out
+    r0, c0 = (r // step) * step, (c // step) * step
+    fr, fc = (r - r0) / step, (c - c0) / step
+    num = np.zeros(r.size)
+    den = np.zeros(r.size)
+    p = xyz[:, r, c]
+    for dr, dc, wgt in ((0, 0, (1 - fr) * (1 - fc)), (0, step, (1 - fr) * fc), (step, 0, fr * (1 - fc)),
+                        (step, step, fr * fc)):
+        rn, cn = r0 + dr, c0 + dc
+        inside = (rn < h) & (cn < w)
+        rn, cn = np.where(inside, rn, 0), np.where(inside, cn, 0)
+        ok = inside & node[rn, cn] & (np.linalg.norm(xyz[:, rn, cn] - p, axis=0) <= SAME_SURFACE_MM) & (wgt > 0)
+        num += np.where(ok, wgt * np.nan_to_num(out[rn, cn]), 0.0)
+        den += np.where(ok, wgt, 0.0)
+    has = den > 0
+    out[r[has], c[has]] = num[has] / den[has]
+    lone = ~has
+    out[r[lone], c[lone]] = point_uncertainty(scanner, cov28, tau_x, tau_y, r[lone], c[lone])
+    return out
+
+
+def scanner_points(scanner: Scanner, index: int, store, settings: MeasureSettings = MeasureSettings(),
+                   cov28: np.ndarray | None = None, measurement: int = 0) -> np.ndarray:
+    """The points (structured array of :data:`POINT_DTYPE`) of one scanner's store.
+
+    Parameters
+    ----------
+    scanner : the calibrated scanner, its camera at the store's image size
+    index, measurement : the values of the ``scanner`` and ``measurement`` fields
+    store : mapping with ``tau_x``, ``tau_y``, ``valid`` and ``modulation_x``,
+        ``modulation_y`` maps, shape (rows, cols) (an opened store or an in-memory
+        decoded measurement)
+    cov28 : (28, 28) covariance of the scanner's parameters, or None (``u_mm`` NaN)
+    """
+    tau_x = np.asarray(store["tau_x"])
+    tau_y = np.asarray(store["tau_y"])
+    valid = np.asarray(store["valid"], bool)
+    maps = triangulate_maps(scanner.camera, scanner.projector, tau_x, tau_y, valid)
+    keep = maps.valid
+    if settings.decimate > 1:
+        grid = np.zeros_like(keep)
+        grid[::settings.decimate, ::settings.decimate] = True
+        keep &= grid
+    if settings.max_eps1_mm is not None:
+        keep &= np.abs(maps.eps1) <= settings.max_eps1_mm
+    rows, cols = np.nonzero(keep)
+    pts = np.empty(rows.size, POINT_DTYPE)
+    pts["x"], pts["y"], pts["z"] = maps.x[rows, cols], maps.y[rows, cols], maps.z[rows, cols]
+    pts["scanner"] = index
+    pts["measurement"] = measurement
+    pts["u"], pts["v"] = cols, rows
+    pts["eps1"] = maps.eps1[rows, cols]
+    mod = np.minimum(np.asarray(store["modulation_x"])[rows, cols], np.asarray(store["modulation_y"])[rows, cols])
+    pts["modulation"] = mod
+    if cov28 is None or not settings.uncertainty:
+        pts["u_mm"] = np.nan
+    else:
+        xyz = np.stack([maps.x, maps.y, maps.z])
+        step = max(1, UNCERTAINTY_STEP // settings.decimate) * settings.decimate
+        pts["u_mm"] = _interpolated_uncertainty(scanner, cov28, tau_x, tau_y, xyz, keep, step)[rows, cols]
+    return pts
+
+
+def measure_cloud(rig: Rig, stores: Mapping[str, object] | Sequence[Mapping[str, object]],
+                  settings: MeasureSettings = MeasureSettings(), covariance: np.ndarray | None = None,
+                  measurements: Sequence[str] | None = None) -> Cloud:
+    """One cloud of every scanner's store of one or several measurements.
+
+    Parameters
+    ----------
+    rig : the calibration; each store's scanner must be in it, cameras are resampled
+        to the store's image size when that differs (a binned camera)
+    stores : scanner name -> store (see :func:`scanner_points`), or a sequence of
+        such mappings, one per measurement
+    covariance : (14 n_sensors, 14 n_sensors) covariance of every sensor parameter in
+        rig order (``ParameterCovariances.total``), or None
+    measurements : names of the measurements (default "0", "1", ...)
+    """
+    from ..pipeline.verify import store_scanner
+
+    groups = [stores] if isinstance(stores, Mapping) else list(stores)
+    names = tuple(s.name for s in rig.scanners)
+    parts = []
+    for m, group in enumerate(groups):
+        unknown = sorted(set(group) - set(names))
+        if unknown:
+            raise KeyError(f"scanner(s) {unknown} are not in the calibration ({list(names)})")
+        for i, name in enumerate(names):
+            if name not in group:
+                continue
+            ds = group[name]
+            scanner = store_scanner(ds, rig.scanner(name))
+            cov28 = None if covariance is None else scanner_block(covariance, rig, name)
+            parts.append(scanner_points(scanner, i, ds, settings, cov28, m))
+    labels = tuple(measurements) if measurements is not None else tuple(str(m) for m in range(len(groups)))
+    return Cloud(np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE), names, labels)

@@ -1,0 +1,111 @@
+"""``fringecal measure`` without the command line: folder in, cloud file and summary out."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..calibration.propagation import frame_free_covariance
+from ..calibration_file import read_calibration
+from .cloud import Cloud, MeasureSettings, measure_cloud
+from .files import CLOUD_SUFFIXES, write_cloud
+from .overlap import overlap_report
+from .sources import MeasurementSourceError, measurement_entries, open_entry
+
+__all__ = ["measure_folder", "check_output"]
+
+
+def check_output(out) -> Path:
+    """``out`` is a cloud file fringecal can write there (suffix, not a folder, a parent
+    that exists or can be made)."""
+    out = Path(out)
+    if out.suffix.lower() not in CLOUD_SUFFIXES:
+        raise MeasurementSourceError(f"{out}: the cloud is written as {' or '.join(CLOUD_SUFFIXES)} "
+                                     f"(by the suffix), not {out.suffix or 'no suffix'!r}")
+    if out.suffix.lower() == ".ply" and out.is_dir():
+        raise MeasurementSourceError(f"{out}: is a folder, not a file to write")
+    if out.suffix.lower() == ".zarr" and out.exists() and not out.is_dir():
+        raise MeasurementSourceError(f"{out}: is a file, not a store to write")
+    parent = out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise MeasurementSourceError(f"{out}: {parent} is a file, not a folder")
+    return out
+
+
+DATUMS = ("rig", "calibration")
+
+
+def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettings = MeasureSettings(),
+                   decode_settings=None, datum: str = "rig") -> dict:
+    """Measure ``folders`` (a measurement folder or a list of them; one entry per
+    scanner, ``kind`` "frames" or "stores") with the calibration file ``calibration``
+    and write one cloud to ``out``.
+
+    ``datum`` says relative to what ``u_mm`` is stated: ``"rig"``, the frame the sensors
+    realise (:func:`~fringecal.calibration.propagation.frame_free_covariance`), or
+    ``"calibration"``, the adjustment's own world frame (the reference camera's
+    exterior orientation as given), which is the frame to compare with coordinates
+    known in it (a simulation's truth).
+
+    Returns the summary: points per scanner, their median ``u_mm`` and RMS ``eps1``,
+    the overlap between scanners (:func:`~fringecal.measure.overlap.overlap_report`),
+    wall times, and what the cloud's header records. Every folder is checked before
+    any is read; the cloud file appears whole or not at all.
+    """
+    t0 = time.perf_counter()
+    if datum not in DATUMS:
+        raise MeasurementSourceError(f"datum must be one of {', '.join(DATUMS)}, got {datum!r}")
+    folders = [Path(folders)] if isinstance(folders, (str, Path)) else [Path(f) for f in folders]
+    if len({f.resolve() for f in folders}) != len(folders):
+        raise MeasurementSourceError(f"a measurement folder is given twice: {', '.join(map(str, folders))}")
+    cal = read_calibration(calibration)
+    out = check_output(out)
+    entries = [measurement_entries(f, cal.rig, kind) for f in folders]
+    cov = None
+    if settings.uncertainty and cal.covariances is not None:
+        cov = cal.covariances.total
+        if datum == "rig":
+            cov = frame_free_covariance(cal.rig, cov)
+    t_read = t_cloud = 0.0
+    parts = []
+    for group in entries:            # one measurement in memory at a time
+        t = time.perf_counter()
+        stores = {name: open_entry(path, kind, decode_settings) for name, path in group.items()}
+        t_read += time.perf_counter() - t
+        t = time.perf_counter()
+        try:
+            parts.append(measure_cloud(cal.rig, stores, settings, cov).points)
+        finally:
+            for ds in stores.values():
+                ds.close()
+        parts[-1]["measurement"] = len(parts) - 1
+        t_cloud += time.perf_counter() - t
+    t = time.perf_counter()
+    rig = cal.rig
+    cloud = Cloud(np.concatenate(parts), tuple(s.name for s in rig.scanners), tuple(f.name for f in folders))
+    overlap = [] if len(folders) > 1 else overlap_report(cloud, {s.name: s.camera.pinhole for s in rig.scanners})
+    comments = {"calibration": str(Path(calibration).resolve()),
+                "measurement_folders": [str(f.resolve()) for f in folders],
+                "calibration_inputs": cal.provenance.get("inputs", {}),
+                "decimate": settings.decimate, "max_eps1_mm": settings.max_eps1_mm, "u_mm_datum": datum}
+    write_cloud(cloud, out, comments)
+    t_write = time.perf_counter() - t
+    per = {}
+    for i, name in enumerate(cloud.scanners):
+        p = cloud.points[cloud.points["scanner"] == i]
+        if len(p) == 0:
+            continue
+        per[name] = {"sources": [str(g[name]) for g in entries if name in g], "points": int(len(p)),
+                     "eps1_rms_mm": float(np.sqrt(np.mean(p["eps1"].astype(float) ** 2))),
+                     "u_mm_median": float(np.median(p["u_mm"])) if cov is not None else None}
+    return {"out": str(out), "points": len(cloud), "measurements": [str(f) for f in folders], "scanners": per,
+            "datum": datum,
+            "uncertainty": "from the calibration's covariance" if cov is not None else
+            ("not requested" if not settings.uncertainty else "none: the calibration file carries no covariance"),
+            "overlap": [o.as_dict() for o in overlap],
+            "seconds": {"read": t_read, "triangulate": t_cloud, "overlap_and_write": t_write,
+                        "total": time.perf_counter() - t0}}

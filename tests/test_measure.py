@@ -1,0 +1,225 @@
+"""``fringecal measure``: the artefact at a pose the calibration never saw, measured into
+one PLY with the calibration of a small simulated run, against the truth.
+
+The calibration: the small thesis rig (320 px, the short sequence), poses 1, 5, 9, 12,
+up to the bundle step (its calibration.json carries the covariance). The object:
+thesis pose 3 rendered by the same true rig (a second run up to ``simulate-render``).
+The truth is moved into the calibration's world (the reference camera's frame, as the
+evaluate step does). At this size the calibration is weak (sensor positions off by a
+few mm, its stated uncertainty says so), which makes the comparison a test of the
+stated uncertainty rather than of the noise floor.
+"""
+
+import json
+import os
+
+import numpy as np
+import pandas as pd
+import pytest
+from plyfile import PlyData
+from typer.testing import CliRunner
+
+from fringecal.calibration.propagation import frame_free_covariance, scanner_block
+from fringecal.calibration_file import read_calibration
+from fringecal.frames import frames_from_rows
+from fringecal.measure import MeasureSettings, measure_cloud, point_uncertainty, read_cloud
+from fringecal.measure.overlap import surface_distances
+from fringecal.measure.run import measure_folder
+from fringecal.pipeline.verify import store_scanner
+from fringecal.runconfig import load_run_config
+from fringecal.rundir import RunDir
+from fringecal.simulate.small_thesis import write_small_thesis_config
+from fringecal.spheres.fit import SphereModel
+from fringecal.steps import run_pipeline
+from fringecal.store import open_store
+from fringecal.summary import manifest
+
+SCANNERS = ("scanner1", "scanner2")
+
+
+def _run(d, poses, until) -> RunDir:
+    d.mkdir()
+    cfg = load_run_config(write_small_thesis_config(d, width=320, poses=poses, positions=(1, 9)))
+    rd = RunDir(d / "run").create()
+    rd.manifest.save(manifest(cfg))
+    run_pipeline(rd, cfg, workers=2, until=until)
+    return rd
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    root = tmp_path_factory.mktemp("measure")
+    cal = _run(root / "cal", (1, 5, 9, 12), "bundle")
+    obj = _run(root / "obj", (3,), "simulate-render")
+    folder = root / "pose3"
+    folder.mkdir()
+    for s in SCANNERS:
+        os.symlink(obj.store(f"3-{s}").path, folder / f"{s}.zarr")
+    T = frames_from_rows(obj.truth.poses.load())["3"]
+    T_world_reference = frames_from_rows(obj.truth.scanner_frames.load(), key="scanner")["scanner1"]
+    art = pd.read_csv(obj.artefact.path)
+    centres = T_world_reference.inverse().to_world(T.to_world(art[["x_mm", "y_mm", "z_mm"]].to_numpy()))
+    return {"root": root, "calibration": cal.calibration.path, "folder": folder, "centres": centres,
+            "radii": art.diameter_mm.to_numpy() / 2}
+
+
+def _sphere_centres(cloud, cell):
+    """Fixed-radius fits of each sphere's points (those within 3 mm of its true surface
+    shell, per scanner); -> list of (scanner, error vector, median u_mm)."""
+    xyz = cloud.xyz()
+    out = []
+    for centre, r in zip(cell["centres"], cell["radii"]):
+        for k, s in enumerate(cloud.scanners):
+            m = (cloud.points["scanner"] == k) & (np.linalg.norm(xyz - centre, axis=1) < r + 3)
+            if m.sum() < 50:
+                continue
+            fit = SphereModel.from_estimate(xyz[m], radius=r)
+            out.append((s, np.asarray(fit.centre) - centre, float(np.median(cloud.points["u_mm"][m]))))
+    return out
+
+
+def test_the_artefact_at_a_new_pose_lands_on_the_truth_within_the_stated_uncertainty(cell):
+    out = cell["root"] / "pose3.ply"
+    summary = measure_folder(cell["calibration"], cell["folder"], "stores", out, datum="calibration")
+    cloud = read_cloud(out)
+    assert cloud.scanners == SCANNERS and len(cloud) == summary["points"] > 5000
+    fits = _sphere_centres(cloud, cell)
+    assert {s for s, _, _ in fits} == set(SCANNERS) and len(fits) >= 6   # both scanners see 4 spheres
+    ratio = [np.linalg.norm(e) / u for _, e, u in fits]
+    # the 3-D error of each centre against sqrt(trace) of its covariance: within k = 2
+    # (measured: 0.6 to 1.4; the errors are 4-13 mm at this size, the uncertainties 7-9 mm)
+    assert max(ratio) < 2.0
+    assert 0.3 < float(np.sqrt(np.mean(np.square(ratio)))) < 1.6
+    # in the rig's own frame the common orientation of the frame no longer counts
+    rig_frame = measure_folder(cell["calibration"], cell["folder"], "stores", cell["root"] / "rig.ply")
+    for s in SCANNERS:
+        assert rig_frame["scanners"][s]["u_mm_median"] < 0.8 * summary["scanners"][s]["u_mm_median"]
+
+
+def test_the_ply_is_read_back_whole_by_plyfile(cell):
+    out = cell["root"] / "cloud.ply"
+    summary = measure_folder(cell["calibration"], cell["folder"], "stores", out, MeasureSettings(decimate=2))
+    ply = PlyData.read(str(out))
+    v = ply["vertex"].data
+    assert ply.text is False and ply.byte_order == "<"
+    assert v.dtype.names == ("x", "y", "z", "scanner", "measurement", "u", "v", "eps1", "modulation", "u_mm")
+    assert len(v) == summary["points"] == sum(s["points"] for s in summary["scanners"].values())
+    assert 'scanners: ["scanner1", "scanner2"]' in ply.comments
+    assert np.all(v["u"] % 2 == 0) and np.all(v["v"] % 2 == 0)              # --decimate 2
+    assert set(np.unique(v["scanner"])) == {0, 1}
+    assert np.isfinite(v["u_mm"]).all() and (v["u_mm"] > 0).all()
+    assert (v["modulation"] > 0).all()
+    # the points are the store's pixels triangulated: same as measure_cloud in memory
+    cal = read_calibration(cell["calibration"])
+    with open_store(cell["folder"] / "scanner1.zarr") as ds:
+        ref = measure_cloud(cal.rig, {"scanner1": ds}, MeasureSettings(decimate=2, uncertainty=False))
+    mine = v[v["scanner"] == 0]
+    np.testing.assert_array_equal(mine["x"], ref.points["x"])
+    np.testing.assert_array_equal(mine["u"], ref.points["u"])
+
+
+def test_interpolated_uncertainty_matches_the_exact_one_at_every_point(cell):
+    cal = read_calibration(cell["calibration"])
+    cov = frame_free_covariance(cal.rig, cal.covariances.total)
+    with open_store(cell["folder"] / "scanner2.zarr") as ds:
+        cloud = measure_cloud(cal.rig, {"scanner2": ds}, MeasureSettings(), cov)
+        scanner = store_scanner(ds, cal.rig.scanner("scanner2"))
+        exact = point_uncertainty(scanner, scanner_block(cov, cal.rig, "scanner2"), ds.tau_x.values,
+                                  ds.tau_y.values, cloud.points["v"], cloud.points["u"])
+    rel = np.abs(cloud.points["u_mm"] / exact - 1)
+    assert np.max(rel) < 0.01                    # bilinear between grid nodes 4 px apart
+
+
+def test_max_eps1_drops_exactly_the_points_beyond_it(cell):
+    full = measure_folder(cell["calibration"], cell["folder"], "stores", cell["root"] / "a.zarr",
+                          MeasureSettings(uncertainty=False))
+    cut = measure_folder(cell["calibration"], cell["folder"], "stores", cell["root"] / "b.zarr",
+                         MeasureSettings(max_eps1_mm=0.3, uncertainty=False))
+    a, b = read_cloud(cell["root"] / "a.zarr"), read_cloud(cell["root"] / "b.zarr")
+    assert len(b) == int(np.count_nonzero(np.abs(a.points["eps1"]) <= 0.3)) < len(a) == full["points"]
+    assert cut["uncertainty"] == "not requested" and np.isnan(b.points["u_mm"]).all()
+
+
+def test_overlap_distance_of_two_samplings_of_one_surface():
+    """Two noisy samplings of a curved surface, the second shifted 0.2 mm along the normal."""
+    rng = np.random.default_rng(3)
+
+    def surface(n, offset):
+        xy = rng.uniform(-100, 100, (n, 2))
+        z = (xy[:, 0] ** 2 + 0.5 * xy[:, 1] ** 2) / 4000 + offset + rng.normal(0, 0.02, n)
+        return np.column_stack([xy, z])
+
+    a, b = surface(20000, 0.2), surface(20000, 0.0)
+    d = surface_distances(a, b, towards_b=[0, 0, 1000.0])
+    assert len(d) > 15000                             # all but the rim
+    assert abs(np.mean(d) - 0.2) < 0.005             # slopes < 0.05: normal offset ~ 0.2 mm
+    assert 0.019 < np.std(d) < 0.025                  # A's noise and that of B's local plane
+    assert len(surface_distances(a + [500.0, 0, 0], b, towards_b=[0, 0, 1000.0])) == 0
+
+
+@pytest.mark.parametrize("case", ["both", "neither", "unknown_scanner", "suffix", "xml_has_no_store",
+                                  "out_is_dir", "no_calibration", "decimate"])
+def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
+    from flows.cli import app
+
+    folder, cal = cell["folder"], cell["calibration"]
+    out = tmp_path / "out.ply"
+    args = ["measure", "-c", str(cal), "--stores", str(folder), "-o", str(out)]
+    expect = {"both": "not both, not none", "neither": "not both, not none",
+              "unknown_scanner": "is not in the calibration", "suffix": "is written as .ply or .zarr",
+              "xml_has_no_store": "a store, but --frames expects", "out_is_dir": "is a folder",
+              "no_calibration": "no such file", "decimate": "--decimate"}[case]
+    if case == "both":
+        args += ["--frames", str(folder)]
+    elif case == "neither":
+        args = ["measure", "-c", str(cal), "-o", str(out)]
+    elif case == "unknown_scanner":
+        bad = tmp_path / "m"
+        bad.mkdir()
+        os.symlink(folder / "scanner1.zarr", bad / "scanner7.zarr")
+        args[4] = str(bad)
+    elif case == "suffix":
+        out = tmp_path / "out.txt"
+        args[-1] = str(out)
+    elif case == "xml_has_no_store":
+        args[3] = "--frames"
+    elif case == "out_is_dir":
+        out.mkdir()
+    elif case == "no_calibration":
+        args[2] = str(tmp_path / "nope.json")
+    elif case == "decimate":
+        args += ["--decimate", "0"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert expect in " ".join(r.output.split()), r.output
+    assert "Traceback" not in r.output
+    assert not out.is_file() and [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_cli_summary_json(cell, tmp_path):
+    from flows.cli import app
+
+    out = tmp_path / "c.ply"
+    r = CliRunner().invoke(app, ["measure", "-c", str(cell["calibration"]), "--stores", str(cell["folder"]),
+                                 "-o", str(out), "--json", "--decimate", "3"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(r.output)
+    assert doc["out"] == str(out) and doc["datum"] == "rig" and doc["overlap"] == []
+    assert set(doc["scanners"]) == set(SCANNERS) and len(PlyData.read(str(out))["vertex"]) == doc["points"]
+
+
+def test_several_measurement_folders_make_one_cloud(cell, tmp_path):
+    again = tmp_path / "again"
+    again.mkdir()
+    for s in SCANNERS:
+        os.symlink(cell["folder"] / f"{s}.zarr", again / f"{s}.zarr")
+    one = measure_folder(cell["calibration"], cell["folder"], "stores", tmp_path / "one.ply",
+                         MeasureSettings(uncertainty=False))
+    two = measure_folder(cell["calibration"], [cell["folder"], again], "stores", tmp_path / "two.ply",
+                         MeasureSettings(uncertainty=False))
+    cloud = read_cloud(tmp_path / "two.ply")
+    assert two["points"] == 2 * one["points"] and cloud.measurements == ("pose3", "again")
+    assert np.bincount(cloud.points["measurement"]).tolist() == [one["points"]] * 2
+    assert two["overlap"] == []                  # several measurements: no overlap report
+    with pytest.raises(ValueError, match="given twice"):
+        measure_folder(cell["calibration"], [cell["folder"], cell["folder"]], "stores", tmp_path / "x.ply")
