@@ -26,6 +26,7 @@ def simulate_command(
 
     from fringecal.acquisition import acquisition_table, load_simulated_rig
     from fringecal.acquisition.export import write_dataset
+    from fringecal.acquisition.simulated import object_plans
 
     from .cli_run import check_simulation, validate_run_config
 
@@ -39,7 +40,13 @@ def simulate_command(
     if cfg.source != "simulated":
         raise UserInputError(f"{config}: has no simulate section (it names a data set)")
     check_simulation(cfg.simulate)
-    n = len(acquisition_table(load_simulated_rig(cfg.simulate)))
+    sr = load_simulated_rig(cfg.simulate)
+    plans = object_plans(cfg.simulate, sr.truth, sr.built, sr.rods, sr.hardware)
+    for plan in plans:
+        console.print(f"object {plan.spec.name} ({plan.spec.kind}): recorded by {', '.join(plan.recorders)}")
+        for line in plan.describe_skipped():
+            console.print(line)
+    n = len(acquisition_table(sr)) + sum(len(p.recorders) for p in plans)
     with Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console) as progress:
         task = progress.add_task("render image stacks", total=n)

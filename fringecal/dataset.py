@@ -38,6 +38,10 @@ clear message before any heavy work starts. The layout is the contract::
                                                    sphere (probing errors P_F and P_S)
       verification/acceptance/dumbbell/<position>/<scanner>/  of the dumbbell (sphere-spacing error SD)
       verification/acceptance/flat/<position>/<scanner>/      of the flat (flatness measurement error F)
+      objects/<name>/<scanner>/                    optional, not read: measurements of objects to
+                                                   measure with the calibration (``fringecal measure``;
+                                                   :mod:`fringecal.simulate.objects` writes them), one
+                                                   stack (or <scanner>.zarr) per scanner that saw it
 
 A *measurement* is one artefact pose seen by every scanner: every measurement folder
 holds a stack for every scanner of ``sensors_prior.csv``. The stack of (measurement
@@ -47,6 +51,9 @@ has the id ``f"{position}-{s}"``.
 
 Decisions
 ---------
+- ``objects/`` (:data:`OBJECTS_DIR`) is not part of the calibration: :meth:`DataSet.open`
+  neither lists nor checks it, and no run step reads it or keys on it. Every other
+  folder at the top level is ignored too; only the files and folders above are read.
 - Entries whose name starts with ``.`` are ignored everywhere (editor and OS files, and
   the hidden temporary folders that :mod:`fringecal.store` writes before a rename).
 - Regular files in ``measurements/``, in a measurement or position folder and in
@@ -123,7 +130,8 @@ from schemas import HexapodMovesTable, PosePlanTable, TableError, read_table
 
 __all__ = [
     "DATASET_FILE", "ARTEFACT_FILE", "RODS_FILE", "SENSORS_PRIOR_FILE", "POSES_PLANNED_FILE",
-    "HEXAPOD_MOVES_FILE", "MEASUREMENTS_DIR", "VERIFICATION_DIR", "BALLBAR_FILE", "STORE_SUFFIX", "STORE_VARIABLES",
+    "HEXAPOD_MOVES_FILE", "MEASUREMENTS_DIR", "VERIFICATION_DIR", "OBJECTS_DIR", "BALLBAR_FILE", "STORE_SUFFIX",
+    "STORE_VARIABLES",
     "BALLBAR_SPHERES", "ACCEPTANCE_DIR", "ACCEPTANCE_TESTS", "STANDARDS_FILE", "DataSetError", "ProcessingOverrides",
     "DatasetConfig", "StackSource", "DataSet", "natural_key",
 ]
@@ -136,6 +144,8 @@ POSES_PLANNED_FILE = "poses_planned.csv"
 HEXAPOD_MOVES_FILE = "hexapod_moves.csv"
 MEASUREMENTS_DIR = "measurements"
 VERIFICATION_DIR = "verification"
+#: measurements of objects to measure with the calibration (not read by the calibration)
+OBJECTS_DIR = "objects"
 BALLBAR_FILE = "ballbar.csv"
 STORE_SUFFIX = ".zarr"
 #: variables a decoded store must hold

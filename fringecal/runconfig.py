@@ -25,6 +25,7 @@ from .fringe.decode import DecodeSettings
 from .fringe.sequence import FringeSequence
 from .simulate.config import RenderConfig
 from .simulate.errors import SimulationErrors
+from .simulate.objects import SimulatedObject
 
 __all__ = ["RunConfig", "SimulationConfig", "load_run_config", "default_run_config_path", "SequenceConfig",
            "AcquisitionConfig", "PriorCalibrationConfig", "ExtractionConfig", "ControlPointConfig", "BundleConfig",
@@ -274,6 +275,11 @@ class SimulationConfig(StrictModel):
     condition, thermal expansion from the CMM's 20 C to ``temperature_c``; see
     ``fringecal.engineering.corrections``) turn the CMM coordinates into the artefact
     the run renders, fits and adjusts against.
+
+    ``objects`` (default none) are objects to measure with the finished calibration
+    (:mod:`fringecal.simulate.objects`: a curved ``panel``, the ``artefact`` at a new
+    pose); ``fringecal simulate`` writes them into the data set's ``objects/`` folder.
+    The simulated run itself does not render them.
     """
 
     rig: Path = Field(default_factory=lambda: thesis_dir() / "rig.yaml")
@@ -284,6 +290,16 @@ class SimulationConfig(StrictModel):
     verification: SimulatedVerificationConfig = Field(default_factory=SimulatedVerificationConfig)
     errors: SimulationErrors = Field(default_factory=SimulationErrors)
     acceptance: SimulatedAcceptanceConfig = Field(default_factory=SimulatedAcceptanceConfig)
+    objects: list[SimulatedObject] = Field(default_factory=list)
+
+    @field_validator("objects")
+    @classmethod
+    def _unique_object_names(cls, v):
+        names = [o.name for o in v]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"object names must be unique (each is a folder objects/<name>/): {dup}")
+        return v
 
     def rig_config(self) -> RigConfig:
         return load_yaml_model(self.rig, RigConfig)

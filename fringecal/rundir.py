@@ -346,6 +346,11 @@ class TruthDir:
         """The renderer's ground-truth maps of one acquisition store."""
         return self._at(StoreFile, f"measurements/{measurement}.zarr")
 
+    def object(self, name: str) -> JsonFile:
+        """The truth of a simulated object to measure (``simulate.objects``): its kind,
+        ``T_world_object`` and surface (:func:`fringecal.simulate.objects.object_truth`)."""
+        return self._at(JsonFile, f"objects/{name}.json")
+
 
 class RunDir:
     """Every file of one run. Creating the object touches nothing; :meth:`create` makes folders."""

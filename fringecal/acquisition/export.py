@@ -7,13 +7,16 @@ rods, each scanner's prior calibration, the planned poses, one image stack per
 table and its image stacks, and the acceptance test's certificates
 (``verification/acceptance/standards.yaml``) and image stacks
 (``verification/acceptance/<test>/<position>/<scanner>/``, each position by the
-scanner it was planned for; none when ``simulate.acceptance`` plans nothing).
+scanner it was planned for; none when ``simulate.acceptance`` plans nothing), and the
+objects to measure of ``simulate.objects`` (``objects/<name>/<scanner>/``, by every
+scanner that sees enough of the object, at the scanners' session-start placement;
+the calibration does not read them, :mod:`fringecal.simulate.objects`).
 ``dataset.yaml`` carries the simulation config's
 processing settings, so ``fringecal run --dataset`` processes it as ``fringecal run``
 processes the simulation. The truth goes to a separate folder that the data set
 does not reference (true sensors, the artefact and ball-bar as built, scanner
-frames, reached poses, hexapod moves, ball-bar and acceptance positions), laid out as a run
-directory's ``truth/`` (:class:`~fringecal.rundir.TruthDir`).
+frames, reached poses, hexapod moves, ball-bar and acceptance positions, and each object's
+``objects/<name>.json``), laid out as a run directory's ``truth/`` (:class:`~fringecal.rundir.TruthDir`).
 
 Both doors render with the same functions, the same measurement ids and noise
 seeds and the same unmodelled errors (``simulate.errors``), and the frames are
@@ -38,12 +41,13 @@ from ..ballbar import ballbar_rods
 from ..frames import frame_rows, frames_from_rows
 from ..fringe.importer import write_frames
 from ..rundir import TruthDir, measurement_id
+from ..simulate.objects import object_truth
 from ..simulate.resolution import scaled_scanner
 from ..simulate.scenes import acceptance_scene, artefact_scene
 from ..simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
 from .measure import render_frames
 from .plan import move_hexapod, poses_table
-from .simulated import acceptance_camera_width, load_simulated_rig
+from .simulated import acceptance_camera_width, load_simulated_rig, object_plans
 
 __all__ = ["write_dataset", "PROCESSING_SECTIONS"]
 
@@ -156,6 +160,20 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
             jobs.append((measurement_id(name, row.scanner), s, scene, a_acq,
                          acceptance_dir / row.test / name / row.scanner,
                          render_errors(errors, s, T, row.test, scene.sphere_ids, native)))
+
+        # the objects to measure: the acquisition's cameras and noise, each object's own
+        # seed, the scanners at their session-start placement (no session drift)
+        for plan in object_plans(sim, truth, built, rods, sr.hardware):
+            spec = plan.spec
+            known.object(spec.name).save(object_truth(plan, built if spec.kind == "artefact" else None,
+                                                      acq.camera_width_px))
+            o_acq = acq.model_copy(update={"seed": spec.seed})
+            label = "artefact" if spec.kind == "artefact" else spec.kind
+            for scanner in plan.recorders:
+                s = truth.scanner(scanner)
+                jobs.append((measurement_id(spec.name, scanner), s, plan.scene, o_acq,
+                             tmp / layout.OBJECTS_DIR / spec.name / scanner,
+                             render_errors(errors, s, plan.T_world_object, label, plan.scene.sphere_ids, native)))
 
         def render(job):
             mid, scanner, scene, settings, folder, errs = job

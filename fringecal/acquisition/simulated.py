@@ -50,8 +50,8 @@ from ..simulate.world import as_built_artefact, as_built_ballbar
 if TYPE_CHECKING:
     from ..acceptance.standards import AcceptanceStandards
 
-__all__ = ["acceptance_camera_width", "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing", "sphere_sightings",
-           "acquisition_table", "true_volumes", "acceptance_plan"]
+__all__ = ["acceptance_camera_width", "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing",
+           "sphere_sightings", "acquisition_table", "true_volumes", "acceptance_plan", "object_plans"]
 
 
 @dataclass(frozen=True)
@@ -259,3 +259,21 @@ def acquisition_table(sr: SimulatedRig) -> pd.DataFrame:
     df = pd.DataFrame(rows, columns=["measurement", "kind", "pose", "scanner"])
     df["source"] = "simulated"
     return df
+
+
+def object_plans(sim, truth: Rig, built: Artefact, rods: pd.DataFrame | None, hardware: ArtefactHardware) -> list:
+    """The :class:`~fringecal.simulate.objects.ObjectPlan` of every ``simulate.objects``
+    entry in front of the true rig (the artefact as ``built``); raises ConfigError for an
+    unknown material, and, naming the object and every scanner's view fraction, for an
+    object no scanner sees."""
+    from ..simulate.objects import plan_object
+
+    materials = sim.acquisition.render.materials
+    for o in sim.objects:
+        if getattr(o, "material", None) is not None and o.material not in materials:
+            raise ConfigError(f"simulate.objects: object {o.name!r}: material {o.material!r} is not one of "
+                              f"simulate.acquisition.render.materials ({', '.join(sorted(materials))})")
+    try:
+        return [plan_object(o, truth, built, rods, hardware) for o in sim.objects]
+    except ValueError as err:
+        raise ConfigError(str(err)) from None

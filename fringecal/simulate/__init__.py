@@ -13,7 +13,7 @@ from .config import DEFAULT_MATERIALS, Material, RenderConfig, excess_noise_for_
 from .render import (LIGHT_LIT, LIGHT_NO_HIT, LIGHT_OUTSIDE, LIGHT_SHADOW, GroundTruth, Measurement,
                      render_measurement)
 from .resolution import scaled_format, scaled_rig, scaled_scanner
-from .scene import Box, Cylinder, Hits, Plane, Scene, SceneObject, Sphere
+from .scene import Box, Cylinder, Hits, Panel, Plane, Scene, SceneObject, Sphere
 from .scenes import (SPHERE_PLATE_SEPARATION_MM, ArtefactHardware, artefact_scene, backdrop, sphere_plate_pose,
                      sphere_plate_scene)
 from .visibility import pixel_centre_rays, sphere_visibility
@@ -23,7 +23,7 @@ __all__ = [
     "GroundTruth", "Measurement", "render_measurement",
     "LIGHT_NO_HIT", "LIGHT_LIT", "LIGHT_SHADOW", "LIGHT_OUTSIDE",
     "scaled_format", "scaled_scanner", "scaled_rig",
-    "Sphere", "Cylinder", "Box", "Plane", "SceneObject", "Scene", "Hits",
+    "Sphere", "Cylinder", "Box", "Plane", "Panel", "SceneObject", "Scene", "Hits",
     "ArtefactHardware", "artefact_scene", "backdrop", "sphere_plate_scene", "sphere_plate_pose",
     "SPHERE_PLATE_SEPARATION_MM", "pixel_centre_rays", "sphere_visibility",
 ]

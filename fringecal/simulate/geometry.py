@@ -11,11 +11,26 @@ SPHERE      P = centre, RADIUS
 CYLINDER    P = start of the axis, A = unit axis, RADIUS, LENGTH (closed, flat ends)
 BOX         P = centre, A, B, C = unit local axes, HALF = half sizes along them
 PLANE       P = a point, A = unit normal (two-sided, infinite)
+PANEL       P = origin of the panel frame, A, B = its unit x and y axes (z = A x B),
+            PANEL_K = curvatures (kx, ky) 1/mm, PANEL_HALF = half sizes (a, b) mm,
+            PANEL_CUBIC = cubic coefficients (c30, c21, c12, c03) mm (two-sided, open)
 ==========  =========================================================================
 
 plus a bounding sphere (``BOUND`` centre, ``BOUND_R`` radius; infinite for planes)
-used to cull primitives per image tile. Normals are outward (for planes: facing the
-ray). The sensor model mirrors :mod:`fringecal.sensor` exactly (distortion of ideal
+used to cull primitives per image tile. Normals are outward (for planes and panels:
+facing the ray).
+
+The panel is the free-form patch z = f(x, y) of its own frame over |x| <= a, |y| <= b::
+
+    f = kx x^2 / 2 + ky y^2 / 2 + c30 u^3 + c21 u^2 v + c12 u v^2 + c03 v^3,   u = x/a, v = y/b
+
+(a paraboloid osculating the sphere of radius 1/kx, 1/ky at its vertex, plus a
+smooth cubic; each c is the cubic's sag at the patch edge in mm). Along a ray f - z
+is a polynomial of degree 2 (no cubic: solved in closed form) or 3 (its real roots
+are bracketed between the critical points within the patch's t-interval and polished
+by safeguarded Newton).
+
+The sensor model mirrors :mod:`fringecal.sensor` exactly (distortion of ideal
 coordinates, Newton inversion), packed as ``sensor_pack``, plus a thin-prism term
 outside the 14-parameter model (``xi += s1 r^2, eta += s2 r^2``, r the ideal radius;
 zero unless the simulation's ``thin_prism_corner_px`` switch is on), which the
@@ -34,9 +49,11 @@ from ..lens import newton_step
 
 from ..sensor import Sensor
 
-SPHERE, CYLINDER, BOX, PLANE = 0, 1, 2, 3
+SPHERE, CYLINDER, BOX, PLANE, PANEL = 0, 1, 2, 3, 4
 P, A, B, C = 0, 3, 6, 9
 RADIUS, LENGTH, HALF, BOUND, BOUND_R = 12, 13, 14, 17, 20
+#: the panel's own columns (its z axis is not stored: A x B)
+PANEL_K, PANEL_HALF, PANEL_CUBIC = 9, 11, 13
 N_PRIM_COLS = 21
 
 NO_HIT = np.inf
@@ -240,8 +257,166 @@ def _plane(pr, ox, oy, oz, dx, dy, dz, tmin):
 
 
 @njit(cache=True)
+def _cubic_terms(c30, c21, c12, c03, u, v):
+    """Cubic part of the panel height and its derivatives in u = x/a, v = y/b:
+    (value, d/du, d/dv, d2/du2, d2/dudv, d2/dv2)."""
+    val = ((c30 * u + c21 * v) * u + c12 * v * v) * u + c03 * v * v * v
+    du = (3 * c30 * u + 2 * c21 * v) * u + c12 * v * v
+    dv = (c21 * u + 2 * c12 * v) * u + 3 * c03 * v * v
+    return val, du, dv, 6 * c30 * u + 2 * c21 * v, 2 * c21 * u + 2 * c12 * v, 2 * c12 * u + 6 * c03 * v
+
+
+@njit(cache=True)
+def _poly3(g0, g1, g2, g3, t):
+    return ((g3 * t + g2) * t + g1) * t + g0
+
+
+@njit(cache=True)
+def _root_in(g0, g1, g2, g3, a, b, ga):
+    """The root of the cubic g in [a, b], where g is monotone and changes sign
+    (``ga`` = g(a)): Newton steps kept inside a shrinking bracket, else bisection."""
+    lo, hi = a, b
+    t = 0.5 * (a + b)
+    for _ in range(200):
+        gt = _poly3(g0, g1, g2, g3, t)
+        if gt == 0.0:
+            return t
+        if (gt < 0) == (ga < 0):
+            lo = t
+        else:
+            hi = t
+        slope = (3 * g3 * t + 2 * g2) * t + g1
+        step_ok = False
+        if slope != 0.0:
+            tn = t - gt / slope
+            if lo < tn < hi:
+                step_ok = True
+        if not step_ok:
+            tn = 0.5 * (lo + hi)
+        if abs(tn - t) <= 1e-13 * (1.0 + abs(t)) or hi - lo <= 1e-13 * (1.0 + abs(t)):
+            return tn
+        t = tn
+    return t
+
+
+@njit(cache=True)
+def _panel(pr, ox, oy, oz, dx, dy, dz, tmin):
+    px, py, pz = pr[P], pr[P + 1], pr[P + 2]
+    ax, ay, az = pr[A], pr[A + 1], pr[A + 2]
+    bx, by, bz = pr[B], pr[B + 1], pr[B + 2]
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    kx, ky = pr[PANEL_K], pr[PANEL_K + 1]
+    ha, hb = pr[PANEL_HALF], pr[PANEL_HALF + 1]
+    c30, c21, c12, c03 = pr[PANEL_CUBIC], pr[PANEL_CUBIC + 1], pr[PANEL_CUBIC + 2], pr[PANEL_CUBIC + 3]
+    # start from the ray's point nearest the panel origin (small numbers, no cancellation)
+    t0 = (px - ox) * dx + (py - oy) * dy + (pz - oz) * dz
+    sx, sy, sz = ox + t0 * dx - px, oy + t0 * dy - py, oz + t0 * dz - pz
+    lx, ly, lz = sx * ax + sy * ay + sz * az, sx * bx + sy * by + sz * bz, sx * cx + sy * cy + sz * cz
+    ex, ey, ez = dx * ax + dy * ay + dz * az, dx * bx + dy * by + dz * bz, dx * cx + dy * cy + dz * cz
+    tl = tmin - t0
+    # g(s) = z - f(x, y) along the ray x = l + s e: g0 + g1 s + g2 s^2 + g3 s^3
+    g0 = lz - 0.5 * (kx * lx * lx + ky * ly * ly)
+    g1 = ez - (kx * lx * ex + ky * ly * ey)
+    g2 = -0.5 * (kx * ex * ex + ky * ey * ey)
+    g3 = 0.0
+    s_hit = NO_HIT
+    if c30 == 0.0 and c21 == 0.0 and c12 == 0.0 and c03 == 0.0:
+        r1 = r2 = NO_HIT
+        if g2 == 0.0:
+            if g1 != 0.0:
+                r1 = -g0 / g1
+        else:
+            disc = g1 * g1 - 4.0 * g2 * g0
+            if disc >= 0.0:
+                q = -0.5 * (g1 + math.copysign(math.sqrt(disc), g1))
+                if q != 0.0:
+                    r1, r2 = q / g2, g0 / q
+                else:
+                    r1 = 0.0
+                if r2 < r1:
+                    r1, r2 = r2, r1
+        for r in (r1, r2):
+            if r > tl and r < NO_HIT:
+                if abs(lx + r * ex) <= ha and abs(ly + r * ey) <= hb:
+                    s_hit = r
+                    break
+    else:
+        u0, u1, v0, v1 = lx / ha, ex / ha, ly / hb, ey / hb
+        q0, qu, qv, quu, quv, qvv = _cubic_terms(c30, c21, c12, c03, u0, v0)
+        q3 = _cubic_terms(c30, c21, c12, c03, u1, v1)[0]
+        g0 -= q0
+        g1 -= qu * u1 + qv * v1
+        g2 -= 0.5 * (quu * u1 * u1 + 2.0 * quv * u1 * v1 + qvv * v1 * v1)
+        g3 = -q3
+        # the ray's parameter interval over the patch (|x| <= a, |y| <= b)
+        lo, hi = tl, np.inf
+        inside = True
+        for o, e, h in ((lx, ex, ha), (ly, ey, hb)):
+            if abs(e) < 1e-300:
+                if abs(o) > h:
+                    inside = False
+            else:
+                s1, s2 = (-h - o) / e, (h - o) / e
+                if s1 > s2:
+                    s1, s2 = s2, s1
+                lo, hi = max(lo, s1), min(hi, s2)
+        if inside and lo <= hi:
+            if hi == np.inf:  # along the panel's z axis: g is linear
+                if g1 != 0.0 and -g0 / g1 > tl:
+                    s_hit = -g0 / g1
+            else:
+                # split [lo, hi] at the critical points of g: monotone pieces
+                cuts = np.empty(4)
+                cuts[0] = lo
+                n_cut = 1
+                da, db, dc = 3.0 * g3, 2.0 * g2, g1
+                c1 = c2 = np.inf
+                if da == 0.0:
+                    if db != 0.0:
+                        c1 = -dc / db
+                else:
+                    disc = db * db - 4.0 * da * dc
+                    if disc >= 0.0:
+                        q = -0.5 * (db + math.copysign(math.sqrt(disc), db))
+                        c1 = q / da
+                        c2 = dc / q if q != 0.0 else c1
+                        if c2 < c1:
+                            c1, c2 = c2, c1
+                for c in (c1, c2):
+                    if lo < c < hi:
+                        cuts[n_cut] = c
+                        n_cut += 1
+                cuts[n_cut] = hi
+                n_cut += 1
+                for i in range(n_cut - 1):
+                    a_, b_ = cuts[i], cuts[i + 1]
+                    ga, gb = _poly3(g0, g1, g2, g3, a_), _poly3(g0, g1, g2, g3, b_)
+                    if ga == 0.0 and a_ > tl:
+                        s_hit = a_
+                        break
+                    if gb == 0.0 or (ga < 0) != (gb < 0):
+                        r = b_ if gb == 0.0 else _root_in(g0, g1, g2, g3, a_, b_, ga)
+                        if r > tl:
+                            s_hit = r
+                            break
+    if s_hit == NO_HIT:
+        return NO_HIT, 0.0, 0.0, 0.0
+    x, y = lx + s_hit * ex, ly + s_hit * ey
+    _, qu, qv, _, _, _ = _cubic_terms(c30, c21, c12, c03, x / ha, y / hb)
+    fx, fy = kx * x + qu / ha, ky * y + qv / hb
+    nn = math.sqrt(fx * fx + fy * fy + 1.0)
+    # local normal (-fx, -fy, 1) / nn to the world: R^T n
+    nx = (-fx * ax - fy * bx + cx) / nn
+    ny = (-fx * ay - fy * by + cy) / nn
+    nz = (-fx * az - fy * bz + cz) / nn
+    if nx * dx + ny * dy + nz * dz > 0:
+        nx, ny, nz = -nx, -ny, -nz
+    return t0 + s_hit, nx, ny, nz
+
+
+@njit(cache=True)
 def intersect(prims, kinds, j, ox, oy, oz, dx, dy, dz, tmin):
-    """First hit (t, nx, ny, nz) of the ray o + t d (t > tmin) with primitive j."""
+    """First hit (t, nx, ny, nz) of the ray o + t d (t > tmin) with primitive j (unit d)."""
     k = kinds[j]
     pr = prims[j]
     if k == SPHERE:
@@ -250,7 +425,9 @@ def intersect(prims, kinds, j, ox, oy, oz, dx, dy, dz, tmin):
         return _cylinder(pr, ox, oy, oz, dx, dy, dz, tmin)
     if k == BOX:
         return _box(pr, ox, oy, oz, dx, dy, dz, tmin)
-    return _plane(pr, ox, oy, oz, dx, dy, dz, tmin)
+    if k == PLANE:
+        return _plane(pr, ox, oy, oz, dx, dy, dz, tmin)
+    return _panel(pr, ox, oy, oz, dx, dy, dz, tmin)
 
 
 @njit(cache=True)

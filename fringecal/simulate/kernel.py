@@ -14,6 +14,11 @@ projector intensity non-linearity as harmonics h = 1..H of every fringe count
 (phasors of the counts h t; H = 1 when off) with the per-frame weights ``fcos``,
 ``fsin`` that also carry a pattern drift during the sequence, a per-pixel phase
 field (``field``, empty when off) and the camera response (``noise[5]``).
+
+Primitives (spheres, cylinders, boxes, planes, free-form panels) are intersected by
+:mod:`.geometry`. numba's on-disk cache (``cache=True``) is keyed on this file alone,
+not on the functions it calls: a change to :mod:`.geometry` must come with a change
+to this file (as this note came with the panel), or a stale compiled kernel is used.
 """
 
 from __future__ import annotations
