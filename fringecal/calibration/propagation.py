@@ -19,7 +19,7 @@ from ..rig import Rig, Scanner
 from ..pointcloud import triangulate_image_points
 
 __all__ = ["sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
-           "point_uncertainty_map", "scanner_with", "STEP_FRACTION", "rigid_motion_basis", "frame_free_covariance",
+           "point_variances", "point_uncertainty_map", "scanner_with", "STEP_FRACTION", "rigid_motion_basis", "frame_free_covariance",
            "ATTITUDE_WEIGHT_MM"]
 
 #: central-difference step as a fraction of each parameter's standard uncertainty
@@ -92,6 +92,23 @@ def point_covariance(J: np.ndarray, cov28: np.ndarray) -> np.ndarray:
     return np.einsum("nij,jk,nlk->nil", J, cov28, J)
 
 
+def point_variances(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, rows, cols, block: int = 20000) -> np.ndarray:
+    """Variances (n, 3) along the world axes of the points at pixels (rows, cols) of a
+    measurement with phase maps ``tau_x``, ``tau_y``, from the parameter covariance
+    ``cov28`` (28, 28) of ``scanner`` (camera at the measurement's resolution)."""
+    rows, cols = np.asarray(rows, int), np.asarray(cols, int)
+    tau_x, tau_y = np.asarray(tau_x), np.asarray(tau_y)
+    std = np.sqrt(np.clip(np.diag(cov28), 0, None))
+    out = np.zeros((len(rows), 3))
+    for a in range(0, len(rows), block):
+        r, c = rows[a:a + block], cols[a:a + block]
+        cam = scanner.camera.image_mm(np.stack([c, r], axis=-1).astype(float))
+        prj = scanner.projector.image_mm(np.stack([tau_x[r, c], tau_y[r, c]], axis=-1).astype(float))
+        C = point_covariance(point_jacobian(scanner, cam, prj, std), cov28)
+        out[a:a + block] = np.clip(np.diagonal(C, axis1=1, axis2=2), 0, None)
+    return out
+
+
 def point_uncertainty_map(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, valid, block: int = 20000):
     """Standard uncertainty of every point of a measurement from the calibration.
 
@@ -114,14 +131,8 @@ def point_uncertainty_map(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, val
 
     valid = np.asarray(valid, bool) & np.isfinite(tau_x) & np.isfinite(tau_y)
     rows, cols = np.nonzero(valid)
-    std = np.sqrt(np.clip(np.diag(cov28), 0, None))
     var = np.full((3,) + valid.shape, np.nan)
-    for a in range(0, len(rows), block):
-        r, c = rows[a:a + block], cols[a:a + block]
-        cam = scanner.camera.image_mm(np.stack([c, r], axis=-1).astype(float))
-        prj = scanner.projector.image_mm(np.stack([np.asarray(tau_x)[r, c], np.asarray(tau_y)[r, c]], axis=-1))
-        C = point_covariance(point_jacobian(scanner, cam, prj, std), cov28)
-        var[:, r, c] = np.clip(np.diagonal(C, axis1=1, axis2=2).T, 0, None)
+    var[:, rows, cols] = point_variances(scanner, cov28, tau_x, tau_y, rows, cols, block).T
     dims = ("v", "u")
     return xr.Dataset({"u_mm": (dims, np.sqrt(var.sum(axis=0))), "u_x_mm": (dims, np.sqrt(var[0])),
                        "u_y_mm": (dims, np.sqrt(var[1])), "u_z_mm": (dims, np.sqrt(var[2]))},

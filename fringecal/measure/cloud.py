@@ -42,12 +42,12 @@ is not in ``u_mm``: it is the measurement's own (its size shows in ``eps1``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration.propagation import point_covariance, point_jacobian, scanner_block
+from ..calibration.propagation import point_variances, scanner_block
 from ..pointcloud import triangulate_maps
 from ..rig import Rig, Scanner
 
@@ -103,21 +103,10 @@ class Cloud:
 
 
 def point_uncertainty(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, rows, cols) -> np.ndarray:
-    """Exact standard uncertainty (n,) in mm of the points at pixels (rows, cols) of a
-    store with phases ``tau_x``, ``tau_y`` (maps); ``cov28`` (28, 28) the scanner's
-    parameter covariance (camera 14, projector 14)."""
-    rows, cols = np.asarray(rows, int), np.asarray(cols, int)
-    if rows.size == 0:
-        return np.zeros(0)
-    cam = scanner.camera.image_mm(np.stack([cols, rows], axis=-1).astype(float))
-    prj = scanner.projector.image_mm(np.stack([np.asarray(tau_x)[rows, cols], np.asarray(tau_y)[rows, cols]],
-                                              axis=-1).astype(float))
-    std = np.sqrt(np.clip(np.diag(cov28), 0, None))
-    out = np.empty(len(rows))
-    for a in range(0, len(rows), 20000):
-        C = point_covariance(point_jacobian(scanner, cam[a:a + 20000], prj[a:a + 20000], std), cov28)
-        out[a:a + 20000] = np.sqrt(np.clip(np.trace(C, axis1=1, axis2=2), 0, None))
-    return out
+    """Exact standard uncertainty (n,) in mm (sqrt of the covariance's trace) of the
+    points at pixels (rows, cols) of a store with phases ``tau_x``, ``tau_y`` (maps);
+    ``cov28`` (28, 28) the scanner's parameter covariance (camera 14, projector 14)."""
+    return np.sqrt(point_variances(scanner, cov28, tau_x, tau_y, rows, cols).sum(axis=1))
 
 
 def _interpolated_uncertainty(scanner, cov28, tau_x, tau_y, xyz, keep, step: int) -> np.ndarray:
@@ -195,36 +184,31 @@ def scanner_points(scanner: Scanner, index: int, store, settings: MeasureSetting
     return pts
 
 
-def measure_cloud(rig: Rig, stores: Mapping[str, object] | Sequence[Mapping[str, object]],
-                  settings: MeasureSettings = MeasureSettings(), covariance: np.ndarray | None = None,
-                  measurements: Sequence[str] | None = None) -> Cloud:
-    """One cloud of every scanner's store of one or several measurements.
+def measure_cloud(rig: Rig, stores: Mapping[str, object], settings: MeasureSettings = MeasureSettings(),
+                  covariance: np.ndarray | None = None, measurement: int = 0) -> Cloud:
+    """One cloud of every scanner's store of one measurement.
 
     Parameters
     ----------
     rig : the calibration; each store's scanner must be in it, cameras are resampled
         to the store's image size when that differs (a binned camera)
-    stores : scanner name -> store (see :func:`scanner_points`), or a sequence of
-        such mappings, one per measurement
+    stores : scanner name -> store (see :func:`scanner_points`)
     covariance : (14 n_sensors, 14 n_sensors) covariance of every sensor parameter in
         rig order (``ParameterCovariances.total``), or None
-    measurements : names of the measurements (default "0", "1", ...)
+    measurement : the value of the points' ``measurement`` field
     """
     from ..pipeline.verify import store_scanner
 
-    groups = [stores] if isinstance(stores, Mapping) else list(stores)
     names = tuple(s.name for s in rig.scanners)
+    unknown = sorted(set(stores) - set(names))
+    if unknown:
+        raise KeyError(f"scanner(s) {unknown} are not in the calibration ({list(names)})")
     parts = []
-    for m, group in enumerate(groups):
-        unknown = sorted(set(group) - set(names))
-        if unknown:
-            raise KeyError(f"scanner(s) {unknown} are not in the calibration ({list(names)})")
-        for i, name in enumerate(names):
-            if name not in group:
-                continue
-            ds = group[name]
-            scanner = store_scanner(ds, rig.scanner(name))
-            cov28 = None if covariance is None else scanner_block(covariance, rig, name)
-            parts.append(scanner_points(scanner, i, ds, settings, cov28, m))
-    labels = tuple(measurements) if measurements is not None else tuple(str(m) for m in range(len(groups)))
-    return Cloud(np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE), names, labels)
+    for i, name in enumerate(names):
+        if name not in stores:
+            continue
+        ds = stores[name]
+        scanner = store_scanner(ds, rig.scanner(name))
+        cov28 = None if covariance is None else scanner_block(covariance, rig, name)
+        parts.append(scanner_points(scanner, i, ds, settings, cov28, measurement))
+    return Cloud(np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE), names)

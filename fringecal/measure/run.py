@@ -78,11 +78,10 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         t_read += time.perf_counter() - t
         t = time.perf_counter()
         try:
-            parts.append(measure_cloud(cal.rig, stores, settings, cov).points)
+            parts.append(measure_cloud(cal.rig, stores, settings, cov, measurement=len(parts)).points)
         finally:
             for ds in stores.values():
                 ds.close()
-        parts[-1]["measurement"] = len(parts) - 1
         t_cloud += time.perf_counter() - t
     t = time.perf_counter()
     rig = cal.rig
