@@ -28,23 +28,35 @@ def pose(
     out: Path = typer.Option(..., "--out", "-o", help="Poses CSV to write."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
-    """Artefact pose per (measurement, scanner) by SVD against the artefact definition."""
+    """Artefact pose per (measurement, scanner) by SVD against the artefact definition.
+
+    Runs directly (milliseconds of SVD); as a Prefect flow only when a Prefect server
+    is configured (PREFECT_API_URL or a profile), so that the run shows there.
+    """
     from fringecal.artefact import load_artefact
     from schemas import SphereCentresTable, read_table
 
-    load_artefact(artefact)  # validate both inputs before Prefect starts
+    from .common import configured_prefect_api
+
+    load_artefact(artefact)  # validate both inputs before anything is written
     read_table(centres, SphereCentresTable)
 
-    from flows.pose_flow import pose_flow
+    if configured_prefect_api():
+        from flows.pose_flow import pose_flow
 
-    result = pose_flow(str(artefact), str(centres), str(out))
+        result = pose_flow(str(artefact), str(centres), str(out))
+        written, skipped = result["poses"] is not None, result["skipped"]
+    else:
+        from fringecal.pose import estimate_poses_file
+
+        result = estimate_poses_file(artefact, centres, out)
+        written, skipped = len(result.poses) > 0, result.skipped.to_dict("records")
+    if not written:
+        reasons = "; ".join(f"{s['measurement']}/{s['scanner']}: {s['reason']}" for s in skipped)
+        raise UserInputError(f"{centres}: no group gives a pose ({reasons}); nothing written")
     import pandas as pd
 
-    poses = pd.read_csv(result["poses"].path, dtype={"measurement": str, "scanner": str})
-    skipped = result["skipped"]
-    if poses.empty:
-        reasons = "; ".join(f"{s['measurement']}/{s['scanner']}: {s['reason']}" for s in skipped)
-        raise UserInputError(f"{centres}: no group gives a pose ({reasons})")
+    poses = pd.read_csv(out, dtype={"measurement": str, "scanner": str})
     if as_json:
         print(json.dumps({"poses": poses.to_dict("records"), "skipped": skipped, "out": str(out)}, indent=2))
         return

@@ -27,6 +27,30 @@ def _measurements(frames: Path, out: Path) -> tuple[list[Path], list[Path]]:
     return dirs, [out / f"{d.name}.zarr" for d in dirs]
 
 
+def _decode(dirs: list[Path], outs: list[Path], settings, store_frames: bool) -> list:
+    """Decode each folder into its store, one after the other (each decode uses every core).
+
+    Directly, unless a Prefect server is configured: then as the decode flow on it,
+    whose cache skips folders decoded before with the same frames and settings.
+    """
+    from tasks.refs import ref_for
+
+    from .common import configured_prefect_api
+
+    if configured_prefect_api():
+        from flows.decode_flow import decode_flow
+
+        return decode_flow([str(d) for d in dirs], [str(o) for o in outs], settings.model_dump(), store_frames)
+    from fringecal.fringe.measurement import decode_folder
+
+    refs = []
+    for d, o in zip(dirs, outs, strict=True):
+        frames = ref_for(d, "frames")
+        decode_folder(d, o, settings, attrs={"frames_digest": frames.digest}, store_frames=store_frames)
+        refs.append(ref_for(o, "store"))
+    return refs
+
+
 @guarded
 def decode_command(
     frames: Path = typer.Option(..., "--frames", "-f",
@@ -49,11 +73,9 @@ def decode_command(
     except ValidationError as err:
         raise UserInputError("; ".join(f"--{e['loc'][0].replace('_', '-')}: {e['msg']}" for e in err.errors()))
     dirs, outs = _measurements(frames, out)
-    for d in dirs:  # names, sequence.yaml and the schedule are checked before Prefect starts
+    for d in dirs:  # names, sequence.yaml and the schedule are checked before any decoding
         read_stack_spec(d)
-    from flows.decode_flow import decode_flow
-
-    refs = decode_flow([str(d) for d in dirs], [str(o) for o in outs], settings.model_dump(), store_frames)
+    refs = _decode(dirs, outs, settings, store_frames)
     rows = []
     for d, ref in zip(dirs, refs):
         attrs = open_store(ref.path).attrs

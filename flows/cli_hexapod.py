@@ -22,13 +22,17 @@ CONFIG_HELP = "Hexapod YAML (default: configs/hexapod/thesis_platform.yaml)."
 
 
 def _guarded(fn):
-    """Bad input or a refused target: one message, status 2. A controller fault: status 1."""
-    from fringecal.hexapod import ForwardKinematicsError, HexapodFault, TargetRejected
+    """Bad input or a refused target: one message, status 2. A controller fault: status 1.
 
-    inner = guarded(fn, extra=(TargetRejected, ForwardKinematicsError, ValueError))
+    The hexapod package is imported when the command runs, not when the CLI loads,
+    so that other commands do not pay for it.
+    """
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        from fringecal.hexapod import ForwardKinematicsError, HexapodFault, TargetRejected
+
+        inner = guarded(fn, extra=(TargetRejected, ForwardKinematicsError, ValueError))
         try:
             return inner(*args, **kwargs)
         except HexapodFault as err:

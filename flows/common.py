@@ -7,11 +7,14 @@ Sub-apps (``flows/cli_<area>.py``) import from here, never from ``flows.cli``, s
 from __future__ import annotations
 
 import functools
+import os
+import tomllib
+from pathlib import Path
 
 import typer
 from rich.console import Console
 
-__all__ = ["console", "err_console", "UserInputError", "fail", "guarded", "user_errors"]
+__all__ = ["console", "err_console", "UserInputError", "fail", "guarded", "user_errors", "configured_prefect_api"]
 
 console = Console()
 err_console = Console(stderr=True)
@@ -55,3 +58,38 @@ def guarded(fn=None, *, extra: tuple[type[BaseException], ...] = ()):
         return wrapper
 
     return decorate(fn) if fn is not None else decorate
+
+
+def configured_prefect_api() -> str | None:
+    """The Prefect API URL the user configured, or None when Prefect would start its
+    own temporary server.
+
+    Looked up where Prefect looks, without importing Prefect (about a second): the
+    environment (``PREFECT_API_URL``), the active profile of ``profiles.toml``
+    (``PREFECT_PROFILES_PATH``, else ``PREFECT_HOME``/profiles.toml, ``PREFECT_PROFILE``
+    naming the profile) and ``prefect.toml`` in the working directory (``[api] url``).
+    Small commands run their steps directly unless a server is configured, in which
+    case they run as flows on it (runs visible in its UI, results cached).
+    """
+    url = os.environ.get("PREFECT_API_URL")
+    if url:
+        return url
+    home = Path(os.environ.get("PREFECT_HOME", "~/.prefect")).expanduser()
+    profiles = Path(os.environ.get("PREFECT_PROFILES_PATH", home / "profiles.toml")).expanduser()
+    for path, find in ((profiles, _profile_url), (Path("prefect.toml"), _toml_url)):
+        try:
+            url = find(tomllib.loads(path.read_text()))
+        except (OSError, tomllib.TOMLDecodeError, AttributeError, TypeError):
+            continue
+        if url:
+            return str(url)
+    return None
+
+
+def _profile_url(doc: dict):
+    name = os.environ.get("PREFECT_PROFILE") or doc.get("active")
+    return doc.get("profiles", {}).get(name, {}).get("PREFECT_API_URL") if name else None
+
+
+def _toml_url(doc: dict):
+    return doc.get("api", {}).get("url")

@@ -9,15 +9,16 @@ by name with the reason and skipped; the others still come out.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import pandas as pd
 
-from schemas import PosesTable, SphereCentresTable, validate_table
+from schemas import PosesTable, SphereCentresTable, read_table, validate_table, write_table
 
 from .artefact import Artefact
 from .registration import DegenerateGeometryError, RigidRegistration
 
-__all__ = ["PoseResult", "estimate_poses", "POSE_COLUMNS"]
+__all__ = ["PoseResult", "estimate_poses", "estimate_poses_file", "POSE_COLUMNS"]
 
 POSE_COLUMNS = ["measurement", "scanner", "tx_mm", "ty_mm", "tz_mm",
                 "omega_rad", "phi_rad", "kappa_rad", "rms_mm", "n_spheres"]
@@ -70,3 +71,19 @@ def estimate_poses(centres: pd.DataFrame, artefact: Artefact, source: str = "<ce
     if len(poses):
         poses = validate_table(poses, PosesTable, "poses")
     return PoseResult(poses, pd.DataFrame(skipped, columns=["measurement", "scanner", "reason"]))
+
+
+def estimate_poses_file(artefact_path, centres_path, out_path) -> PoseResult:
+    """Read an artefact table and a sphere-centres table, estimate the poses and write
+    them to ``out_path`` atomically; nothing is written when no group gives a pose.
+
+    What ``fringecal pose`` runs, directly or as a Prefect task.
+    """
+    from .artefact import load_artefact
+
+    art = load_artefact(artefact_path)
+    table = read_table(centres_path, SphereCentresTable)
+    result = estimate_poses(table, art, source=str(centres_path))
+    if len(result.poses):
+        write_table(result.poses, Path(out_path), PosesTable)
+    return result

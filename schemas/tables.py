@@ -11,15 +11,38 @@ is line 1) and the column, and the rule that broke.
 
 from __future__ import annotations
 
+import sys
+import types
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import pandas as pd
-import pandera.pandas as pa
-from pandera.typing import Series
 
-from fringecal.sensor import PARAM_NAMES, PARAM_COLUMNS
+
+def _without_pandera_dask_types() -> None:
+    """Keep pandera from importing dask.dataframe when it builds the first schema.
+
+    pandera looks up the dask annotation types (``pandera.typing.dask``) the first time
+    any model builds its schema, and that import of dask.dataframe costs 0.5-1 s, most of
+    what a small command such as ``fringecal fit sphere`` spends. Every table here is a
+    pandas table, so the lookup is answered with "dask not installed". This only holds
+    when schemas load before anything imports ``pandera.typing.dask``; if dask types were
+    registered earlier, they stay.
+    """
+    name = "pandera.typing.dask"
+    if name not in sys.modules:
+        stub = types.ModuleType(name, "Stand-in set by fringecal's schemas: no dask DataFrame models.")
+        stub.DASK_INSTALLED = False
+        sys.modules[name] = stub
+
+
+_without_pandera_dask_types()
+
+import pandera.pandas as pa  # noqa: E402
+from pandera.typing import Series  # noqa: E402
+
+from fringecal.sensor import PARAM_NAMES  # noqa: E402
 
 __all__ = [
     "TableError",

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from prefect import get_run_logger, task
 
-from fringecal.artefact import load_artefact
-from fringecal.pose import estimate_poses
-from schemas import PosesTable, SphereCentresTable, read_table, write_table
+from fringecal.pose import estimate_poses_file
 
 from .refs import Ref, cache_key, ref_for
 
@@ -18,13 +14,12 @@ def _key(context, parameters) -> str:
 
 
 @task(name="estimate-poses", cache_key_fn=_key, persist_result=True)
-def estimate_poses_task(artefact: Ref, centres: Ref, out: str) -> dict[str, Ref | list]:
-    """Poses of every (measurement, scanner) group; skipped groups are logged by name."""
+def estimate_poses_task(artefact: Ref, centres: Ref, out: str) -> dict[str, Ref | list | None]:
+    """Poses of every (measurement, scanner) group; skipped groups are logged by name.
+    ``poses`` is None when no group gives a pose (nothing written)."""
     logger = get_run_logger()
-    art = load_artefact(artefact.path)
-    table = read_table(centres.path, SphereCentresTable)
-    result = estimate_poses(table, art, source=centres.path)
+    result = estimate_poses_file(artefact.path, centres.path, out)
     for r in result.skipped.itertuples():
         logger.warning("measurement %s, scanner %s: no pose (%s)", r.measurement, r.scanner, r.reason)
-    write_table(result.poses, Path(out), PosesTable if len(result.poses) else None)
-    return {"poses": ref_for(out, "table"), "skipped": result.skipped.to_dict("records")}
+    poses = ref_for(out, "table") if len(result.poses) else None
+    return {"poses": poses, "skipped": result.skipped.to_dict("records")}

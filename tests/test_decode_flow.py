@@ -55,8 +55,8 @@ def test_decode_flow_one_task_per_measurement_and_caching(prefect_harness, tmp_p
     assert open_store(outs[0]).attrs["decoder"]["min_modulation"] == 0.25 and changed[0].digest != refs[0].digest
 
 
-@pytest.mark.flow
-def test_cli_decode_json_and_folder_of_measurements(prefect_harness, tmp_path):
+def test_cli_decode_json_and_folder_of_measurements(tmp_path):
+    """No Prefect server configured: the stores are decoded directly."""
     measurement(tmp_path / "run" / "a", fmt="png", name="a")
     measurement(tmp_path / "run" / "b", fmt="tif", name="b")
     res = runner.invoke(app, ["decode", "--frames", str(tmp_path / "run"), "--out", str(tmp_path / "stores"),
@@ -68,8 +68,7 @@ def test_cli_decode_json_and_folder_of_measurements(prefect_harness, tmp_path):
     assert (tmp_path / "stores" / "a.zarr").is_dir() and (tmp_path / "stores" / "b.zarr").is_dir()
 
 
-@pytest.mark.flow
-def test_cli_decode_corrupt_frame_inside_the_flow(prefect_harness, tmp_path):
+def test_cli_decode_corrupt_frame_found_while_decoding(tmp_path):
     measurement(tmp_path / "m", fmt="png")
     (tmp_path / "m" / "y_006_01.png").write_bytes(b"\x89PNG broken")
     res = runner.invoke(app, ["decode", "--frames", str(tmp_path / "m"), "--out", str(tmp_path / "m.zarr")])
