@@ -231,12 +231,24 @@ def module_files(modules: Iterable[str]) -> dict[str, Path]:
     return dict(sorted(seen.items()))
 
 
+def _template_files(package_init: Path) -> list[Path]:
+    """The files of a package's ``templates/`` folder (the report's jinja2 templates and
+    style sheet): they are source as much as its modules are."""
+    folder = package_init.parent / "templates"
+    if package_init.name != "__init__.py" or not folder.is_dir():
+        return []
+    return sorted(p for p in folder.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
+
+
 def source_digest(modules: Iterable[str]) -> str:
-    """SHA-256 over the source files of :func:`module_files` ``(modules)``."""
+    """SHA-256 over the source files of :func:`module_files` ``(modules)``, with the
+    ``templates/`` folder of each package among them."""
     h = hashlib.sha256()
     for name, path in module_files(modules).items():
-        st = path.stat()
-        h.update(name.encode() + b"\0" + _source_file_digest(str(path), st.st_size, st.st_mtime_ns).encode())
+        for file in [path, *_template_files(path)]:
+            st = file.stat()
+            label = name if file == path else f"{name}:{file.relative_to(path.parent).as_posix()}"
+            h.update(label.encode() + b"\0" + _source_file_digest(str(file), st.st_size, st.st_mtime_ns).encode())
     return h.hexdigest()
 
 
@@ -250,6 +262,7 @@ def code_digest() -> str:
     h = hashlib.sha256()
     for top, root in _package_roots().items():
         for p in sorted(root.rglob("*.py")):
-            h.update(str(p.relative_to(root.parent)).encode() + b"\0")
-            _hash_file(h, p)
+            for file in [p, *_template_files(p)]:
+                h.update(str(file.relative_to(root.parent)).encode() + b"\0")
+                _hash_file(h, file)
     return h.hexdigest()

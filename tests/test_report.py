@@ -11,7 +11,10 @@ through RunDir: the tests spell no run-directory file name either.
 import json
 import re
 import shutil
+import tomllib
 from html.parser import HTMLParser
+from importlib.resources import files
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -37,6 +40,10 @@ CREATED = "2026-01-02T03:04:05Z"
 COMMAND = "fringecal run --out runs/report-test"
 SUMMARY_TIMINGS = {"simulate-render": 120.5, "spheres-first": 31.2, "bundle": 0.4, "verify": 25.0}
 TIMINGS = {"simulate-render": 118.25, "spheres-first": 30.5, "bundle": 0.35, "verify": 24.0, "total": 175.0}
+SECTIONS = [("rig", "Rig and artefact"), ("timing", "Timing"), ("results", "Calibration results"),
+            ("parameters", "Sensor parameters"), ("residuals", "Residuals"), ("crossval", "Cross-validation"),
+            ("verification", "Verification (ball-bar)"), ("acceptance", "Acceptance test (VDI/VDE 2634 parts 2 and 3)"),
+            ("truth", "Simulation truth"), ("provenance", "Provenance")]
 
 
 def _ballbar(errors, mpe=0.1):
@@ -184,7 +191,7 @@ def test_a_path_and_a_rundir_give_the_same_page(rd):
 
 
 def test_a_failed_render_leaves_the_previous_report(rd, monkeypatch):
-    import fringecal.report as report
+    from fringecal.report import figures
 
     write_report(rd, TIMINGS)
     before = rd.report.path.read_bytes()
@@ -192,7 +199,7 @@ def test_a_failed_render_leaves_the_previous_report(rd, monkeypatch):
     def broken(*args):
         raise RuntimeError("plotting failed")
 
-    monkeypatch.setattr(report, "_ballbar_png", broken)
+    monkeypatch.setattr(figures, "ballbar_png", broken)
     with pytest.raises(RuntimeError):
         write_report(rd, TIMINGS)
     assert rd.report.path.read_bytes() == before
@@ -272,6 +279,50 @@ def test_report_shows_the_numbers_of_the_run(rd):
     assert str(rd.root) not in page  # no absolute path of the machine that wrote it
 
 
+def test_sections_and_key_figures_in_order(rd):
+    page = render_report(rd, TIMINGS, generated="2026-05-06 07:08:09")
+    assert re.findall(r'<section id="([^"]+)">\s*<h2>([^<]*)</h2>', page) == SECTIONS
+    nav = re.search(r"<nav>(.*?)</nav>", page, re.S).group(1)
+    assert re.findall(r'<a href="#([^"]+)">([^<]*)</a>', nav) == SECTIONS
+    header = page.split("<nav>")[0]
+    assert "<title>Calibration report: thesis</title>" in header
+    assert re.search(r"<h1>Multi-scanner calibration report: thesis <span class=\"badge pass\">PASS</span></h1>", header)
+    bs = rd.bundle_summary.load()
+    assert re.findall(r"<div>[^<]*(?:<sub>\d</sub>[^<]*)*<b>([^<]*)</b></div>", header) == [
+        f"{bs['after']['rms_eps2_mm'] * 1000:.1f} µm", f"1 part in {bs['one_part_in_1p96_sigma']:,.0f}", "47.0 µm",
+        f"1 part in {DIAGONAL_MM / 0.047:,.0f}", "100.0 µm"]
+    assert "<th>Report written (UTC)</th><td>2026-05-06 07:08:09</td>" in header
+    assert page.rstrip().endswith("on 2026-05-06 07:08:09 UTC from the files of the run directory run.</p></footer>\n"
+                                  "</body>\n</html>")
+
+
+def test_print_style_sheet_repeats_headers_and_hides_the_navigation(rd):
+    page = render_report(rd, TIMINGS)
+    css = re.search(r"<style>(.*?)</style>", page, re.S).group(1)
+    assert re.search(r"@page\s*{[^}]*size:\s*A4", css) and 'counter(page) " of " counter(pages)' in css
+    printed = css[css.index("@media print"):]
+    assert re.search(r"\bnav\s*{\s*display:\s*none", printed)
+    assert re.search(r"\bthead\s*{\s*display:\s*table-header-group", printed)
+    assert re.search(r"\btr\b[^{]*{\s*break-inside:\s*avoid", printed)
+    # every table but the label/value ones has its header row in <thead>, repeated on each printed page
+    tables = re.findall(r"<table([^>]*)>\s*(<\w+)", page)
+    assert len(tables) > 20
+    assert {(attrs, first) for attrs, first in tables} <= {("", "<thead"), (' class="long"', "<thead"),
+                                                           (' class="kv"', "<tr")}
+    # a table of more than 25 rows may break across pages, a shorter one is kept whole
+    residuals = _section(page, "residuals")
+    assert residuals.count('<table class="long">') == 1 and "All " in residuals
+
+
+def test_templates_are_package_data():
+    names = {p.name for p in (files("fringecal.report") / "templates").iterdir()}
+    assert {"base.html.j2", "macros.html.j2", "header.html.j2", "report.css"} <= names
+    assert {f"{anchor}.html.j2" for anchor, _ in SECTIONS} <= names
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert "report/templates/*" in pyproject["tool"]["setuptools"]["package-data"]["fringecal"]
+    assert any(d.replace(" ", "").startswith("jinja2>=3.1") for d in pyproject["project"]["dependencies"])
+
+
 def test_true_column_is_matched_by_position_name(rd):
     ev = rd.evaluation.load()
     true = ev["verification_true_params"]
@@ -314,6 +365,18 @@ def test_missing_optional_files_give_notes(rd):
     assert page.count("data:image/png;base64,") == 1
     assert "Could not be shown" not in page
     _well_formed(page)
+
+
+def test_timing_shows_kernel_compilation_apart(rd):
+    """A first run's compilation is shown per step and in total; a warm run has no column."""
+    page = render_report(rd, TIMINGS, generated="2026-05-06 07:08:09",
+                         compile_seconds={"simulate-render": 21.25, "bundle": 0.0, "spheres-first": 3.5})
+    timing = _section(page, "timing")
+    assert "<th>of which compiling kernels</th>" in timing
+    assert "21.2 s" in timing and "3.50 s" in timing and "24.8 s" in timing  # per step, then the total
+    assert timing.count("<td></td>") >= 2  # the bundle (0 s) and verify steps compiled nothing
+    warm = _section(render_report(rd, TIMINGS, generated="2026-05-06 07:08:09"), "timing")
+    assert "compiling" not in warm
 
 
 def test_a_run_without_ballbar_recordings_is_not_verified(rd):
@@ -389,7 +452,7 @@ def test_hostile_strings_are_escaped(rd):
     page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
     assert "<script" not in page and "<img src=x" not in page and "<b>scanner2" not in page
     assert "<i>bb01" not in page and "<u>x" not in page
-    assert "&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt;" in page
+    assert "&lt;script&gt;alert(&#34;x&#34;)&lt;/script&gt;" in page  # markupsafe: &#34; for "
     assert "&lt;img src=x onerror=alert(1)&gt;" in page
     assert "scanner &lt;b&gt;scanner2&lt;/b&gt; &amp; friends" in page
     assert "&lt;/code&gt;&lt;b&gt;" in page

@@ -15,10 +15,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import fringecal.report as report
 from fringecal.acceptance.evaluate import VALUE_COLUMNS, certificate
 from fringecal.acceptance.standards import AcceptanceLimits, AcceptanceStandards
-from fringecal.report import render_report, write_report
+from fringecal.report import figures, render_report, write_report
+from fringecal.report.sections.placements import placement
 from fringecal.rig import Rig, Scanner
 from fringecal.rundir import RunDir
 from fringecal.sensor import Sensor, SensorFormat
@@ -189,13 +189,13 @@ def test_figure_is_embedded_with_the_positions_and_pinholes(rd, monkeypatch):
                         for sid, x in (("A", -400.0), ("B", 600.0))])
     rd.ballbar_centres.save(bar)
     drawn = {}
-    real = report._acceptance_png
+    real = figures.acceptance_png
 
     def spy(shapes, pinholes, bars):
         drawn.update(shapes=shapes, pinholes=pinholes, bars=bars)
         return real(shapes, pinholes, bars)
 
-    monkeypatch.setattr(report, "_acceptance_png", spy)
+    monkeypatch.setattr(figures, "acceptance_png", spy)
     section = _section(_page(rd, _doc()))
     images = re.findall(r'src="data:image/png;base64,([^"]+)"', section)
     assert len(images) == 1 and base64.b64decode(images[0]).startswith(b"\x89PNG")
@@ -208,14 +208,14 @@ def test_figure_is_embedded_with_the_positions_and_pinholes(rd, monkeypatch):
 
 def test_objects_are_placed_by_their_frames():
     standards = STANDARDS.model_dump(mode="json")
-    sphere, bell, flat = (report._placement(p, standards) for p in POSITIONS)
+    sphere, bell, flat = (placement(p, standards) for p in POSITIONS)
     assert sphere["radius"] == 63.5
     np.testing.assert_allclose(sphere["points"], [[100.0, 50.0, -300.0]])
     # sphere A at the origin, B at (500, 0, 0) of a frame turned by kappa = 90 deg
     np.testing.assert_allclose(bell["points"], [[100.0, -50.0, -400.0], [100.0, 450.0, -400.0]], atol=1e-9)
     np.testing.assert_allclose(flat["points"][:4], [[-350.0, -60.0, -500.0], [350.0, -60.0, -500.0],
                                                     [350.0, 60.0, -500.0], [-350.0, 60.0, -500.0]])
-    unknown = report._placement(POSITIONS[1], {})  # no certificate: the frame's origin only
+    unknown = placement(POSITIONS[1], {})  # no certificate: the frame's origin only
     np.testing.assert_allclose(unknown["points"], [[100.0, -50.0, -400.0]])
 
 

@@ -144,6 +144,27 @@ def test_steps_keys_include_their_own_code_only():
     assert source_digest(["fringecal.steps.report"]) != source_digest(["fringecal.steps.bundle"])
 
 
+def test_a_report_template_is_part_of_the_report_steps_code(tmp_path, monkeypatch):
+    """Editing only a template or the style sheet must rewrite the report on the next run."""
+    import fringecal.report as report
+
+    copy = tmp_path / "report"
+    shutil.copytree(Path(report.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    real = digests._module_file
+
+    def in_copy(name):
+        path = real(name)
+        if path is not None and name.startswith("fringecal.report"):
+            return copy / path.relative_to(Path(report.__file__).parent)
+        return path
+
+    monkeypatch.setattr(digests, "_module_file", in_copy)
+    before = source_digest(["fringecal.steps.report"])
+    css = copy / "templates" / "report.css"
+    css.write_text(css.read_text() + "\n/* edited */\n")
+    assert source_digest(["fringecal.steps.report"]) != before
+
+
 def test_digest_cache_rehashes_only_changed_files(tmp_path, monkeypatch):
     folder = tmp_path / "store"
     folder.mkdir()

@@ -1,0 +1,48 @@
+"""Residuals: the histograms of the run, and the residuals per measurement and per sphere image."""
+
+from __future__ import annotations
+
+from ..figures import Image
+from ..formatting import length, natural, um
+from ..rundata import Missing, RunData, guard
+from ..tables import table
+
+__all__ = ["build", "per_measurement", "per_sphere"]
+
+SPHERE_HEADS = ["Measurement", "Scanner", "Sphere", "Points", "RMS ε1", "RMS ε2", "Mean ε2", "Max |ε2|"]
+
+
+def build(run: RunData) -> dict:
+    """The two histograms (``figures/eps{1,2}_hist.png``; a note for one that is missing) and the tables."""
+    histograms = []
+    for term, alt in (("eps1", "ε1 histogram"), ("eps2", "ε2 histogram")):
+        try:
+            histograms.append({"image": Image(run.load(run.rd.histogram(term)), alt), "missing": None})
+        except Missing as why:
+            histograms.append({"image": None, "missing": f"Not available: {why}."})
+    return {"histograms": histograms, "per_measurement": guard(per_measurement, run),
+            "per_sphere": guard(per_sphere, run)}
+
+
+def per_measurement(run: RunData):
+    """RMS residuals per measurement (``tables/residuals_per_measurement.csv``), in natural order."""
+    t = run.table(run.rd.residuals_per_measurement)
+    t = t.iloc[sorted(range(len(t)), key=lambda i: natural(t["measurement"].iloc[i]))]
+    return table(["Measurement", "Scanners", "Points", "Spheres", "RMS ε1", "RMS ε2", "Mean ε2", "RMS ε2 at start"],
+                 [[r.measurement, r.scanners, r.n_points, r.n_spheres, um(r.rms_eps1_mm), um(r.rms_eps2_mm),
+                   um(r.mean_eps2_mm), length(r.rms_eps2_start_mm)] for r in t.itertuples()], left=2)
+
+
+def per_sphere(run: RunData, show: int = 10, most: int = 300) -> dict:
+    """Sphere images worst first (``tables/residuals_per_sphere.csv``): ``show`` on the
+    page, up to ``most`` in a fold-out."""
+    f = run.rd.residuals_per_sphere
+    t = run.table(f).sort_values("rms_eps2_mm", ascending=False)
+    rows = [[r.measurement, r.scanner, r.sphere_id, r.n_points, um(r.rms_eps1_mm), um(r.rms_eps2_mm),
+             um(r.mean_eps2_mm), um(r.max_abs_eps2_mm)] for r in t.itertuples()]
+    more = None
+    if len(rows) > show:
+        title = (f"All {len(rows)} sphere images" if len(rows) <= most else
+                 f"The worst {most} of {len(rows)} sphere images (all in {f.rel})")
+        more = {"title": title, "table": table(SPHERE_HEADS, rows[:most], left=3)}
+    return {"n": len(rows), "worst": table(SPHERE_HEADS, rows[:show], left=3), "more": more}
