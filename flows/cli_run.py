@@ -132,8 +132,11 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
                          f"{1000 * tr['verification_max_abs_error_true_params_mm']:.1f} um"))
         rows.append(("truth: max position / angle error", f"{tr['max_position_error_mm']:.3f} mm / "
                                                           f"{1e3 * tr['max_angle_error_rad']:.3f} mrad"))
-    rows += [("bundle adjustment / total", f"{summary['bundle_seconds']:.2f} s / {summary['total_seconds']:.0f} s"),
-             ("tasks run / from cache", f"{len(summary['tasks']['ran'])} / {len(summary['tasks']['cached'])}")]
+    rows += [("bundle adjustment / total", f"{summary['bundle_seconds']:.2f} s / {summary['total_seconds']:.0f} s")]
+    compiled = sum((summary.get("compile_seconds") or {}).values())
+    if compiled:
+        rows.append(("  of which compiling kernels", f"{compiled:.0f} s (first run on this machine only)"))
+    rows.append(("tasks run / from cache", f"{len(summary['tasks']['ran'])} / {len(summary['tasks']['cached'])}"))
     for k, val in rows:
         t.add_row(k, val)
     console.print(t)

@@ -46,11 +46,29 @@ class RichProgress:
         if name in self.tasks:
             self.progress.advance(self.tasks[name], n)
 
+    def compiling(self, event: str, kernel: str, seconds: float) -> None:
+        """Observer of :mod:`fringecal.compile_clock`: one line that appears when numba
+        compiles (a first run on this machine) and shows the seconds spent so far."""
+        label = "compiling kernels (first run only)"
+        if label not in self.tasks:
+            self.tasks[label] = self.progress.add_task(label, total=None)
+            self.kernels = 0
+        if event == "end":
+            self.kernels += 1
+        self.progress.update(self.tasks[label], description=f"{label}: {self.kernels} kernels, {seconds:.0f} s")
+
     @contextmanager
     def running(self):
+        from fringecal import compile_clock
+
+        clock = compile_clock.install()
         install(self)
+        clock.observer = self.compiling
         with self.progress:
             try:
                 yield self
             finally:
+                clock.observer = None
+                if "compiling kernels (first run only)" in self.tasks:
+                    self.progress.update(self.tasks["compiling kernels (first run only)"], total=1, completed=1)
                 install(None)

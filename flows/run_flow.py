@@ -45,6 +45,7 @@ class StepRunner:
         self.ran: list[str] = []
         self.cached: list[str] = []
         self.timings: dict[str, float] = {}
+        self.compile_seconds: dict[str, float] = {}
         self.records: dict[str, dict] = {}
 
     def run(self, step: Step, context: dict | None = None) -> None:
@@ -64,6 +65,8 @@ class StepRunner:
             name = f"{step.name}:{item}" if item else step.name
             (self.cached if future.state.name == "Cached" or record.get("reused") else self.ran).append(name)
             self.records[name] = {"key": record["key"], "outputs": record["outputs"]}
+            if record.get("compile_seconds") and not record.get("reused"):
+                self.compile_seconds[step.name] = self.compile_seconds.get(step.name, 0.0) + record["compile_seconds"]
             progress.advance(step.label)
         self.timings[step.name] = time.perf_counter() - t0
 
@@ -90,13 +93,17 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
         raise ValueError(f"--until {until}: not a step of this run ({', '.join(s.name for s in steps)})")
     for step in steps:
         context = {"timings": {**runner.timings, "total": time.perf_counter() - t_start},
+                   "compile_seconds": dict(runner.compile_seconds),
                    "execution": execution} if step.name == "report" else None
         runner.run(step, context)
         if step.name == until:
             break
     summary = run_summary(rd, cfg) if until is None else {"name": cfg.name, "source": cfg.source}
     summary.update(execution)
-    summary.update(timings=runner.timings, total_seconds=time.perf_counter() - t_start,
+    # compile_seconds: numba compiling kernels (first run on a machine only), per step, summed
+    # over the step's instances (which may overlap in time), part of the step's timing
+    summary.update(timings=runner.timings, compile_seconds=runner.compile_seconds,
+                   total_seconds=time.perf_counter() - t_start,
                    tasks={"ran": runner.ran, "cached": runner.cached}, steps=runner.records)
     rd.summary.save(summary)
     return summary

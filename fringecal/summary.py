@@ -82,6 +82,7 @@ def run_summary(rd: RunDir, cfg) -> dict:
         "rms_eps1_mm_after": b["after"]["rms_eps1_mm"], "rms_eps2_mm_after": b["after"]["rms_eps2_mm"],
         "one_part_in": b["one_part_in_1p96_sigma"], "volume_diagonal_mm": b["volume_diagonal_mm"],
         "bundle_seconds": b.get("bundle_seconds", b.get("elapsed_s")),
+        "bundle_compile_seconds": b.get("bundle_compile_seconds", 0.0),
         "simulation_profile": simulation_profile(cfg),
         "verification": None, "truth": None,
     }

@@ -25,6 +25,7 @@ import logging
 import time
 from pathlib import Path
 
+from .. import compile_clock
 from ..digests import DigestCache, digest_value, source_digest
 from ..rundir import RunDir, RunFile
 from .base import Rows, Settings, Step, StepError, Value
@@ -114,20 +115,22 @@ def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | Non
     computes (the report's step timings) and are not keyed. ``key`` is the
     instance's key when the caller has just computed it (the flow does, to submit the
     task). The record gains ``"reused": True`` when nothing had to run, and
-    ``"seconds"`` otherwise.
+    ``"seconds"`` (wall) and ``"compile_seconds"`` (numba compiling kernels on a first
+    run, part of the wall time; :mod:`fringecal.compile_clock`) otherwise.
     """
     cfg = step.view(config)
     key = key or step_key(step, rd, cfg, item)
     if not force and (rec := current_record(step, rd, cfg, item, key)) is not None:
         return {**rec, "reused": True}
-    t0 = time.perf_counter()
+    clock = compile_clock.install()
+    t0, c0 = time.perf_counter(), clock.thread_seconds()
     step.run(rd, cfg, item, **(context or {}))
-    seconds = time.perf_counter() - t0
+    seconds, compile_seconds = time.perf_counter() - t0, clock.thread_seconds() - c0
     outputs = step.writes(rd, cfg, item)
     missing = [f.rel for f in outputs if not f.optional and not f.exists()]
     if missing:
         raise StepError(f"step {step.name} ({item or 'run'}) did not write {', '.join(missing)}")
     rec = {"step": step.name, "item": item, "key": key, "outputs": {f.rel: _digest(rd, f) for f in outputs},
-           "seconds": seconds}
+           "seconds": seconds, "compile_seconds": compile_seconds}
     rd.step_record(step.name, item).save(rec)
     return {**rec, "reused": False}

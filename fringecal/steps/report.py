@@ -35,7 +35,7 @@ class Report(Step):
         return [rd.report]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, timings: dict | None = None, execution: dict | None = None,
-            **context) -> None:
+            compile_seconds: dict | None = None, **context) -> None:
         from ..report import write_report
 
-        write_report(rd, timings, execution)
+        write_report(rd, timings, execution, compile_seconds)
