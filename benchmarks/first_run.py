@@ -1,0 +1,117 @@
+"""Benchmark of a newcomer's first contact: the README's demo command in a fresh clone.
+
+    PYTHONPATH=. python benchmarks/first_run.py [--repeats 3] [--out benchmarks/results/first_run.json]
+
+What is timed is what a new user waits for, with nothing cached:
+
+1. ``git clone`` of this checkout's HEAD into a temporary folder, then the README's
+   install (``python3 -m venv .venv && .venv/bin/pip install -q -e .``; pip's own
+   download cache is the machine's, as on a machine that installed Python packages
+   before), timed once;
+2. ``.venv/bin/fringecal run`` in the clone, ``--repeats`` times *cold*: before each
+   repeat every ``__pycache__`` folder of the clone is removed (byte code and numba's
+   kernel cache, as in a fresh clone), Prefect gets a new empty home
+   (``PREFECT_HOME``) and the run a new run directory;
+3. the same command once more *warm* into a new run directory (kernels and byte code
+   cached, as a user's second run).
+
+Each repeat records its wall time, the flow's own total, the seconds numba spent
+compiling kernels (``summary.json``: ``compile_seconds``), the bundle adjustment's
+reported time, and the load average before and after. The JSON gives the medians and
+the machine (cores, Python), and the commit measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _sh(cmd: list[str], cwd: Path, env: dict | None = None) -> float:
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return time.perf_counter() - t0
+
+
+def _clear_caches(clone: Path) -> int:
+    """Remove every __pycache__ folder of the clone (not of its venv); return how many."""
+    n = 0
+    for folder in list(clone.rglob("__pycache__")):
+        if ".venv" not in folder.relative_to(clone).parts:
+            shutil.rmtree(folder)
+            n += 1
+    return n
+
+
+def _run(clone: Path, run_dir: str, prefect_home: Path) -> dict:
+    env = {**os.environ, "PREFECT_HOME": str(prefect_home)}
+    env = {k: v for k, v in env.items() if k not in ("PREFECT_API_URL", "PREFECT_PROFILE", "NUMBA_CACHE_DIR",
+                                                     "PYTHONPATH")}
+    load0 = os.getloadavg()[0]
+    wall = _sh([str(clone / ".venv" / "bin" / "fringecal"), "run", "--out", run_dir], clone, env)
+    summary = json.loads((clone / run_dir / "summary.json").read_text())
+    return {"wall_s": round(wall, 1), "flow_s": round(summary["total_seconds"], 1),
+            "compile_s": round(sum((summary.get("compile_seconds") or {}).values()), 1),
+            "compile_by_step_s": {k: round(v, 1) for k, v in (summary.get("compile_seconds") or {}).items()},
+            "bundle_s": round(summary["bundle_seconds"], 2),
+            "bundle_compile_s": round(summary.get("bundle_compile_seconds", 0.0), 2),
+            "ball_bar_max_error_um": round(1000 * summary["verification"]["max_abs_error_mm"], 1),
+            "load_before": round(load0, 2), "load_after": round(os.getloadavg()[0], 2)}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
+    dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                                capture_output=True, text=True).stdout.strip())
+    with tempfile.TemporaryDirectory(prefix="fringecal-first-run-") as tmp:
+        tmp = Path(tmp)
+        clone = tmp / "fringecal"
+        _sh(["git", "clone", "--quiet", str(ROOT), str(clone)], tmp)
+        install = _sh(["sh", "-c", "python3 -m venv .venv && .venv/bin/pip install -q -e ."], clone)
+        cold = []
+        for i in range(args.repeats):
+            _clear_caches(clone)
+            cold.append(_run(clone, f"runs/cold-{i}", tmp / f"prefect-cold-{i}"))
+            print(json.dumps({"cold": cold[-1]}), file=sys.stderr)
+        warm = _run(clone, "runs/warm", tmp / "prefect-warm")
+    result = {
+        "benchmark": "first_run",
+        "command": "PYTHONPATH=. python benchmarks/first_run.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "timed_command": "fringecal run (README's demo) in a fresh clone",
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "commit": commit + (" (working tree differs: measured HEAD)" if dirty else ""),
+        "machine": {"cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
+        "install_s": round(install, 1),
+        "cold_median_wall_s": statistics.median(r["wall_s"] for r in cold),
+        "cold_median_compile_s": statistics.median(r["compile_s"] for r in cold),
+        "warm_wall_s": warm["wall_s"],
+        "cold": cold, "warm": warm,
+    }
+    text = json.dumps(result, indent=2)
+    if args.out:
+        args.out.write_text(text + "\n")
+    print(text)
+    return result
+
+
+if __name__ == "__main__":
+    main()
