@@ -145,6 +145,9 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
              verbose: bool, command: str, progress_console=None, until: Optional[str] = None) -> dict:
+    from fringecal import kernel_warmup
+
+    kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
     _quiet_prefect(verbose)
     from flows.progress import RichProgress
     from flows.run_flow import run_flow

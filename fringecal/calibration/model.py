@@ -146,8 +146,10 @@ class BundleProblem:
         if problems:
             raise TableError(source, problems)
         s_idx = cp["scanner"].map(scanners).to_numpy(np.int64)
-        uv = cp[["u_px", "v_px"]].to_numpy(float)
-        tau = cp[["tau_x_rad", "tau_y_rad"]].to_numpy(float)
+        # C-ordered, writable arrays whatever the frame's memory layout, so that the compiled
+        # kernels see one signature (one compilation) for every problem
+        uv = np.ascontiguousarray(cp[["u_px", "v_px"]].to_numpy(float))
+        tau = np.ascontiguousarray(cp[["tau_x_rad", "tau_y_rad"]].to_numpy(float))
         cam_mm = np.empty_like(uv)
         prj_mm = np.empty_like(tau)
         for i, sc in enumerate(rig.scanners):
@@ -168,7 +170,7 @@ class BundleProblem:
         pose_rows = poses.set_index("measurement").loc[keep, list(POSE_COLUMNS)].to_numpy(float)
         return cls(rig, artefact, tuple(keep), pose_rows, s_idx,
                    cp["measurement"].map(meas).to_numpy(np.int64),
-                   cp["sphere_id"].map(spheres).to_numpy(np.int64), cam_mm, prj_mm,
+                   np.array(cp["sphere_id"].map(spheres).to_numpy(np.int64)), cam_mm, prj_mm,
                    np.arange(len(cp)), None, float(gamma1), float(gamma2), dropped)
 
     # -- views -----------------------------------------------------------
