@@ -39,8 +39,7 @@ def start() -> subprocess.Popen | None:
     if not cache_is_cold():
         return None
     return subprocess.Popen([sys.executable, "-m", "fringecal.kernel_warmup"], stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-                            preexec_fn=lambda: os.nice(10))
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
 
 
 def warm_up() -> None:
@@ -83,4 +82,5 @@ def warm_up() -> None:
 
 
 if __name__ == "__main__":  # pragma: no cover - run as a process by start()
+    os.nice(10)  # here rather than in a preexec_fn, which is unsafe when the caller has threads
     warm_up()
