@@ -11,6 +11,8 @@ from contextlib import contextmanager
 __all__ = ["install", "step", "advance", "RichProgress"]
 
 _reporter = None
+#: The progress line that appears while numba compiles kernels.
+COMPILING = "compiling kernels (first run only)"
 
 
 def install(reporter) -> None:
@@ -37,6 +39,7 @@ class RichProgress:
         self.progress = Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),
                                  TimeElapsedColumn(), console=console, transient=False)
         self.tasks = {}
+        self.kernels_compiled = 0
 
     def step(self, name: str, total: int) -> None:
         if name not in self.tasks:
@@ -49,13 +52,12 @@ class RichProgress:
     def compiling(self, event: str, kernel: str, seconds: float) -> None:
         """Observer of :mod:`fringecal.compile_clock`: one line that appears when numba
         compiles (a first run on this machine) and shows the seconds spent so far."""
-        label = "compiling kernels (first run only)"
-        if label not in self.tasks:
-            self.tasks[label] = self.progress.add_task(label, total=None)
-            self.kernels = 0
+        if COMPILING not in self.tasks:
+            self.tasks[COMPILING] = self.progress.add_task(COMPILING, total=None)
         if event == "end":
-            self.kernels += 1
-        self.progress.update(self.tasks[label], description=f"{label}: {self.kernels} kernels, {seconds:.0f} s")
+            self.kernels_compiled += 1
+        self.progress.update(self.tasks[COMPILING],
+                             description=f"{COMPILING}: {self.kernels_compiled} kernels, {seconds:.0f} s")
 
     @contextmanager
     def running(self):
@@ -69,6 +71,6 @@ class RichProgress:
                 yield self
             finally:
                 clock.observer = None
-                if "compiling kernels (first run only)" in self.tasks:
-                    self.progress.update(self.tasks["compiling kernels (first run only)"], total=1, completed=1)
+                if COMPILING in self.tasks:
+                    self.progress.update(self.tasks[COMPILING], total=1, completed=1)
                 install(None)
