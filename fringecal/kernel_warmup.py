@@ -31,7 +31,11 @@ def cache_is_cold() -> bool:
     or in this checkout)."""
     from .fringe.decode import _decode_rows
 
-    return not os.path.exists(_decode_rows._cache._cache_file._index_path)
+    try:  # numba's cache-index path is internal: if it moves, skip the warm-up rather than the run
+        index = _decode_rows._cache._cache_file._index_path
+    except AttributeError:
+        return False
+    return not os.path.exists(index)
 
 
 def start() -> subprocess.Popen | None:
