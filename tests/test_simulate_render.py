@@ -271,6 +271,27 @@ def test_low_light_counts_are_poisson(scanner1):
     assert abs(zeros.sum() - p0.sum()) < 4 * np.sqrt(np.sum(p0 * (1 - p0)))
 
 
+@pytest.mark.parametrize("shot", [True, False])
+def test_noise_for_many_pixels_draws_what_pixel_by_pixel_draws(shot):
+    """The vectorised camera noise gives every pixel exactly the counts and stream
+    state of :func:`record`: means of 0 (nothing seen), under and over the exact-Poisson
+    limit, negative, saturating; enough draws that the normal tails occur."""
+    from fringecal.simulate.noise import record, record_pixels, stream
+
+    means = np.tile([0.0, 0.0, 0.3, 7.5, 29.9, 30.0, 800.0, 2.0e4, 3.9e4, 5.0e4, -3.0], 40)
+    sigma_e, inv_gain, max_dn = 42.0, 4095 / 40000, 4095
+    states = np.array([stream(np.uint64(99), i) for i in range(means.size)], np.uint64)
+    expected_states = states.copy()
+    for frame in range(5):
+        out = np.empty(means.size, np.uint16)
+        record_pixels(means.copy(), states, shot, sigma_e, inv_gain, max_dn, out, np.empty((3, means.size)))
+        expected = np.empty(means.size, np.uint16)
+        for i, m in enumerate(means):
+            expected_states[i], expected[i] = record(m, expected_states[i], shot, sigma_e, inv_gain, max_dn)
+        np.testing.assert_array_equal(out, expected)
+        np.testing.assert_array_equal(states, expected_states)
+
+
 def test_saturation_clips_at_full_scale(scanner1):
     small = scaled_scanner(scanner1, 64)
     scene, materials = flat_scene(small)

@@ -16,9 +16,10 @@ projector intensity non-linearity as harmonics h = 1..H of every fringe count
 field (``field``, empty when off) and the camera response (``noise[5]``).
 
 Primitives (spheres, cylinders, boxes, planes, free-form panels) are intersected by
-:mod:`.geometry`. numba's on-disk cache (``cache=True``) is keyed on this file alone,
-not on the functions it calls: a change to :mod:`.geometry` must come with a change
-to this file (as this note came with the panel), or a stale compiled kernel is used.
+:mod:`.geometry`. numba's on-disk cache (``cache=True``) is keyed on this file's bytes
+alone, not on the functions it calls: a change to :mod:`.geometry` or :mod:`.noise`
+must come with a change to this file (as this note came with the panel and with the
+row-wise noise of :func:`~.noise.record_pixels`) , or a stale compiled kernel is used.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import geometry as g
-from .noise import quantise, record, stream
+from .noise import quantise, record_pixels, stream
 
 #: Illumination codes of a hit (the truth's ``light`` map).
 LIGHT_NO_HIT, LIGHT_LIT, LIGHT_SHADOW, LIGHT_OUTSIDE = 0, 1, 2, 3
@@ -251,27 +252,31 @@ def write_frames(frames, r0, c0, nr, nc, base, zre, zim, fcos, fsin, key, noise)
     n_o, n_t = zre.shape[0], zre.shape[1] // n_h
     n_k = fcos.shape[0] // (n_o * n_t)
     states = np.empty(nr * nc, np.uint64)
+    mean = np.empty(nr * nc)
+    dn = np.empty(nr * nc, np.uint16)
+    scratch = np.empty((3, nr * nc))
     for p in range(nr * nc):
         states[p] = stream(key, (r0 + p // nc) * W + c0 + p % nc)
     for oi in range(n_o):
         for ti in range(n_t):
             for k in range(n_k):
                 f = (oi * n_t + ti) * n_k + k
+                for p in range(nr * nc):
+                    val = base[p]
+                    for h in range(n_h):
+                        q = h * n_t + ti
+                        val = val + fcos[f, h] * zre[oi, q, p]
+                        val = val - fsin[f, h] * zim[oi, q, p]
+                    if lin != 0.0:
+                        val = val + 4.0 * lin * val * (1.0 - val)
+                    mean[p] = val * (full_well if noisy else scale)
+                if noisy:
+                    record_pixels(mean, states, shot, sigma_e, inv_gain, max_dn, dn, scratch)
+                else:
+                    for p in range(nr * nc):
+                        dn[p] = quantise(mean[p], max_dn)
                 for r in range(nr):
-                    out = frames[f, r0 + r, c0:c0 + nc]
-                    for c in range(nc):
-                        p = r * nc + c
-                        val = base[p]
-                        for h in range(n_h):
-                            q = h * n_t + ti
-                            val = val + fcos[f, h] * zre[oi, q, p]
-                            val = val - fsin[f, h] * zim[oi, q, p]
-                        if lin != 0.0:
-                            val = val + 4.0 * lin * val * (1.0 - val)
-                        if noisy:
-                            states[p], out[c] = record(val * full_well, states[p], shot, sigma_e, inv_gain, max_dn)
-                        else:
-                            out[c] = quantise(val * scale, max_dn)
+                    frames[f, r0 + r, c0:c0 + nc] = dn[r * nc:(r + 1) * nc]
 
 
 @njit(parallel=True, cache=True)
