@@ -151,10 +151,14 @@ def test_optional_parts_may_be_absent(root):
     assert ds.config.processing == ProcessingOverrides() and ds.config.description is None
 
 
-def test_validation_reads_no_image(root, monkeypatch):
-    """A corrupt PNG passes (its contents are not read), and any image decoding fails the test."""
+def test_validation_reads_headers_but_decodes_no_image(root, monkeypatch):
+    """Every frame's header is read (a file that is not a PNG is refused) but no pixel is
+    decoded: a PNG with damaged image data passes, and any decoding fails the test."""
     bad = root / "measurements" / "2" / "scanner1" / "y_006_02.png"
-    bad.write_bytes(b"not a png")
+    data = bad.read_bytes()
+    at = data.index(b"IDAT")
+    i = at + 4 + int.from_bytes(data[at - 4:at], "big") // 2  # the middle of the image data
+    bad.write_bytes(data[:i] + bytes([data[i] ^ 0xFF]) + data[i + 1:])
 
     def forbidden(*args, **kwargs):
         raise AssertionError("an image was decoded during validation")
@@ -163,8 +167,11 @@ def test_validation_reads_no_image(root, monkeypatch):
         monkeypatch.setattr(importer, reader, forbidden)
     assert len(DataSet.open(root).measurements) == 6
     monkeypatch.undo()
-    with pytest.raises(FrameStackError, match="y_006_02.png: corrupt"):
+    with pytest.raises(FrameStackError, match=r"y_006_02\.png: corrupt or unreadable PNG \(image data"):
         read_frames(bad.parent)
+    bad.write_bytes(b"not a png")
+    with pytest.raises(FrameStackError, match=r"y_006_02\.png: corrupt or unreadable PNG \(no PNG signature\)"):
+        DataSet.open(root)
 
 
 @pytest.mark.parametrize("w, h, ok", [(9, 8, True), (8, 9, True), (16, 15, True), (10, 8, False),

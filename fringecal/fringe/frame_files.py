@@ -19,11 +19,14 @@ import numba as nb
 import numpy as np
 import tifffile
 
-__all__ = ["FrameStackError", "SEQUENCE_FILE", "Scratch", "check_image", "read_png", "read_bmp", "read_tif"]
+__all__ = ["FrameStackError", "SEQUENCE_FILE", "Scratch", "check_image", "read_png", "read_bmp", "read_tif",
+           "probe_png", "probe_bmp", "probe_tif", "empty_file"]
 
 SEQUENCE_FILE = "sequence.yaml"
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_COLOUR = {2: "RGB", 3: "palette (colour-mapped)", 4: "grey+alpha", 6: "RGBA"}
+_PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the last chunk: length 0, type, CRC
+_PNG_TAIL_SEARCH = 65536  # bytes searched for IEND when a PNG has data after it
 
 
 class FrameStackError(ValueError):
@@ -76,20 +79,28 @@ def read_file(path: Path, scratch: Scratch) -> np.ndarray:
     return buf[:n]
 
 
-def read_png(path: Path, spec, out: np.ndarray, scratch: Scratch) -> None:
-    buf = read_file(path, scratch)
+def empty_file(path: Path, kind: str) -> FrameStackError:
+    """The error for a 0-byte frame file (a capture that wrote nothing)."""
+    return FrameStackError(f"{path}: empty file (0 bytes); expected a grey {kind} frame")
+
+
+def _png_header(path: Path, head, size: int, spec) -> tuple[int, int, int]:
+    """(width, height, interlace) from a PNG's first 33 bytes ``head`` (of a ``size``-byte
+    file), after refusing anything but a grey 8/16-bit image of the spec's size and depth."""
 
     def corrupt(why):
         return FrameStackError(f"{path}: corrupt or unreadable PNG ({why})")
 
-    if buf[:8].tobytes() != _PNG_SIGNATURE:
+    if size == 0:
+        raise empty_file(path, "PNG")
+    if bytes(head[:8]) != _PNG_SIGNATURE:
         raise corrupt("no PNG signature")
-    if buf.size < 33:
-        raise corrupt(f"truncated: {buf.size} bytes, no complete header")
-    length, kind = struct.unpack_from(">I4s", buf, 8)
+    if size < 33:
+        raise corrupt(f"truncated: {size} bytes, no complete header")
+    length, kind = struct.unpack_from(">I4s", head, 8)
     if kind != b"IHDR" or length != 13:
         raise corrupt("no IHDR header")
-    w, h, depth, colour, method, filtering, interlace = struct.unpack_from(">IIBBBBB", buf, 16)
+    w, h, depth, colour, method, filtering, interlace = struct.unpack_from(">IIBBBBB", head, 16)
     if colour in _PNG_COLOUR:
         raise FrameStackError(f"{path}: expected a single-channel (grey) image, got a {_PNG_COLOUR[colour]} PNG")
     if colour != 0 or depth not in (1, 2, 4, 8, 16) or method or filtering or interlace > 1:
@@ -98,6 +109,97 @@ def read_png(path: Path, spec, out: np.ndarray, scratch: Scratch) -> None:
         raise FrameStackError(f"{path}: {depth}-bit grey PNG, but {SEQUENCE_FILE} says bit_depth "
                               f"{spec.bit_depth} ({spec.dtype.itemsize * 8}-bit files)")
     check_image(path, (h, w), np.uint8 if depth == 8 else np.uint16, spec)
+    return w, h, interlace
+
+
+def _open_frame(path: Path):
+    try:
+        return open(path, "rb")
+    except OSError as err:
+        raise FrameStackError(f"{path}: cannot read file ({err.strerror or err})") from None
+
+
+def probe_png(path: Path, spec) -> None:
+    """Check a PNG frame from its header and its last bytes, reading no pixel: grey,
+    8/16-bit, the spec's size and depth, not empty, and ending with its IEND chunk (a
+    file cut short by a full disk or an interrupted copy does not)."""
+    with _open_frame(path) as f:
+        size = os.fstat(f.fileno()).st_size
+        _png_header(path, f.read(33), size, spec)
+        f.seek(max(0, size - 12))
+        if f.read(12) == _PNG_IEND:
+            return
+        f.seek(max(0, size - _PNG_TAIL_SEARCH))  # data after IEND is allowed (libpng ignores it)
+        tail = f.read()
+    at = tail.rfind(_PNG_IEND)
+    if at < 0 or size - len(tail) + at < 33:
+        raise FrameStackError(f"{path}: corrupt or unreadable PNG (truncated: the {size}-byte file does not end "
+                              "with the IEND chunk)")
+
+
+def probe_bmp(path: Path, spec) -> None:
+    """Check a BMP frame from its headers and palette, reading no pixel: 8-bit with a
+    grey palette, the spec's size, not empty, not shorter than its rows need."""
+    with _open_frame(path) as f:
+        size = os.fstat(f.fileno()).st_size
+        head = f.read(54)
+        if size == 0:
+            raise empty_file(path, "BMP")
+        if len(head) < 54 or head[:2] != b"BM":
+            raise FrameStackError(f"{path}: corrupt or unreadable BMP (no BMP header)")
+        offset = struct.unpack_from("<I", head, 10)[0]
+        header, w, h, _, bits, compression = struct.unpack_from("<IiiHHI", head, 14)
+        if bits in (16, 24, 32):
+            raise FrameStackError(f"{path}: expected a single-channel (grey) image, got a {bits}-bit colour BMP")
+        if bits != 8:
+            raise FrameStackError(f"{path}: {bits}-bit BMP; BMP frames must be 8-bit grey (paletted)")
+        check_image(path, (abs(h), w), np.uint8, spec)
+        used = struct.unpack_from("<I", head, 46)[0] or 256
+        f.seek(14 + header)
+        palette = np.frombuffer(f.read(4 * min(used, 256)), np.uint8)
+    if used > 256 or palette.size != 4 * used:
+        raise FrameStackError(f"{path}: corrupt or unreadable BMP (palette of {used} colours)")
+    bgr = palette.reshape(used, 4)[:, :3]
+    if not (bgr == bgr[:, :1]).all():
+        raise FrameStackError(f"{path}: expected a single-channel (grey) image, got a BMP with a colour palette")
+    need = offset + (w + 3) // 4 * 4 * abs(h)
+    if compression == 0 and need > size:
+        raise FrameStackError(f"{path}: corrupt or unreadable BMP (truncated: {w}x{abs(h)} px need {need} bytes, "
+                              f"the file has {size})")
+
+
+def probe_tif(path: Path, spec) -> None:
+    """Check a TIFF frame from its directory, reading no pixel: one grey page of the
+    spec's size and sample type, not empty, its image data within the file."""
+    try:
+        size = path.stat().st_size
+    except OSError as err:
+        raise FrameStackError(f"{path}: cannot read file ({err.strerror or err})") from None
+    if size == 0:
+        raise empty_file(path, "TIFF")
+    try:
+        with tifffile.TiffFile(path) as tif:
+            if len(tif.pages) != 1:
+                raise FrameStackError(f"{path}: {len(tif.pages)} pages; expected one grey frame per file")
+            page = tif.pages[0]
+            check_image(path, page.shape, np.dtype(page.dtype), spec)
+            end = max((int(o) + int(n) for o, n in zip(page.dataoffsets, page.databytecounts)), default=0)
+    except FrameStackError:
+        raise
+    except Exception as err:  # tifffile raises many types on damaged files
+        raise FrameStackError(f"{path}: corrupt or unreadable TIFF ({type(err).__name__}: {err})") from None
+    if end > size:
+        raise FrameStackError(f"{path}: corrupt or unreadable TIFF (truncated: its image data runs to byte {end}, "
+                              f"the file has {size})")
+
+
+def read_png(path: Path, spec, out: np.ndarray, scratch: Scratch) -> None:
+    buf = read_file(path, scratch)
+
+    def corrupt(why):
+        return FrameStackError(f"{path}: corrupt or unreadable PNG ({why})")
+
+    w, h, interlace = _png_header(path, buf[:33], buf.size, spec)
     if interlace:  # Adam7: rare from scanners; libpng de-interlaces
         try:
             imagecodecs.png_decode(buf, out=out)

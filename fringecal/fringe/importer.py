@@ -12,8 +12,32 @@ Layout::
         frames.npy             all frames, shape (n_frames, height, width), in acquisition order
 
 Every problem (unreadable YAML, missing/extra/misnamed frames, mixed formats, wrong
-size, wrong bit depth, corrupt, truncated or colour image, saturated stack) raises one
-:class:`FrameStackError` whose message starts with the offending file.
+size, wrong bit depth, empty, corrupt, truncated or colour image, saturated or dark
+frame) raises one :class:`FrameStackError` whose message starts with the offending file.
+
+Checked before decoding
+-----------------------
+:func:`check_stack` checks a folder without decoding a pixel: ``sequence.yaml``, the
+listing, and the header of every frame (empty file, signature, grey, bit depth, size,
+and a PNG's IEND chunk at the end, a TIFF's image data or a BMP's rows within the
+file, so a truncated frame is found); :meth:`fringecal.dataset.DataSet.open` and
+``fringecal decode`` run it on every stack. :func:`check_levels` then decodes one frame
+per orientation (the first of its sequence; 2 of a stack's 98 frames) for the checks
+that need pixels, so that a stack recorded with the lens cap on, the projector off or
+far too much exposure is refused before any decoding (``fringecal run --dataset``,
+``fringecal decode``). :func:`read_frames` applies the same value checks to every frame.
+
+* **Colour** frames are refused, not converted: a scanner's camera is monochrome, and a
+  colour file means a wrong camera or export setting whose grey conversion would not be
+  the sensor's intensity.
+* **Saturation**: a pixel at full scale (``2**bit_depth - 1``) in any frame is invalid
+  in decoding (:mod:`fringecal.fringe.decode`); a frame with more than
+  :data:`MAX_SATURATED_FRACTION` (25 %) of its pixels at full scale refuses the stack
+  (over-exposed: reduce the exposure).
+* **Darkness**: a frame with at most :data:`MIN_LIT_FRACTION` (0.01 %) of its pixels at
+  or above :data:`DARK_LEVEL` (2 % of full scale, the decoder's default minimum
+  modulation) is dark and refuses the stack; hot pixels stay below that count, while a
+  projected fringe lights about half of what the camera sees.
 
 How frames are read (the readers are in :mod:`fringecal.fringe.frame_files`; decisions
 measured by ``benchmarks/image_import.py``, the table is in docs/decoding.md, "Image
@@ -64,17 +88,25 @@ import yaml
 from pydantic import Field, ValidationError
 
 from ..config import StrictModel
-from .frame_files import SEQUENCE_FILE, FrameStackError, Scratch, read_bmp, read_png, read_tif
+from .frame_files import (SEQUENCE_FILE, FrameStackError, Scratch, empty_file, probe_bmp, probe_png, probe_tif,
+                          read_bmp, read_png, read_tif)
 from .sequence import FringeSequence, SequenceError
 
-__all__ = ["FrameStackError", "StackSpec", "FrameStack", "read_stack_spec", "read_frames", "write_frames",
-           "SEQUENCE_FILE", "STACK_FILE", "FRAME_FORMATS"]
+__all__ = ["FrameStackError", "StackSpec", "FrameStack", "read_stack_spec", "check_stack", "check_levels",
+           "read_frames", "write_frames", "SEQUENCE_FILE", "STACK_FILE", "FRAME_FORMATS", "MAX_SATURATED_FRACTION",
+           "DARK_LEVEL", "MIN_LIT_FRACTION"]
 
 STACK_FILE = "frames.npy"
 FRAME_FORMATS = ("png", "tif", "bmp")
 _FRAME_EXTS = {".png": "png", ".tif": "tif", ".tiff": "tif", ".bmp": "bmp"}
 _IMAGE_EXTS = set(_FRAME_EXTS) | {".npy", ".jpg", ".jpeg", ".gif", ".webp", ".jp2", ".pgm", ".ppm"}
 _NAME = re.compile(r"^([a-z])_(\d{3})_(\d{2})$")
+#: a frame with more of its pixels at full scale is over-exposed
+MAX_SATURATED_FRACTION = 0.25
+#: fraction of full scale a pixel must reach to count as lit (the decoder's default min_modulation)
+DARK_LEVEL = 0.02
+#: a frame with at most this fraction of its pixels lit is dark
+MIN_LIT_FRACTION = 1e-4
 
 
 class StackSpec(StrictModel):
@@ -180,7 +212,44 @@ def read_stack_spec(folder) -> tuple[StackSpec, list[Path], str]:
     return spec, files, fmt
 
 
-def read_frames(folder, threads: int | None = None, max_saturated_fraction: float = 0.25) -> FrameStack:
+def check_stack(folder) -> tuple[StackSpec, list[Path], str]:
+    """:func:`read_stack_spec` and the header of every frame, reading no pixel (see
+    "Checked before decoding" in the module notes); same returns."""
+    spec, files, fmt = read_stack_spec(folder)
+    probe = {"png": probe_png, "tif": probe_tif, "bmp": probe_bmp, "npy": _probe_npy}[fmt]
+    for path in files:
+        probe(path, spec)
+    return spec, files, fmt
+
+
+def check_levels(folder, max_saturated_fraction: float = MAX_SATURATED_FRACTION) -> None:
+    """Decode the first frame of each orientation of a folder that :func:`check_stack`
+    accepted and refuse a dark or over-exposed one, or values beyond the bit depth."""
+    spec, files, fmt = read_stack_spec(folder)
+    seq = spec.sequence
+    picked = [seq.frame_index(o, seq.fringe_counts[0], 0) for o in seq.orientations]
+    frames = np.empty((len(picked), spec.height_px, spec.width_px), spec.dtype)
+    if fmt == "npy":
+        try:
+            stack = np.load(files[0], mmap_mode="r", allow_pickle=False)
+            frames[...] = stack[picked]
+        except Exception as err:
+            raise FrameStackError(f"{files[0]}: corrupt or unreadable .npy ({type(err).__name__}: {err})") from None
+    else:  # the readers of decoding: same checks, same messages (their kernels are compiled once)
+        reader, scratch = {"png": read_png, "tif": read_tif, "bmp": read_bmp}[fmt], Scratch()
+        for j, i in enumerate(picked):
+            reader(files[i], spec, frames[j], scratch)
+    full = spec.full_scale
+    lit = _lit_level(full)
+    peak = frames.reshape(len(picked), -1).max(axis=1).astype(np.int64)
+    n_full = np.count_nonzero(frames >= full, axis=(1, 2))
+    n_lit = np.count_nonzero(frames >= lit, axis=(1, 2))
+    _check_values(peak, n_full, n_lit, [_frame_label(files, spec, i) for i in picked], spec,
+                  max_saturated_fraction)
+
+
+def read_frames(folder, threads: int | None = None,
+                max_saturated_fraction: float = MAX_SATURATED_FRACTION) -> FrameStack:
     """Read and check every frame of a measurement folder into one array.
 
     Parameters
@@ -190,7 +259,8 @@ def read_frames(folder, threads: int | None = None, max_saturated_fraction: floa
         Reader threads, each decoding whole frames (every decoder used releases the
         GIL); default: the cores this process may run on.
     max_saturated_fraction : float
-        A frame with more of its pixels at full scale makes the stack unusable.
+        A frame with more of its pixels at full scale makes the stack unusable (as
+        does a dark frame: see the module notes).
 
     Returns
     -------
@@ -214,7 +284,9 @@ def read_frames(folder, threads: int | None = None, max_saturated_fraction: floa
             errors = [e for e in (f.exception() for f in futures) if e is not None]
         if errors:
             raise errors[0]
-    _check_values(frames, files, spec, max_saturated_fraction)
+    peak, n_full, n_lit = _frame_stats(frames, spec.full_scale, _lit_level(spec.full_scale))
+    _check_values(peak, n_full, n_lit, [_frame_label(files, spec, i) for i in range(len(frames))], spec,
+                  max_saturated_fraction)
     return FrameStack(folder, spec, frames, files, fmt)
 
 
@@ -296,56 +368,103 @@ def _load_spec(path: Path) -> StackSpec:
     return spec
 
 
+def _probe_npy(path: Path, spec: StackSpec) -> None:
+    """Shape, dtype and length of a ``frames.npy`` from its header."""
+    try:
+        size = path.stat().st_size
+        if size == 0:
+            raise empty_file(path, ".npy stack of")
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read(f)
+            start = f.tell()
+    except FrameStackError:
+        raise
+    except Exception as err:
+        raise FrameStackError(f"{path}: corrupt or unreadable .npy ({type(err).__name__}: {err})") from None
+    _check_npy(path, spec, tuple(shape), np.dtype(dtype))
+    need = start + int(np.prod(shape)) * np.dtype(dtype).itemsize
+    if need > size:
+        raise FrameStackError(f"{path}: corrupt or unreadable .npy (truncated: {need} bytes needed, the file has "
+                              f"{size})")
+
+
+def _check_npy(path: Path, spec: StackSpec, shape: tuple, dtype: np.dtype) -> None:
+    want = (spec.sequence.n_frames, spec.height_px, spec.width_px)
+    if shape != want:
+        raise FrameStackError(f"{path}: stack of shape {shape}, {SEQUENCE_FILE} says {want} "
+                              "(frames, height, width)")
+    if dtype != spec.dtype:
+        raise FrameStackError(f"{path}: {dtype.name} stack, but {SEQUENCE_FILE} says bit_depth "
+                              f"{spec.bit_depth} ({spec.dtype.name})")
+
+
 def _read_npy(path: Path, spec: StackSpec) -> np.ndarray:
-    n = spec.sequence.n_frames
     try:
         frames = np.load(path, allow_pickle=False)
     except Exception as err:
         raise FrameStackError(f"{path}: corrupt or unreadable .npy ({type(err).__name__}: {err})") from None
-    want = (n, spec.height_px, spec.width_px)
-    if frames.shape != want:
-        raise FrameStackError(f"{path}: stack of shape {frames.shape}, {SEQUENCE_FILE} says {want} "
-                              "(frames, height, width)")
-    if frames.dtype != spec.dtype:
-        raise FrameStackError(f"{path}: {frames.dtype.name} stack, but {SEQUENCE_FILE} says bit_depth "
-                              f"{spec.bit_depth} ({spec.dtype.name})")
+    _check_npy(path, spec, frames.shape, frames.dtype)
     return np.ascontiguousarray(frames)
 
 
-def _check_values(frames: np.ndarray, files: list[Path], spec: StackSpec, max_saturated_fraction: float) -> None:
-    peak, n_full = _frame_stats(frames, spec.full_scale)
-    seq = spec.sequence
-    names = [_stem(o, t, k) for o, t, k in seq.frames()]
+def _lit_level(full_scale: int) -> int:
+    """The smallest value that counts as lit (:data:`DARK_LEVEL` of full scale, at least 1)."""
+    return max(1, int(np.ceil(DARK_LEVEL * full_scale)))
 
-    def where(i):
-        return files[i] if len(files) == len(names) else f"{files[0]} (frame {i}, {names[i]})"
 
-    over = np.flatnonzero(peak > spec.full_scale)
+def _frame_label(files: list[Path], spec: StackSpec, i: int) -> str:
+    """Frame ``i`` in messages: its file, or ``frames.npy (frame i, name)``."""
+    if len(files) > 1 or files[0].suffix != ".npy":
+        return str(files[i])
+    o, t, k = spec.sequence.frames()[i]
+    return f"{files[0]} (frame {i}, {_stem(o, t, k)})"
+
+
+def _check_values(peak, n_full, n_lit, labels: list[str], spec: StackSpec, max_saturated_fraction: float) -> None:
+    """Refuse values beyond the bit depth, an over-exposed frame, a dark frame (per-frame
+    statistics: largest value, pixels at full scale, pixels at or above the lit level)."""
+    n_px = spec.width_px * spec.height_px
+    over = np.flatnonzero(np.asarray(peak) > spec.full_scale)
     if over.size:
         i = over[0]
-        raise FrameStackError(f"{where(i)}: value {peak[i]} exceeds the {spec.bit_depth}-bit range of "
+        raise FrameStackError(f"{labels[i]}: value {peak[i]} exceeds the {spec.bit_depth}-bit range of "
                               f"{SEQUENCE_FILE} (max {spec.full_scale}); wrong bit_depth?")
-    fraction = n_full / (frames.shape[1] * frames.shape[2])
+    fraction = np.asarray(n_full) / n_px
     i = int(np.argmax(fraction))
     if fraction[i] > max_saturated_fraction:
-        raise FrameStackError(f"{where(i)}: saturated stack: {fraction[i]:.0%} of the pixels are at full scale "
+        raise FrameStackError(f"{labels[i]}: saturated stack: {fraction[i]:.0%} of the pixels are at full scale "
                               f"({spec.full_scale}); reduce the exposure (limit {max_saturated_fraction:.0%})")
+    dark = np.flatnonzero(np.asarray(n_lit) <= MIN_LIT_FRACTION * n_px)
+    if dark.size:
+        i = dark[0]
+        level = _lit_level(spec.full_scale)
+        raise FrameStackError(f"{labels[i]}: dark frame: {n_lit[i]} of {n_px} pixels reach {level} DN "
+                              f"({DARK_LEVEL:.0%} of full scale {spec.full_scale}), the brightest is {peak[i]} DN; "
+                              "lens cap on, projector off or exposure far too short? (a frame needs more than "
+                              f"{MIN_LIT_FRACTION:.2%} of its pixels lit)")
 
 
 @nb.njit(parallel=True, cache=True)
-def _frame_stats(frames, full_scale):  # pragma: no cover - numba
-    """Per frame: the largest value and the number of pixels at or above full scale."""
+def _frame_stats(frames, full_scale, lit_level=1):  # pragma: no cover - numba
+    """Per frame: the largest value, the number of pixels at or above full scale and the
+    number at or above ``lit_level``."""
     n, h, w = frames.shape
     peak = np.zeros(n, np.int64)
     n_full = np.zeros(n, np.int64)
+    n_lit = np.zeros(n, np.int64)
     for i in nb.prange(n):
         m = 0
         s = 0
+        q = 0
         for r in range(h):
             for c in range(w):
                 v = np.int64(frames[i, r, c])
                 m = max(m, v)
                 s += v >= full_scale
+                q += v >= lit_level
         peak[i] = m
         n_full[i] = s
-    return peak, n_full
+        n_lit[i] = q
+    return peak, n_full, n_lit

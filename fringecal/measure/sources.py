@@ -62,9 +62,9 @@ def measurement_entries(folder, rig: Rig, kind: str) -> dict[str, Path]:
 
 def _check_entry(entry: Path, camera, kind: str) -> None:
     if kind == "frames":
-        from ..fringe.importer import read_stack_spec
+        from ..fringe.importer import check_stack
 
-        spec, _, _ = read_stack_spec(entry)
+        spec, _, _ = check_stack(entry)  # every frame's header: empty, truncated, colour, size, depth
         w, h = spec.width_px, spec.height_px
     else:
         from ..store import StoreError, is_complete, open_store
