@@ -7,13 +7,17 @@ settings and its code. Instances of one step are submitted together (bounded
 threads, or a Dask cluster with ``--runner dask``); a step starts when the one
 before it has finished. A rerun with nothing changed is all cache hits; a changed
 input, setting or module reruns exactly the steps that depend on it; a deleted or
-changed output is recomputed; a run killed midway resumes from what had finished.
+changed output is recomputed; a run killed midway resumes from what had finished:
+the flow first removes the hidden temporaries of the writes the interruption cut
+short and reports, in ``summary.json``'s ``resumed``, how many step instances it
+reused (:mod:`fringecal.resume`).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import os
+import threading
 import time
 
 # the steps log through the "fringecal" logger; Prefect attaches its handlers to it and
@@ -23,13 +27,14 @@ os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
 
 from prefect import flow  # noqa: E402
 
+from fringecal import resume  # noqa: E402
 from fringecal.rundir import RunDir  # noqa: E402
 from fringecal.runconfig import RunConfig, load_run_config  # noqa: E402
 from fringecal.steps import Step, current_record, pipeline, step_key  # noqa: E402
 from fringecal.summary import manifest, run_summary  # noqa: E402
 from tasks.step import step_task  # noqa: E402
 
-from . import progress  # noqa: E402
+from . import interrupt, progress  # noqa: E402
 
 __all__ = ["run_flow", "StepRunner"]
 
@@ -47,6 +52,12 @@ class StepRunner:
         self.timings: dict[str, float] = {}
         self.compile_seconds: dict[str, float] = {}
         self.records: dict[str, dict] = {}
+        self.finished = 0  # instances finished so far, counted as they end (what an interruption keeps)
+        self._lock = threading.Lock()
+
+    def _count(self, future) -> None:  # in the thread that ends the task
+        with self._lock:
+            self.finished += 1
 
     def run(self, step: Step, context: dict | None = None) -> None:
         t0 = time.perf_counter()
@@ -60,6 +71,7 @@ class StepRunner:
             task = step_task.with_options(name=step.name, task_run_name=f"{step.name}:{item}" if item else step.name,
                                           result_storage=self.rd.prefect_storage, refresh_cache=stale or None)
             futures[item] = task.submit(step.name, str(self.rd.root), self.doc, item, key, context)
+            futures[item].add_done_callback(self._count)
         for item, future in futures.items():
             record = future.result()
             name = f"{step.name}:{item}" if item else step.name
@@ -80,14 +92,28 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
     already resolved config (a manifest's ``config``). ``until`` stops after the named
     step (the summary then lists only what ran).
     """
+    interrupt.reassert()  # the command's Ctrl-C / SIGTERM handling instead of Prefect's (when armed)
     t_start = time.perf_counter()
     cfg = RunConfig.model_validate(config) if isinstance(config, dict) else load_run_config(config, overrides)
     rd = RunDir(run_dir).create()
+    interrupted = resume.begin(rd, command)  # before any step is submitted: no writer of this run is disturbed
+    try:
+        summary = _run(cfg, rd, command, until, t_start, interrupted)
+    except Exception:
+        resume.finish(rd)  # an error, not an interruption
+        raise
+    resume.finish(rd)
+    return summary
+
+
+def _run(cfg: RunConfig, rd: RunDir, command: str, until: str | None, t_start: float,
+         interrupted: dict | None) -> dict:
     doc = manifest(cfg)
     if not rd.manifest.exists() or rd.manifest.load() != doc:
         rd.manifest.save(doc)
     execution = {"created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "command": command}
     runner = StepRunner(rd, cfg)
+    interrupt.track(runner)
     steps = pipeline(cfg)
     if until is not None and until not in [s.name for s in steps]:
         raise ValueError(f"--until {until}: not a step of this run ({', '.join(s.name for s in steps)})")
@@ -105,5 +131,8 @@ def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", ove
     summary.update(timings=runner.timings, compile_seconds=runner.compile_seconds,
                    total_seconds=time.perf_counter() - t_start,
                    tasks={"ran": runner.ran, "cached": runner.cached}, steps=runner.records)
+    if interrupted is not None:  # the last run of this directory was interrupted: what it left was reused
+        summary["resumed"] = {"reused": len(runner.cached),
+                              "interrupted_run_started_utc": interrupted.get("started_utc")}
     rd.summary.save(summary)
     return summary

@@ -39,11 +39,20 @@ def cache_is_cold() -> bool:
 
 
 def start() -> subprocess.Popen | None:
-    """Start the warm-up process when the cache is cold; return it (or None)."""
+    """Start the warm-up process when the cache is cold; return it (or None).
+
+    It never outlives the command that started it (:mod:`fringecal.lifeline`): stop
+    it with :func:`fringecal.lifeline.stop` when the run ends; if the command is killed,
+    the lifeline stops it.
+    """
     if not cache_is_cold():
         return None
-    return subprocess.Popen([sys.executable, "-m", "fringecal.kernel_warmup"], stdin=subprocess.DEVNULL,
+    from . import lifeline
+
+    proc = subprocess.Popen([sys.executable, "-m", "fringecal.kernel_warmup"], stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    lifeline.adopt(proc)
+    return proc
 
 
 def warm_up() -> None:

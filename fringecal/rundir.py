@@ -29,6 +29,8 @@ bound to the file's schema and written by the one atomic writer
                                  read by the simulator and the evaluation step, nothing else
       .steps/<step>/<item>.json  what each step computed from what (key and output digests)
       .digests/, .prefect/       digest cache, Prefect's cached task results
+      .in_progress.json          while a run writes the directory: who (pid, start), since when
+                                 (left behind by an interrupted run; :mod:`fringecal.resume`)
 
 A store id is ``<measurement>-<scanner>`` (e.g. ``1-scanner1``) for the artefact and
 ``<position>-<scanner>`` (e.g. ``bb01-scanner2``) for the ball-bar.
@@ -593,6 +595,12 @@ class RunDir:
     def step_record(self, step: str, item: str) -> JsonFile:
         """What ``step`` computed for ``item`` ('' for one-off steps) and from what."""
         return self._at(JsonFile, f".steps/{step}/{item or '_'}.json")
+
+    @property
+    def in_progress(self) -> JsonFile:
+        """Written when a run of this directory starts, removed when it ends; found by the
+        next run, it says the last one was interrupted (:mod:`fringecal.resume`)."""
+        return self._at(JsonFile, ".in_progress.json")
 
     @property
     def digest_cache_dir(self) -> Path:
