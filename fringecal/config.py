@@ -1,7 +1,9 @@
 """Typed configuration (pydantic + YAML).
 
-Unknown keys are errors (``extra="forbid"``), relative paths resolve against the
-YAML file's folder, and every error names the file and the offending key.
+Unknown keys are errors (``extra="forbid"``), numbers must be finite (``.inf`` and
+``.nan`` are refused), relative paths resolve against the YAML file's folder, an empty
+file is refused (it would silently mean "every default"), and every error names the
+file and the offending key.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ class ConfigError(ValueError):
 
 
 class StrictModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def package_root() -> Path:
@@ -48,12 +50,16 @@ class RigConfig(StrictModel):
 
 
 def _format_validation_error(path: Path, err: ValidationError) -> str:
-    lines = [f"{path}: invalid configuration"]
+    """One line for one error (``FILE: invalid configuration: key.path: message``), else
+    a first line and one line per error."""
+    found = []
     for e in err.errors():
         loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
-        lines.append(f"  {loc}: {msg}")
-    return "\n".join(lines)
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
+        found.append(f"{loc}: {msg}")
+    if len(found) == 1:
+        return f"{path}: invalid configuration: {found[0]}"
+    return "\n".join([f"{path}: invalid configuration"] + [f"  {f}" for f in found])
 
 
 def _resolve_paths(model: BaseModel, base: Path) -> BaseModel:
@@ -67,17 +73,29 @@ def _resolve_paths(model: BaseModel, base: Path) -> BaseModel:
     return model.model_copy(update=updates) if updates else model
 
 
-def read_yaml_mapping(path) -> dict:
-    """The top-level mapping of a YAML file (an empty file is an empty mapping)."""
+def read_yaml_mapping(path, empty_hint: str = "expected a mapping of settings") -> dict:
+    """The top-level mapping of a YAML file.
+
+    An empty file (or one of comments only) is refused with ``empty_hint``: taken as
+    "every default", it would run something the user did not write down.
+    """
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except IsADirectoryError:
         raise ConfigError(f"{path}: is a folder, not a YAML file") from None
-    except (yaml.YAMLError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot be read ({err.strerror or err})") from None
+    except UnicodeDecodeError as err:
+        line = err.object.count(b"\n", 0, err.start) + 1
+        raise ConfigError(f"{path}: line {line}: byte 0x{err.object[err.start]:02x} is not UTF-8 text; "
+                          "save the file as UTF-8") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
+    if data is None:
+        raise ConfigError(f"{path}: the file is empty; {empty_hint}")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, found {type(data).__name__}")
     return data

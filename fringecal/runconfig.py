@@ -128,8 +128,13 @@ class ExtractionConfig(StrictModel):
     @field_validator("rejection")
     @classmethod
     def _rej(cls, v):
+        import math
+
         from .spheres.robust import RejectionConfig
 
+        noise = v.get("noise_mm", RejectionConfig.noise_mm)
+        if not (isinstance(noise, (int, float)) and math.isfinite(noise) and noise > 0):
+            raise ValueError(f"rejection.noise_mm: must be a finite length > 0 (mm), got {noise!r}")
         return _check_dataclass(RejectionConfig, v, "rejection")
 
     @field_validator("labelling")
@@ -375,7 +380,9 @@ def load_run_config(path: Path | None = None, overrides: dict | None = None, dat
     if path is None and dataset is None:
         path = default_run_config_path()
     path = None if path is None else Path(path)
-    data = read_yaml_mapping(path) if path is not None else {}
+    data = read_yaml_mapping(path, "omit --config to run the default configuration "
+                                   f"({default_run_config_path().relative_to(package_root())}), or start from a "
+                                   "copy of it") if path is not None else {}
     base = path.parent if path is not None else Path.cwd()
     source = path if path is not None else "run configuration"
     if overrides:

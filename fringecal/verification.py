@@ -171,6 +171,10 @@ def evaluate_ballbar(lengths_mm, reference_length_mm: float, measurements=None, 
                      certificate_k: float = 2.0, coverage_factor: float = 1.96) -> BallBarResult:
     """Length errors of a ball-bar over its positions against an MPE.
 
+    A position passes when its error is finite and within the MPE; without an MPE
+    ``passed`` only says that every error is finite (there is no verdict). A NaN
+    length or reference never passes.
+
     Examples
     --------
     >>> r = evaluate_ballbar([1015.543, 1015.799], 1015.650, mpe_mm=0.2, volume_diagonal_mm=2872.3)
@@ -183,7 +187,8 @@ def evaluate_ballbar(lengths_mm, reference_length_mm: float, measurements=None, 
     if measurements is None:
         measurements = [str(i + 1) for i in range(len(lengths))]
     errors = lengths - float(reference_length_mm)
-    ok = np.ones(len(lengths), bool) if mpe_mm is None else np.abs(errors) <= mpe_mm
+    # a NaN length, reference or MPE never passes (NaN compares false, and is excluded explicitly)
+    ok = np.isfinite(errors) if mpe_mm is None else np.isfinite(errors) & (np.abs(errors) <= float(mpe_mm))
     positions = pd.DataFrame({"measurement": list(measurements), "length_mm": lengths,
                               "error_mm": errors, "pass": ok})
     gum = GumStatement.from_repeats(lengths, certificate_expanded_mm, certificate_k, coverage_factor)

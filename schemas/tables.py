@@ -11,6 +11,8 @@ is line 1) and the column, and the rule that broke.
 
 from __future__ import annotations
 
+import csv
+import io
 import sys
 import types
 from pathlib import Path
@@ -85,22 +87,38 @@ FREE_COLUMNS = tuple(f"free_{n}" for n in PARAM_NAMES)
 
 
 class TableError(ValueError):
-    """A table broke its contract. ``problems`` lists (line, column, message)."""
+    """A table broke its contract. ``problems`` lists (line, column, message).
+
+    One problem is one line (``FILE: line 3, column 'x_mm': value 'inf' is not a finite
+    number``); several are a first line counting them and naming the first, then one
+    line each.
+    """
 
     def __init__(self, source: str, problems: list[tuple[Optional[int], Optional[str], str]]):
         self.source = source
         self.problems = problems
-        lines = [f"{source}: {len(problems)} problem(s)"]
+        if len(problems) == 1:
+            line, column, message = problems[0]
+            where = _where(line, column)
+            super().__init__(f"{source}: {where}: {message}" if where else f"{source}: {message}")
+            return
+        line, column, message = problems[0]
+        first = f"the first on {_where(line, column)}: {message}" if _where(line, column) else f"the first: {message}"
+        lines = [f"{source}: {len(problems)} problem(s), {first}"]
         for line, column, message in problems[:50]:
-            where = []
-            if line is not None:
-                where.append(f"line {line}")
-            if column is not None:
-                where.append(f"column '{column}'")
-            lines.append(f"  {', '.join(where) or 'table'}: {message}")
+            lines.append(f"  {_where(line, column) or 'table'}: {message}")
         if len(problems) > 50:
             lines.append(f"  ... and {len(problems) - 50} more")
         super().__init__("\n".join(lines))
+
+
+def _where(line: Optional[int], column: Optional[str]) -> str:
+    where = []
+    if line is not None:
+        where.append(f"line {line}")
+    if column is not None:
+        where.append(f"column '{column}'")
+    return ", ".join(where)
 
 
 class _Base(pa.DataFrameModel):
@@ -112,6 +130,8 @@ class _Base(pa.DataFrameModel):
     _id_columns = ()
     #: column sets that must be unique together (beyond single-field uniqueness)
     _unique_together = ()
+    #: number columns that may hold +-inf (none: every number must be finite)
+    _infinite_allowed = ()
 
 
 class ArtefactTable(_Base):
@@ -199,6 +219,7 @@ class SphereFitsTable(SphereCentresTable):
     rejected_residual: Optional[Series[int]] = pa.Field(ge=0)
 
     _id_columns = ("measurement", "scanner", "sphere_id", "candidate")
+    _infinite_allowed = ("u_x_mm", "u_y_mm", "u_z_mm")  # an output: a fit's unbounded uncertainty
     _unique_together = (("measurement", "scanner", "candidate"),)
 
 
@@ -241,6 +262,7 @@ class ScannerLinksTable(_Base):
     via: Series[str] = pa.Field()
 
     _id_columns = ("scanner", "reference", "via")
+    _infinite_allowed = ("translation_spread_mm", "rotation_spread_rad", "u_translation_mm", "u_rotation_rad")
 
 
 class PointsTable(_Base):
@@ -365,6 +387,9 @@ class CalibratedSensorsTable(SensorParametersTable):
     u_p2_per_mm: Series[float] = pa.Field(ge=0)
 
     _id_columns = ("sensor", "scanner", "role")
+    _infinite_allowed = tuple(f"u_{c}" for c in ("x0_mm", "y0_mm", "z0_mm", "omega_rad", "phi_rad", "kappa_rad",
+                                                  "xi_h_mm", "eta_h_mm", "c_mm", "k1_per_mm2", "k2_per_mm4",
+                                                  "k3_per_mm6", "p1_per_mm", "p2_per_mm"))
 
 
 class CalibratedPosesTable(PosePlanTable):
@@ -378,6 +403,7 @@ class CalibratedPosesTable(PosePlanTable):
     u_kappa_rad: Series[float] = pa.Field(ge=0)
 
     _id_columns = ("measurement",)
+    _infinite_allowed = ("u_tx_mm", "u_ty_mm", "u_tz_mm", "u_omega_rad", "u_phi_rad", "u_kappa_rad")
 
 
 class SphereResidualsTable(_Base):
@@ -665,6 +691,27 @@ def _describe_check(check: str) -> str:
     return f"breaks rule {check}"
 
 
+def _as_float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return np.nan
+
+
+def _infinite(s: pd.Series) -> np.ndarray:
+    """Positions of +-inf in a number column, given as numbers or as text (``inf``,
+    ``-Infinity``, ``1e999``: what the column's coercion to float would turn into inf)."""
+    if pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s):
+        values = s.to_numpy(dtype=float, na_value=np.nan)
+    else:
+        text = s.astype(str).str.strip()
+        try:
+            values = text.astype(float).to_numpy()
+        except (ValueError, TypeError):  # some cell is not a number: pandera names it
+            values = text.map(_as_float).to_numpy(dtype=float)
+    return np.flatnonzero(np.isinf(values))
+
+
 def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataFrame:
     """Validate a DataFrame against ``model``; return the coerced copy.
 
@@ -672,7 +719,9 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
     default RangeIndex in file order.
     """
     req, opt = _required_and_optional(model)
-    nullable = {n for n, c in model.to_schema().columns.items() if c.nullable}
+    columns = model.to_schema().columns
+    nullable = {n for n, c in columns.items() if c.nullable}
+    floats = {n for n, c in columns.items() if str(c.dtype).startswith("float")} - set(model._infinite_allowed)
     problems: list[tuple[Optional[int], Optional[str], str]] = []
     missing = [c for c in req if c not in df.columns]
     if missing:
@@ -696,6 +745,9 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
                 df[col] = s.where(~empty, np.nan)
         else:
             empty = s.isna()
+        if col in floats:
+            for i in _infinite(s):
+                problems.append((i + 2, col, f"value {s.iloc[i]!r} is not a finite number"))
         if col in nullable:
             continue  # empty is allowed (an unlabelled candidate, a spread from one estimate)
         for i in np.flatnonzero(empty.to_numpy()):
@@ -751,17 +803,54 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
 
 
 def read_csv_text(path) -> pd.DataFrame:
-    """Read a CSV with every cell as text (validation coerces types and names bad cells)."""
+    """Read a CSV with every cell as text (validation coerces types and names bad cells).
+
+    The file must be UTF-8 (a byte-order mark, as Excel's "CSV UTF-8" writes, and CRLF
+    line ends are fine); bytes that are not UTF-8 are reported with their line and column.
+    """
     path = Path(path)
     try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True,
-                         comment=None)
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise TableError(str(path), [(None, None, "file not found")]) from None
-    except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as err:
+    except IsADirectoryError:
+        raise TableError(str(path), [(None, None, "is a folder; expected a CSV file")]) from None
+    except OSError as err:
+        raise TableError(str(path), [(None, None, f"cannot be read ({err.strerror or err})")]) from None
+    text = _utf8_text(raw, str(path))
+    try:
+        df = pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False, skipinitialspace=True,
+                         comment=None)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError) as err:
         raise TableError(str(path), [(None, None, f"not a readable CSV table ({err})")]) from None
     df.columns = [c.strip() for c in df.columns]
     return df
+
+
+def _utf8_text(raw: bytes, source: str) -> str:
+    """``raw`` decoded as UTF-8 (a leading byte-order mark dropped), else a TableError
+    naming each line, column and byte that is not UTF-8."""
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        pass
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise TableError(source, [(1, None, "the file is UTF-16 text; save it as UTF-8 (in Excel: "
+                                            "'CSV UTF-8 (comma delimited)')")])
+    lines = raw.split(b"\n")
+    header = next(csv.reader([lines[0].decode("utf-8-sig", "replace").rstrip("\r")]), [])
+    problems = []
+    for number, line in enumerate(lines, 1):
+        try:
+            line.decode("utf-8-sig" if number == 1 else "utf-8")
+        except UnicodeDecodeError as err:
+            before = line[:err.start].decode("utf-8-sig" if number == 1 else "utf-8", "replace")
+            field = len(next(csv.reader([before]), [""])) - 1 if before else 0
+            column = header[field].strip() if number > 1 and field < len(header) else None
+            problems.append((number, column, f"byte 0x{line[err.start]:02x} (character {len(before) + 1} of the "
+                                             "line) is not UTF-8 text; save the table as UTF-8 (in Excel: "
+                                             "'CSV UTF-8 (comma delimited)')"))
+    raise TableError(source, problems)
 
 
 def read_table(path, model) -> pd.DataFrame:
