@@ -37,8 +37,12 @@ def pose(
     from schemas import SphereCentresTable, read_table
 
     from .common import configured_prefect_api
+    from .validate import output_file
 
-    load_artefact(artefact)  # validate both inputs before anything is written
+    output_file(out, "--out")  # validate every input before anything is written
+    art = load_artefact(artefact)
+    if len(art) < 3:
+        raise UserInputError(f"{artefact}: {len(art)} sphere(s); a pose needs at least 3 spheres of the artefact")
     read_table(centres, SphereCentresTable)
 
     if configured_prefect_api():

@@ -38,7 +38,11 @@ def acquire_command(
     from fringecal.acquisition.live_capture import CaptureTemplateError
     from fringecal.hexapod import ForwardKinematicsError, HexapodFault, TargetRejected
 
+    from .validate import number
+
     try:
+        number(timeout, "--timeout", gt=0, unit="s")
+        number(settle, "--settle", ge=0, unit="s")
         if dry_run:
             _dry_run(dataset, hexapod, capture, hexapod_config)
         else:

@@ -120,6 +120,12 @@ def truss(
     from fringecal.engineering import Truss, load_materials, mass_loads, solve_truss, uniform_loads
     from schemas import TrussDisplacementsTable, TrussForcesTable, write_table
 
+    from .validate import number, output_file
+
+    number(rod_end_load_n, "--rod-end-load-n", unit="N")
+    number(node_load_n, "--node-load-n", unit="N")
+    output_file(out, "--out")
+    output_file(displacements, "--displacements")
     art, rod_table = _load_structure(artefact or _thesis("artefact_cmm2.csv"), rods or _thesis("rods.csv"))
     mat = load_materials(materials)
     g = _vector(gravity, "--gravity")
@@ -221,6 +227,10 @@ def sag(
     from fringecal.engineering import SupportCondition, gravity_sag_correction, load_materials
     from schemas import ArtefactTable, TrussDisplacementsTable, write_table
 
+    from .validate import output_file
+
+    output_file(out, "--out")
+    output_file(table, "--table")
     art, rod_table = _load_structure(artefact or _thesis("artefact_cmm2.csv"), rods or _thesis("rods.csv"))
     cmm = SupportCondition(_supports(cmm_supports, art.ids), _vector(cmm_gravity, "--cmm-gravity"))
     use = SupportCondition(_supports(use_supports or cmm_supports, art.ids), _vector(use_gravity, "--use-gravity"))
@@ -252,6 +262,9 @@ def cte(
     from fringecal.engineering import CteFit
     from schemas import ThermalLogTable, read_table
 
+    from .validate import number
+
+    number(reference_c, "--reference-c", ge=-273.15, unit="C")
     fit = CteFit.from_log(read_table(log, ThermalLogTable), reference_c)
     s = {"log": str(log), **fit.summary()}
     if as_json:
@@ -279,12 +292,19 @@ def thermal(
     from fringecal.engineering import compensate_temperature
     from schemas import ArtefactTable, write_table
 
+    from .validate import number, output_file
+
+    number(temperature_c, "--temperature-c", ge=-273.15, unit="C")
+    number(cte_per_c, "--cte", unit="per C")
+    number(u_cte_per_c, "--u-cte", ge=0, unit="per C")
+    number(reference_c, "--reference-c", ge=-273.15, unit="C")
+    output_file(out, "--out")
     art = load_artefact(artefact or _thesis("artefact_cmm2.csv"))
     c = None
     if centre is not None:
         try:
             c = [float(p) for p in centre.split(",")]
-            assert len(c) == 3
+            assert len(c) == 3 and all(np.isfinite(c))
         except (ValueError, AssertionError):
             raise UserInputError(f"--centre: expected x,y,z, got {centre!r}") from None
     res = compensate_temperature(art, temperature_c, cte_per_c, reference_c, c, u_cte_per_c=u_cte_per_c)
@@ -314,6 +334,12 @@ def moisture(
     from fringecal.engineering import EarlyTimeDiffusion, FickianFit, moisture_content_pct
     from schemas import MoistureUptakeTable, read_table
 
+    from .validate import number, positive
+
+    positive(thickness_mm, "--thickness-mm", "mm")
+    positive(dry_mass_g, "--dry-mass-g", "g")
+    number(m0_pct, "--m0-pct", unit="%")
+    number(m_inf_pct, "--m-inf-pct", unit="%")
     df = read_table(series, MoistureUptakeTable).sort_values("time_s")
     t = df["time_s"].to_numpy(float)
     if "moisture_pct" in df:
@@ -359,6 +385,9 @@ def cme(
     from fringecal.engineering import LengthChange, moisture_expansion_coefficient
     from schemas import HumidityLengthsTable, read_table
 
+    from .validate import number
+
+    number(mass_change_pct, "--mass-change-pct", nonzero=True, unit="%")
     path = lengths or _thesis("humidity_lengths_table3-6.csv")
     df = read_table(path, HumidityLengthsTable)
     ch = LengthChange.from_lengths(df["time_h"], df["length_mm"])
@@ -389,6 +418,9 @@ def consistency(
     from fringecal.engineering import artefact_from_rod_lengths, rod_length_consistency
     from schemas import RodConsistencyTable, write_table
 
+    from .validate import output_file
+
+    output_file(out, "--out")
     coords = coords or [_thesis("artefact_cmm1.csv"), _thesis("artefact_cmm2.csv")]
     arts = {}
     for p in coords:

@@ -65,16 +65,22 @@ def decode_command(
 ):
     """Decode fringe image stacks into zarr stores (tau_x, tau_y, modulation, phase error, texture, valid)."""
     from fringecal.fringe.decode import DecodeSettings
-    from fringecal.fringe.importer import read_stack_spec
+    from fringecal.fringe.importer import check_levels, check_stack
     from fringecal.store import open_store
 
     try:
         settings = DecodeSettings(min_modulation=min_modulation, max_phase_error=max_phase_error)
     except ValidationError as err:
         raise UserInputError("; ".join(f"--{e['loc'][0].replace('_', '-')}: {e['msg']}" for e in err.errors()))
+    from .validate import input_folder, output_folder
+
+    input_folder(frames, "--frames", "measurement folder")
+    output_folder(out, "--out")
     dirs, outs = _measurements(frames, out)
-    for d in dirs:  # names, sequence.yaml and the schedule are checked before any decoding
-        read_stack_spec(d)
+    for d in dirs:  # names, sequence.yaml, the schedule and every frame's header before any decoding
+        check_stack(d)
+    for d in dirs:  # then one frame per orientation of each: dark or over-exposed stacks
+        check_levels(d)
     refs = _decode(dirs, outs, settings, store_frames)
     rows = []
     for d, ref in zip(dirs, refs):

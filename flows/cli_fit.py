@@ -52,6 +52,10 @@ def sphere(
     from fringecal.spheres.fit import FitError, SphereModel
     from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
+    from .validate import positive
+
+    positive(radius_mm, "--radius-mm", "mm")
+    positive(noise_mm, "--noise-mm", "mm")
     pts = _read_points(points)
     try:
         if robust:
@@ -77,6 +81,9 @@ def plane(
     from fringecal.spheres.fit import FitError, PlaneModel
     from fringecal.spheres.robust import fit_plane_robust
 
+    from .validate import positive
+
+    positive(noise_mm, "--noise-mm", "mm")
     pts = _read_points(points)
     try:
         if robust:

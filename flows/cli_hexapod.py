@@ -170,6 +170,10 @@ def workspace(
     from fringecal.hexapod import reach_report
     from fringecal.hexapod.workspace import cube_reach
 
+    from .validate import positive
+
+    positive(limit_mm, "--limit-mm", "mm")
+    positive(limit_deg, "--limit-deg", "deg")
     cfg = _config(config)
     cube = cube_reach(cfg, limit_mm)
     rows = []
@@ -225,6 +229,10 @@ def plan(
     from fringecal.hexapod.planning import COUNT_COLUMNS, frames_from_table, plan_with_stations, thesis_grid
     from schemas import HexapodPlanTable, PosePlanTable, read_table, write_table
 
+    from .validate import output_file
+
+    output_file(out, "--out")
+    output_file(commands, "--commands")
     cfg = _config(config)
     source = poses or thesis_dir() / "poses_scanner1_table6-1.csv"
     table = read_table(source, PosePlanTable)
@@ -270,13 +278,23 @@ def drift(
     tolerance_um: float = typer.Option(5.0, "--tolerance-um", help="Largest acceptable drift during one scan (um)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON."),
 ):
-    """Drift after a move: displacements, drift velocity and the drift expected in one scan."""
+    """Drift after a move: displacements, drift velocity and the drift expected in one scan.
+
+    Exit status 0, or 3 when the drift expected in one scan EXCEEDS --tolerance-um.
+    """
     from fringecal.hexapod.drift import drift_check
     from schemas import DriftCentresTable, read_table
 
+    from .validate import positive
+
+    positive(interval_s, "--interval-s", "s")
+    positive(scan_s, "--scan-s", "s")
+    positive(tolerance_um, "--tolerance-um", "um")
     rep = drift_check(read_table(centres, DriftCentresTable), scan_s, tolerance_um, interval_s)
     if as_json:
         _dump({**rep.summary(), "per_sphere": rep.per_sphere.to_dict("records"), "pairs": rep.pairs.to_dict("records")})
+        if not rep.ok:
+            raise typer.Exit(3)  # the tolerance is exceeded: the verdict's own status
         return
 
     for r in rep.per_sphere.itertuples(index=False):
@@ -286,6 +304,8 @@ def drift(
     console.print(f"mean displacement {rep.mean_displacement_um:.1f} um over {rep.mean_interval_s:.0f} s -> "
                   f"{rep.expected_scan_drift_um:.1f} um expected in a {scan_s:g} s scan, {verdict} the "
                   f"{tolerance_um:g} um tolerance", highlight=False)
+    if not rep.ok:
+        raise typer.Exit(3)
 
 
 @app.command()
@@ -339,6 +359,9 @@ def run_file(
     """Check a whole command file against stroke and workspace, then run it line by line."""
     from fringecal.hexapod import HexapodDriver
 
+    from .validate import input_file
+
+    input_file(commands, "COMMANDS", "command file")
     cfg = _config(config)
     with HexapodDriver.open(port, cfg) as drv:
         results = drv.run_command_file(commands)

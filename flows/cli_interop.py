@@ -80,9 +80,10 @@ def export_opencv(
 def _export(calibration: Path, out: Path, as_json: bool) -> None:
     from fringecal.interop.opencv_storage import write_rig
 
+    from .validate import output_folder
+
+    output_folder(out, "--out")
     rig = _read_rig(calibration)
-    if out.exists() and not out.is_dir():
-        raise UserInputError(f"{out}: exists and is not a folder")
     try:
         written = write_rig(rig, out)
     except ValueError as err:  # a lens model that folds over inside the format
@@ -127,9 +128,11 @@ def _import(stereo, names, out, reference, camera_size, projector_size, camera_w
     if names and len(names) != len(stereo):
         raise UserInputError(f"--scanner: {len(names)} name(s) for {len(stereo)} --stereo file(s); give one name per "
                              "file, in the same order, or none")
+    from .validate import output_file, positive
+
     for option, value in (("--camera-width-mm", camera_width_mm), ("--projector-width-mm", projector_width_mm)):
-        if value is not None and not value > 0:
-            raise UserInputError(f"{option}: must be positive, got {value}")
+        positive(value, option, "mm")
+    output_file(out, "--out")
     sizes = {"camera_size": _size(camera_size, "--camera-size"),
              "projector_size": _size(projector_size, "--projector-size")}
     files = [read_stereo(p) for p in stereo]

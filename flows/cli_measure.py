@@ -73,8 +73,13 @@ def measure_command(
     from fringecal.measure import MeasurementSourceError
     from fringecal.measure.run import measure_folder
 
+    from .validate import input_folder, output_file, output_folder
+
     if bool(frames) == bool(stores):
         raise UserInputError("give measurement folders either as --frames DIR or as --stores DIR (not both, not none)")
+    for folder in frames or stores:
+        input_folder(folder, "--frames" if frames else "--stores", "measurement folder")
+    (output_folder if out.suffix.lower() == ".zarr" else output_file)(out, "--out")
     settings = _settings(decimate, max_eps1_mm, uncertainty)
     kind, folders = ("frames", frames) if frames else ("stores", stores)
     try:

@@ -31,7 +31,7 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
     if cfg.source == "dataset":
         from fringecal.dataset import DataSet
 
-        DataSet.open(cfg.dataset)
+        DataSet.open(cfg.dataset).check_frames()  # every frame's header, and one frame per orientation decoded
     else:
         check_simulation(cfg.simulate)
     return cfg
@@ -145,24 +145,82 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
              verbose: bool, command: str, progress_console=None, until: Optional[str] = None) -> dict:
-    from fringecal import kernel_warmup
+    """Run the flow into ``run_dir``. Ctrl-C or SIGTERM ends the command within seconds
+    with one line (:mod:`flows.interrupt`); no helper process outlives it
+    (:mod:`fringecal.lifeline`); a rerun resumes and says what it reused."""
+    from fringecal import kernel_warmup, lifeline, resume
+    from fringecal.rundir import RunDir
 
-    kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
-    _quiet_prefect(verbose)
-    from flows.progress import RichProgress
-    from flows.run_flow import run_flow
+    if (owner := resume.busy(RunDir(run_dir))) is not None:
+        raise UserInputError(resume.describe_busy(RunDir(run_dir), owner))
+    from flows.interrupt import armed
 
-    kind = runner or cfg.runner.kind
-    task_runner = make_task_runner(kind, workers or cfg.runner.max_workers, dask_address or cfg.runner.dask_address,
-                                   workers or cfg.runner.dask_workers)
-    flow = run_flow.with_options(task_runner=task_runner)
-    with RichProgress(progress_console or console).running():
-        return flow(cfg.model_dump(mode="json"), str(run_dir), None, command, until)
+    out = progress_console or console
+    warmup = server = None
+    try:
+        with armed(run_dir):
+            warmup = kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
+            _quiet_prefect(verbose)
+            from flows.progress import RichProgress
+            from flows.run_flow import run_flow
+
+            kind = runner or cfg.runner.kind
+            task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
+                                           dask_address or cfg.runner.dask_address, workers or cfg.runner.dask_workers)
+            flow = run_flow.with_options(task_runner=task_runner)
+            server = _temporary_server()
+            if server is not None:  # local Dask workers report to it instead of each starting
+                os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
+            with RichProgress(out).running():
+                summary = flow(cfg.model_dump(mode="json"), str(run_dir), None, command, until)
+    finally:
+        if server is not None:
+            os.environ.pop("PREFECT_API_URL", None)
+        lifeline.stop(warmup)
+    if summary.get("resumed"):
+        n = summary["resumed"]["reused"]
+        out.print(f"resumed: {n} step instance{'' if n == 1 else 's'} reused from the interrupted run")
+    return summary
 
 
-def _check_out(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise UserInputError(f"--out {out}: is a file; a run directory is a folder")
+def _temporary_server():
+    """Start Prefect's temporary server now, from the command's main thread, adopted by
+    the lifeline (:mod:`fringecal.lifeline`: it never outlives the command, even one
+    killed with ``kill -9``). It is the instance Prefect's clients use when no API is
+    configured, so they find it running. None when a Prefect server is configured."""
+    from prefect.settings import PREFECT_API_URL
+
+    if PREFECT_API_URL.value():
+        return None
+    from prefect.server.api.server import SubprocessASGIServer
+
+    from fringecal import lifeline
+
+    server = SubprocessASGIServer()
+    if server.running:
+        return server
+    launch = getattr(server, "_run_uvicorn_command", None)  # Prefect's one spawn of the server process
+    if launch is not None:
+        def adopted():
+            proc = launch()
+            lifeline.adopt(proc)
+            return proc
+
+        server._run_uvicorn_command = adopted
+    server.start()
+    if launch is None and server.server_process is not None:
+        lifeline.adopt(server.server_process)
+    return server
+
+
+def _check_inputs(config: Optional[Path], dataset: Optional[Path], out: Path, workers: Optional[int] = None) -> None:
+    """The options' paths and numbers, before the config is read (flows/validate.py)."""
+    from .validate import input_file, input_folder, output_folder, whole
+
+    input_file(config, "--config", "run config YAML file")
+    input_folder(dataset, "--dataset", "data set folder")
+    output_folder(out, "--out")
+    whole(workers, "--workers")
 
 
 @guarded
@@ -178,12 +236,16 @@ def run_command(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Show Prefect's logs."),
     force: bool = typer.Option(False, "--force", help="Run the flow even if the run directory is up to date."),
 ):
-    """Calibrate: decode or simulate the measurements, extract and label spheres, adjust, verify and report."""
+    """Calibrate: decode or simulate the measurements, extract and label spheres, adjust, verify and report.
+
+    Exit status 0, 3 when the ball-bar verification FAILs (the summary is printed
+    first), 2 on bad input, 1 on a hexapod fault.
+    """
     from fringecal.steps import pipeline
 
     if runner not in (None, "threads", "dask"):
         raise UserInputError(f"--runner must be threads or dask, not {runner!r}")
-    _check_out(out)
+    _check_inputs(config, dataset, out, workers)
     cfg = validate_run_config(config, dataset=dataset)
     if until is not None and until not in (names := [s.name for s in pipeline(cfg)]):
         raise UserInputError(f"--until {until}: not a step of this run; the steps are {', '.join(names)}")
@@ -203,6 +265,18 @@ def run_command(
     else:
         console.print(f"stopped after {until}: {len(summary['tasks']['ran'])} step instances ran, "
                       f"{len(summary['tasks']['cached'])} from the cache -> {out}")
+    verification_failed(summary)
+
+
+def verification_failed(summary: dict) -> None:
+    """Exit with status 3 when the run's ball-bar verification FAILed (after the summary
+    is printed), so that a script can tell it from a pass (0) and from bad input (2)."""
+    v = summary.get("verification")
+    if v and v.get("pass") is not True:
+        err_console.print(f"[red]verification FAILED[/]: ball-bar max |error| {1000 * v['max_abs_error_mm']:.1f} um "
+                          f"against the MPE of {1000 * v['mpe_mm']:.0f} um (exit status 3)", highlight=False,
+                          soft_wrap=True)
+        raise typer.Exit(3)
 
 
 @guarded
@@ -211,9 +285,17 @@ def reproduce_command(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Recompute into a new directory (default: in place, from the cache)."),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ):
-    """Rerun a run from its manifest and compare the summary numbers."""
+    """Rerun a run from its manifest and compare the summary numbers.
+
+    Exit status 0, 1 when the numbers differ, 3 when they agree but the ball-bar
+    verification FAILs, 2 on bad input.
+    """
     from fringecal.rundir import RunDir
 
+    from .validate import input_folder, output_folder
+
+    input_folder(run_dir, "RUN_DIR", "run directory")
+    output_folder(out, "--out")
     rd = RunDir(run_dir)
     manifest = rd.read_manifest()
     old = rd.summary.load() if rd.summary.exists() else None
@@ -221,12 +303,12 @@ def reproduce_command(
     target = out or run_dir
     summary = _execute(cfg, target, None, None, None, verbose, f"fringecal reproduce {run_dir}")
     _print_summary(summary, target)
-    if old is None:
-        return
-    diffs = _differences(old, summary)
-    if diffs:
-        fail("reproduction differs: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in diffs), code=1)
-    console.print("[green]reproduced:[/] the summary numbers are identical")
+    if old is not None:
+        diffs = _differences(old, summary)
+        if diffs:
+            fail("reproduction differs: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in diffs), code=1)
+        console.print("[green]reproduced:[/] the summary numbers are identical")
+    verification_failed(summary)
 
 
 def _differences(old: dict, new: dict) -> list[tuple]:
@@ -240,18 +322,87 @@ def _differences(old: dict, new: dict) -> list[tuple]:
     return diffs
 
 
+SERVER_HELP = ("start one with `prefect server start --host 127.0.0.1` and point fringecal at it with "
+               "PREFECT_API_URL=http://127.0.0.1:4200/api (docs/guide.md, \"Scheduled runs\")")
+
+
+def _schedule(cron: Optional[str], interval: Optional[float], timezone: str):
+    """The deployment's schedule: ``--cron`` (default nightly at 02:00) or ``--interval``."""
+    import math
+    from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+    from prefect.schedules import Cron, Interval
+
+    if cron is not None and interval is not None:
+        raise UserInputError("give --cron or --interval, not both")
+    try:
+        ZoneInfo(timezone)
+    except (ZoneInfoNotFoundError, ValueError):
+        raise UserInputError(f"--timezone {timezone!r}: not an IANA time zone (e.g. UTC, Europe/Berlin)") from None
+    if interval is not None:
+        if not (math.isfinite(interval) and interval >= 1):
+            raise UserInputError(f"--interval {interval}: expected a number of seconds >= 1")
+        return Interval(interval, timezone=timezone), f"every {interval:g} s"
+    cron = "0 2 * * *" if cron is None else cron
+    try:
+        return Cron(cron, timezone=timezone), f"cron {cron!r} ({timezone})"
+    except ValueError as err:
+        raise UserInputError(f"--cron {cron!r}: not a cron schedule ({err}); e.g. \"0 2 * * *\" for 02:00 "
+                             "every night") from None
+
+
+def _check_prefect_server(api: str) -> None:
+    """The configured Prefect server answers and accepts fringecal's credentials."""
+    import httpx
+    from prefect.client.orchestration import get_client
+
+    try:
+        httpx.get(api.rstrip("/") + "/health", timeout=10).raise_for_status()
+    except httpx.HTTPError as err:
+        raise UserInputError(f"the Prefect server at {api} does not answer ({type(err).__name__}: {err}); "
+                             + SERVER_HELP) from None
+    try:
+        with get_client(sync_client=True) as client:
+            client.hello()
+    except httpx.HTTPStatusError as err:
+        if err.response.status_code != 401:
+            raise UserInputError(f"the Prefect server at {api}: {err}") from None
+        raise UserInputError(f"the Prefect server at {api} refuses fringecal's credentials (HTTP 401): set "
+                             "PREFECT_API_AUTH_STRING to its PREFECT_SERVER_API_AUTH_STRING (user:password)") from None
+
+
 @guarded
 def serve_command(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML."),
     dataset: Optional[Path] = typer.Option(None, "--dataset", "-d", help="A recorded data set folder."),
     out: Path = typer.Option(Path("runs/nightly"), "--out", "-o", help="Run directory of the scheduled runs."),
-    cron: str = typer.Option("0 2 * * *", "--cron", help="Schedule (cron, local time)."),
+    cron: Optional[str] = typer.Option(None, "--cron", help="Schedule (cron; default \"0 2 * * *\", 02:00 every night)."),
+    interval: Optional[float] = typer.Option(None, "--interval", help="Run every SECONDS instead of on a cron schedule."),
+    timezone: str = typer.Option("UTC", "--timezone", help="IANA time zone of the schedule (e.g. Europe/Berlin)."),
     name: str = typer.Option("nightly-reverification", "--name", help="Deployment name."),
 ):
-    """Serve the run flow as a scheduled deployment (e.g. a nightly re-verification)."""
+    """Serve the run flow as a scheduled deployment (e.g. a nightly re-verification) on a
+    Prefect server: PREFECT_API_URL (or the active profile) must name one, started with
+    `prefect server start --host 127.0.0.1` (Prefect's temporary server cannot schedule).
+    One run at a time; each run's verdict is in OUT/summary.json. Ctrl-C stops serving.
+    """
+    from .common import configured_prefect_api
+
+    api = configured_prefect_api()
+    if api is None:
+        raise UserInputError("fringecal serve needs a Prefect server, and none is configured (Prefect's temporary "
+                             "server cannot schedule runs): " + SERVER_HELP)
+    schedule, when = _schedule(cron, interval, timezone)
+    _check_inputs(config, dataset, out)
     cfg = validate_run_config(config, dataset=dataset)
+    _check_prefect_server(api)
+    from prefect.types.entrypoint import EntrypointType
+
     from flows.run_flow import run_flow
 
-    console.print(f"serving deployment {name!r} on schedule {cron!r}; runs write to {out} (Ctrl-C stops)")
-    run_flow.serve(name=name, cron=cron, parameters={"config": cfg.model_dump(mode="json"), "run_dir": str(out),
-                                                      "command": f"scheduled {name}"})
+    run_dir = out.expanduser().absolute()  # the runs start in their own processes and folders
+    console.print(f"serving deployment {name!r} ({when}) on {api}; runs write to {run_dir} (Ctrl-C stops)")
+    run_flow.serve(name=name, schedule=schedule, limit=1, entrypoint_type=EntrypointType.MODULE_PATH,
+                   print_starting_message=False,
+                   parameters={"config": cfg.model_dump(mode="json"), "run_dir": str(run_dir),
+                               "command": f"scheduled {name}"})

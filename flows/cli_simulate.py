@@ -32,10 +32,12 @@ def simulate_command(
 
     if fmt not in ("png", "tif"):
         raise UserInputError(f"--format must be png or tif, not {fmt!r}")
+    from .validate import input_file, new_folder
+
     truth = truth or out.with_name(out.name + "-truth")
-    for p in (out, truth):
-        if p.exists():
-            raise UserInputError(f"{p}: already exists; choose a new folder (nothing is overwritten)")
+    new_folder(out, "--out")
+    new_folder(truth, "--truth")
+    input_file(config, "--config", "run config YAML file")
     cfg = validate_run_config(config)
     if cfg.source != "simulated":
         raise UserInputError(f"{config}: has no simulate section (it names a data set)")

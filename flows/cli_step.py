@@ -57,14 +57,39 @@ def step_command(
     force: bool = typer.Option(False, "--force", help="Run even if the step's outputs are current."),
     as_json: bool = typer.Option(False, "--json", help="Print the step's records as JSON."),
 ):
-    """Run one pipeline step over a run directory (every measurement of a per-measurement step)."""
+    """Run one pipeline step over a run directory (every measurement of a per-measurement step).
+
+    Exit status 0; 3 when ``verify`` FAILs or ``acceptance`` does not accept; 2 on bad input.
+    """
     records = _run(name, run, config, force)
     if as_json:
         print(json.dumps(records, indent=2))
-        return
-    ran = [r for r in records if not r["reused"]]
-    console.print(f"{name}: {len(ran)} ran, {len(records) - len(ran)} current already "
-                  f"({sum(r.get('seconds', 0.0) for r in ran):.1f} s)")
+    else:
+        ran = [r for r in records if not r["reused"]]
+        console.print(f"{name}: {len(ran)} ran, {len(records) - len(ran)} current already "
+                      f"({sum(r.get('seconds', 0.0) for r in ran):.1f} s)")
+    _verdict(name, run)
+
+
+def _verdict(name: str, run: Path) -> None:
+    """``step verify`` and ``step acceptance`` exit with status 3 when the ball-bar
+    verification FAILed or the cell is not accepted, as ``fringecal run`` and
+    ``fringecal verify acceptance`` do."""
+    from fringecal.rundir import RunDir
+
+    rd = RunDir(run)
+    if name == "verify" and rd.verification.exists():
+        cal = rd.verification.load()["calibrated"]
+        if cal.get("pass") is not True:
+            err_console.print(f"[red]verification FAILED[/]: ball-bar max |error| "
+                              f"{1000 * cal['max_abs_error_mm']:.1f} um against the MPE of "
+                              f"{1000 * cal['mpe_mm']:.0f} um (exit status 3)", highlight=False,
+                              soft_wrap=True)
+            raise typer.Exit(3)
+    if name == "acceptance" and rd.acceptance.exists() and not rd.acceptance.load()["accepted"]:
+        err_console.print("[red]NOT ACCEPTED[/]: see acceptance.json or `fringecal verify acceptance` "
+                          "(exit status 3)", highlight=False, soft_wrap=True)
+        raise typer.Exit(3)
 
 
 def calibrate_command(

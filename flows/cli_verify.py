@@ -26,23 +26,37 @@ def ballbar(
     coverage_factor: float = typer.Option(1.96, "--k", help="Coverage factor of the stated uncertainty."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
-    """Length error of a ball-bar per position: mean, max |error|, one part in N of the diagonal."""
+    """Length error of a ball-bar per position: mean, max |error|, one part in N of the diagonal.
+
+    Exit status 0, or 3 when a length error exceeds --mpe-mm (FAIL), 2 on bad input.
+    """
     from fringecal.verification import ballbar_lengths, evaluate_ballbar
     from schemas import read_table, SphereCentresTable
 
+    from .validate import number, positive
+
+    positive(reference_length_mm, "--reference-length-mm", "mm")
+    positive(volume_diagonal_mm, "--volume-diagonal-mm", "mm")
+    positive(mpe_mm, "--mpe-mm", "mm")
+    number(certificate_u_mm, "--certificate-u-mm", ge=0, unit="mm")
+    positive(certificate_k, "--certificate-k")
+    positive(coverage_factor, "--k")
     table = read_table(centres, SphereCentresTable)
     lengths = ballbar_lengths(table, str(centres))
     result = evaluate_ballbar(lengths.length_mm, reference_length_mm, lengths.measurement, mpe_mm,
                               volume_diagonal_mm, certificate_u_mm, certificate_k, coverage_factor)
+    failed = mpe_mm is not None and not result.passed  # exit status 3 after the result is printed
     if as_json:
         print(json.dumps(result.to_dict(), indent=2))
+        if failed:
+            raise typer.Exit(3)
         return
     t = Table(title=f"ball-bar, reference {reference_length_mm:.4f} mm")
     for c in ("position", "length (mm)", "error (um)", "pass"):
         t.add_column(c, justify="right")
     for r in result.positions.itertuples():
         t.add_row(str(r.measurement), f"{r.length_mm:.4f}", f"{r.error_mm * 1000:+.1f}",
-                  "yes" if r._4 else "[red]no[/]")
+                  "-" if mpe_mm is None else "yes" if r._4 else "[red]no[/]")
     console.print(t)
     console.print(f"mean length {result.mean_length_mm:.4f} mm "
                   f"(error {1000 * (result.mean_length_mm - reference_length_mm):+.1f} um), "
@@ -52,6 +66,8 @@ def ballbar(
     console.print(result.uncertainty.sentence())
     if mpe_mm is not None:
         console.print("[green]PASS[/]" if result.passed else "[red]FAIL[/]")
+    if failed:
+        raise typer.Exit(3)
 
 
 @app.command("plan")
@@ -75,6 +91,10 @@ def plan(
     from fringecal.ballbar_plan import plan_positions, positions_table, volumes_from_run
     from fringecal.rundir import RunDir
 
+    from .validate import input_folder, output_file
+
+    input_folder(run, "--run", "run directory")
+    output_file(out, "--out")
     rd = RunDir(run)
     needed = [rd.calibration, rd.poses_calibrated, rd.control_points, rd.artefact, rd.ballbar]
     missing = [str(f.path) for f in needed if not f.exists()]
@@ -83,6 +103,11 @@ def plan(
     bar = rd.ballbar.load()
     length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
     result = plan_positions(rd.calibration.load(), volumes_from_run(rd), length, per_pair, per_scanner, seed=seed)
+    if not len(result.positions):  # refused before anything is written: no header-only table
+        if not result.uncovered:
+            raise UserInputError("--per-pair and --per-scanner are both 0: no ball-bar position to plan")
+        raise UserInputError(f"{run}: no ball-bar position fits ({'; '.join(result.uncovered)}): "
+                             f"the {length:.1f} mm bar is longer than the measurement volumes allow")
     table = positions_table(result.positions, bar)
     written = [rd.ballbar_positions_planned.save(table)]
     if out is not None:
@@ -141,7 +166,10 @@ def acceptance(
     from fringecal.steps import get_step, run_step
 
     from .cli_step import run_config_of
+    from .validate import input_file, input_folder
 
+    input_folder(run, "--run", "run directory")
+    input_file(config, "--config", "run config YAML file")
     rd = RunDir(run)
     cfg = run_config_of(run, config)
     if not rd.calibration.exists():
