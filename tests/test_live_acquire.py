@@ -371,7 +371,7 @@ def test_failing_capture_stops_with_its_stderr(tmp_path, tool, pty_box):
     ds = build_dataset(tmp_path / "ds")
     box = pty_box()
     res, out = acquire(ds, box.path, tool.command(fail="1:scanner2"))
-    assert res.exit_code == 3, out
+    assert res.exit_code == 4, out
     assert out.count("error:") == 1
     assert "measurement 1, scanner scanner2: the capture command exited with status 3" in out
     assert "[error] scanner offline: lamp error" in out
@@ -385,7 +385,7 @@ def test_retries_repeat_a_failed_capture_at_the_same_pose(tmp_path, tool, pty_bo
     ds = build_dataset(tmp_path / "ds", n_poses=1)
     box = pty_box()
     res, out = acquire(ds, box.path, tool.command(fail="1:scanner1"), "--retries", "1")
-    assert res.exit_code == 3 and "(attempt 2 of 2)" in out and "retrying (1 of 1)" in out
+    assert res.exit_code == 4 and "(attempt 2 of 2)" in out and "retrying (1 of 1)" in out
     assert tool.starts() == {("1", "scanner1"): 2} and only_queries_after_one_move(box)
 
 
@@ -393,7 +393,7 @@ def test_capture_timeout_stops_the_command(tmp_path, tool, pty_box):
     ds = build_dataset(tmp_path / "ds")
     box = pty_box()
     res, out = acquire(ds, box.path, tool.command(hang="1:scanner1"), "--timeout", "1.5")
-    assert res.exit_code == 3, out
+    assert res.exit_code == 4, out
     assert "measurement 1, scanner scanner1: the capture command was still running 1.5 s after it started" in out
     (pid,) = [p for _, _, p in tool.events()]
     assert not tool.running(pid)  # stopped and reaped
@@ -405,7 +405,7 @@ def test_incomplete_stack_is_not_taken(tmp_path, tool, pty_box):
     ds = build_dataset(tmp_path / "ds")
     box = pty_box()
     res, out = acquire(ds, box.path, tool.command(skip="1:scanner2"), "--timeout", "1.5")
-    assert res.exit_code == 3, out
+    assert res.exit_code == 4, out
     assert "measurement 1, scanner scanner2: incomplete image stack 1.5 s after the capture started" in out
     assert "y_008_02.png: missing frame (1 of 12 frames missing" in out
     assert (ds / "measurements/1/scanner1").is_dir() and not (ds / "measurements/1/scanner2").exists()
@@ -419,7 +419,7 @@ def test_wrong_stack_size_is_refused(tmp_path, pty_box):
     small = Tool(tmp_path / "vendor", 32, 24)
     box = pty_box()
     res, out = acquire(ds, box.path, small.command())
-    assert res.exit_code == 3, out
+    assert res.exit_code == 4, out
     assert "images are 32x24 px, but the camera of scanner 'scanner1' in sensors_prior.csv is 64x48 px" in out
     assert small.starts() == {("1", "scanner1"): 1} and only_queries_after_one_move(box)
 

@@ -69,7 +69,7 @@ EXIT_HEXAPOD = 1
 #: exit status: bad input, refused before anything moved
 EXIT_INPUT = 2
 #: exit status: capture failed, timed out, or gave an incomplete or wrong stack
-EXIT_CAPTURE = 3
+EXIT_CAPTURE = 4  # not 3: 3 is "verification failed" in every command
 #: exit status: stopped by SIGINT or SIGTERM (resumable)
 EXIT_INTERRUPTED = 130
 
