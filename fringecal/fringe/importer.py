@@ -239,11 +239,7 @@ def check_levels(folder, max_saturated_fraction: float = MAX_SATURATED_FRACTION)
         reader, scratch = {"png": read_png, "tif": read_tif, "bmp": read_bmp}[fmt], Scratch()
         for j, i in enumerate(picked):
             reader(files[i], spec, frames[j], scratch)
-    full = spec.full_scale
-    lit = _lit_level(full)
-    peak = frames.reshape(len(picked), -1).max(axis=1).astype(np.int64)
-    n_full = np.count_nonzero(frames >= full, axis=(1, 2))
-    n_lit = np.count_nonzero(frames >= lit, axis=(1, 2))
+    peak, n_full, n_lit = _frame_stats(frames, spec.full_scale, _lit_level(spec.full_scale))
     _check_values(peak, n_full, n_lit, [_frame_label(files, spec, i) for i in picked], spec,
                   max_saturated_fraction)
 
@@ -447,7 +443,7 @@ def _check_values(peak, n_full, n_lit, labels: list[str], spec: StackSpec, max_s
 
 
 @nb.njit(parallel=True, cache=True)
-def _frame_stats(frames, full_scale, lit_level=1):  # pragma: no cover - numba
+def _frame_stats(frames, full_scale, lit_level):  # pragma: no cover - numba
     """Per frame: the largest value, the number of pixels at or above full scale and the
     number at or above ``lit_level``."""
     n, h, w = frames.shape
