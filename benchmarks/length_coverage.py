@@ -42,14 +42,10 @@ calibration, so the standard error over seeds -- of the per-seed covered counts,
 ``seed_cluster_se`` -- is given too), the mean U, the RMS of
 ``z = (length_mm - true) / u_mm`` (about 1 when u is right) and per seed every length.
 
-The JSON files of benchmarks/results/ made before the script was renamed (it was
-``benchmarks/coverage.py``, a name that shadowed the ``coverage`` package numba imports
-for every script in this folder) record the old name in their ``command``.
-
 BLAS and numba run on one thread unless the environment says otherwise (two profiles
 run side by side on the shared 2-core machine).
 
-    PYTHONPATH=. python benchmarks/coverage.py --profile ideal --seeds 50 --width 320 \\
+    PYTHONPATH=. python benchmarks/length_coverage.py --profile ideal --seeds 50 --width 320 \\
         --out benchmarks/results/coverage_ideal.json
 
 The JSON (``--out``, rewritten after every seed with ``"complete": false`` until the
@@ -275,10 +271,11 @@ def main(argv=None) -> dict:
     with_errors = errors_wired()
     if args.profile != "ideal" and not with_errors:
         ap.error("profile realistic: simulate.errors is not wired into fringecal.runconfig.SimulationConfig yet")
-    cmd = "PYTHONPATH=. python benchmarks/coverage.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "PYTHONPATH=. python benchmarks/length_coverage.py " + " ".join(argv if argv is not None else sys.argv[1:])
     poses = [int(x) for x in args.poses.split(",") if x]
     positions = [int(x) for x in args.positions.split(",") if x]
-    doc = {"benchmark": "coverage", "command": cmd, "complete": False, "profile": args.profile,
+    doc = {"benchmark": "coverage", "command": cmd, "date": time.strftime("%Y-%m-%d %H:%M %Z"),
+           "complete": False, "profile": args.profile,
            "width_px": args.width, "poses": poses, "ballbar_positions": positions,
            "simulate_errors_wired": with_errors,
            "budget_overrides": BUDGETS[args.profile] or "defaults",

@@ -49,11 +49,11 @@ from .rig import Scanner
 
 __all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
            "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
-           "BUDGET_TERMS"]
+           "BUDGET_TERMS", "bootstrap_bias"]
 
 #: the contributions of a length's budget, in report order
-BUDGET_TERMS = ("calibration", "artefact CMM", "artefact temperature", "sphere fits", "bar certificate",
-                "bar temperature", "model error (cross-validation)")
+BUDGET_TERMS = ("calibration", "calibration bias correction", "artefact CMM", "artefact temperature", "sphere fits",
+                "bar certificate", "bar temperature", "model error (cross-validation)")
 
 
 @dataclass(frozen=True)
@@ -145,12 +145,15 @@ def length_gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[
 
 
 def length_budget(a: SightingModel, b: SightingModel, cov: ParameterCovariances, u_certificate_mm: float,
-                  u_bar_temperature_rel: float, u_model_mm: float = 0.0) -> LengthBudget:
+                  u_bar_temperature_rel: float, u_model_mm: float = 0.0, u_bias_mm: float = 0.0) -> LengthBudget:
     """Linear (GUM) budget of the length between sightings ``a`` and ``b``;
-    ``u_model_mm`` the model error the cross-validation found (0 when consistent)."""
+    ``u_model_mm`` the model error the cross-validation found (0 when consistent),
+    ``u_bias_mm`` the uncertainty of the calibration-bias correction
+    (:func:`bootstrap_bias`; 0 without one)."""
     g, e, L = length_gradient(a, b, len(cov.scale))
     u = {
         "calibration": math.sqrt(max(float(g @ cov.calibration @ g), 0.0)),
+        "calibration bias correction": float(u_bias_mm),
         "artefact CMM": math.sqrt(max(float(g @ cov.cmm @ g), 0.0)),
         "artefact temperature": abs(float(g @ cov.scale)) * cov.u_scale,
         "sphere fits": math.sqrt(float(e @ (a.C_fit + b.C_fit) @ e)),
@@ -221,6 +224,24 @@ def refitted_length(a: SightingPoints, b: SightingPoints, params_a: np.ndarray, 
         X = triangulate_mm(scanner_with(s.scanner, p), s.cam_mm, s.prj_mm)
         centres.append(_refit(X, s.centre, s.radius_mm))
     return float(np.linalg.norm(centres[0] - centres[1]))
+
+
+def bootstrap_bias(a: SightingPoints, b: SightingPoints, params: np.ndarray) -> tuple[float, float, float]:
+    """The calibration's bias on the length between ``a`` and ``b`` from bootstrap
+    re-adjustments (:mod:`fringecal.calibration.bootstrap`; ``params`` (draws,
+    n_sensors, 14)): ``(bias, u_bias, spread)`` in mm, ``bias = mean(L*) - L`` with
+    every length refitted as :func:`refitted_length` does, ``spread = std(L*)`` and
+    ``u_bias = spread / sqrt(draws)`` the uncertainty of the estimated bias. Subtract
+    ``bias`` from the measured length.
+    """
+    def block(p, s):
+        return np.concatenate([p[2 * s.block], p[2 * s.block + 1]])
+
+    base = {s.block: np.concatenate([s.scanner.camera.params, s.scanner.projector.params]) for s in (a, b)}
+    L = refitted_length(a, b, base[a.block], base[b.block])
+    Ls = np.array([refitted_length(a, b, block(p, a), block(p, b)) for p in params])
+    spread = float(np.std(Ls, ddof=1))
+    return float(Ls.mean() - L), spread / math.sqrt(len(Ls)), spread
 
 
 def numerical_tolerance(u: float, significant_digits: int = 2) -> float:

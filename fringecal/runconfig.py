@@ -151,6 +151,10 @@ class ControlPointConfig(StrictModel):
     spacing_px: int = Field(3, ge=1)
     rim_px: int = Field(1, ge=0)
     max_incidence_deg: Optional[float] = Field(60.0, gt=0, le=90)
+    #: side (px) of the camera pixel's uniform response: the decoded phases are
+    #: corrected for its integration over the sphere (thesis chapter 5,
+    #: :mod:`fringecal.spheres.pixel_integration`); 0 leaves them as decoded
+    pixel_integration_px: float = Field(1.0, ge=0, le=10)
 
 
 class BundleConfig(StrictModel):
@@ -169,6 +173,11 @@ class BundleConfig(StrictModel):
     max_iterations: int = Field(100, ge=1)
     start: Literal["given", "data", "auto", "best"] = "auto"
     volume_diagonal_mm: Optional[float] = Field(None, gt=0)
+    #: wild-bootstrap re-adjustments for the calibration's bias and spread
+    #: (:mod:`fringecal.calibration.bootstrap`); 0: none, the lengths are then
+    #: not corrected for the adjustment's non-linearity
+    bootstrap_draws: int = Field(32, ge=0, le=1000)
+    bootstrap_seed: int = 0
 
     def options(self):
         from .calibration.bundle import BundleOptions

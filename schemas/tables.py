@@ -363,6 +363,10 @@ class ControlPointsTable(_Base):
     v_px: Series[float] = pa.Field(ge=0)
     tau_x_rad: Series[float] = pa.Field(ge=-np.pi - 1e-9, le=np.pi + 1e-9)
     tau_y_rad: Series[float] = pa.Field(ge=-np.pi - 1e-9, le=np.pi + 1e-9)
+    #: the pixel-integration bias already subtracted from tau_x_rad, tau_y_rad
+    #: (:mod:`fringecal.spheres.pixel_integration`); absent in tables made without it
+    pixel_integration_x_rad: Optional[Series[float]] = pa.Field(ge=-0.01, le=0.01)
+    pixel_integration_y_rad: Optional[Series[float]] = pa.Field(ge=-0.01, le=0.01)
 
     _id_columns = ("measurement", "scanner", "sphere_id")
 

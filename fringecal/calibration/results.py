@@ -170,7 +170,7 @@ def covariance_arrays(result: BundleResult) -> dict:
 
 
 def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, extra: dict | None = None,
-                  covariances=None, provenance: dict | None = None) -> list:
+                  covariances=None, provenance: dict | None = None, bootstrap: np.ndarray | None = None) -> list:
     """Write the calibration files, tables, histograms and summary of ``result`` into the
     run directory ``rd`` (:class:`fringecal.rundir.RunDir`), all or nothing.
 
@@ -179,7 +179,9 @@ def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, ex
     adjustment's wall time). ``covariances(arrays)``, given the covariance arrays,
     returns the :class:`~fringecal.length_uncertainty.ParameterCovariances` that
     ``calibration.json`` carries with ``provenance``
-    (:mod:`fringecal.calibration_file`). Returns the files written.
+    (:mod:`fringecal.calibration_file`). ``bootstrap`` (draws, n_sensors, 14), the
+    sensor parameters of :func:`fringecal.calibration.bootstrap.bootstrap_calibrations`,
+    goes into the covariance arrays as ``bootstrap_params``. Returns the files written.
     """
     import io
 
@@ -196,6 +198,8 @@ def write_outputs(result: BundleResult, rd, diagonal_mm: float | None = None, ex
         figures[rd.histogram(term)] = path
     plot_histograms(result, *figures.values())
     cov_arrays = covariance_arrays(result)
+    if bootstrap is not None and len(bootstrap):
+        cov_arrays["bootstrap_params"] = np.asarray(bootstrap, float)
     arrays = io.BytesIO()
     np.savez(arrays, **cov_arrays)
     cov = covariances(cov_arrays) if covariances is not None else None

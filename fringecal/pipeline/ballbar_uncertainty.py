@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from ..calibration.propagation import sensor_covariance
-from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, length_budget, length_gradient,
+from ..length_uncertainty import (BUDGET_TERMS, bootstrap_bias, ParameterCovariances, SightingPoints, length_budget, length_gradient,
                                   monte_carlo_lengths, refitted_length, sighting_model, validate_linear)
 from ..rig import Rig
 from ..store import open_store
@@ -115,22 +115,33 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     cross = None if halves is None else _cross_validated(models, lengths, halves, len(cov.scale), ids,
                                                          points_verdict)
     u_model = 0.0 if cross is None else cross["model_error_mm"]
+    boot = arrays["bootstrap_params"] if "bootstrap_params" in arrays else None
+    if boot is not None and len(boot) < 2:
+        boot = None
 
     def one(i_row):
         i, r = i_row
         a = models[(str(r.position), str(r.scanner_a), ids[0])]
         b = models[(str(r.position), str(r.scanner_b), ids[1])]
-        budget = length_budget(a, b, cov, certificate_u_mm, u_bar_rel, u_model)
+        bias = u_bias = spread = 0.0
+        if boot is not None:
+            bias, u_bias, spread = bootstrap_bias(a.points, b.points, boot)
+        budget = length_budget(a, b, cov, certificate_u_mm, u_bar_rel, u_model, u_bias)
         u = budget.combined_mm
-        error = float(r.length_mm) - reference_length_mm
-        entry = {"measurement": str(r.measurement), "length_mm": float(r.length_mm), "error_mm": error,
+        length = float(r.length_mm) - bias
+        error = length - reference_length_mm
+        entry = {"measurement": str(r.measurement), "length_mm": length, "error_mm": error,
                  "u_mm": u, "U_mm": k * u, "budget_mm": budget.u_mm,
                  "iso14253": iso14253_verdict(error, k * u, mpe_mm), "covered": bool(abs(error) <= k * u)}
+        if boot is not None:
+            entry["calibration_bias"] = {"length_uncorrected_mm": float(r.length_mm), "bias_mm": bias,
+                                         "u_bias_mm": u_bias, "bootstrap_spread_mm": spread, "draws": int(len(boot))}
         if config.monte_carlo_draws > 0:
             rng = np.random.default_rng([config.seed, i])  # per length: the same draws in any thread
             samples = monte_carlo_lengths(a.points, b.points, cov, certificate_u_mm, u_bar_rel,
                                           config.monte_carlo_draws, rng, u_model)
-            entry["monte_carlo"] = validate_linear(float(r.length_mm), u, k, samples)
+            samples = samples - bias + u_bias * rng.standard_normal(len(samples))
+            entry["monte_carlo"] = validate_linear(length, u, k, samples)
         return entry
 
     with ThreadPoolExecutor(max_workers=workers) as pool:

@@ -21,6 +21,7 @@ from ..extraction import fit_candidates
 from ..frames import Frame
 from ..pointcloud import PointMaps, provenance, triangulate_maps
 from ..rig import Scanner
+from ..spheres.pixel_integration import correct_control_points
 from ..spheres.robust import rod_directions
 from ..store import open_store, write_store
 
@@ -120,6 +121,9 @@ def second_pass(store, candidates, scanner: Scanner, artefact, rods: pd.DataFram
                                 spacing_px=control_point_config.spacing_px, erode_px=control_point_config.rim_px,
                                 incidence=incidence,
                                 max_incidence_deg=None if incidence is None else control_point_config.max_incidence_deg)
+    cps = correct_control_points(cps, pd.DataFrame(fits.rows, columns=["sphere_id", "x_mm", "y_mm", "z_mm",
+                                                                       "radius_mm"]),
+                                 scanner, control_point_config.pixel_integration_px)
     dims = ("v", "u")
     sphere_index = np.full(labels.shape, -1, np.int16)
     for c in fitted:

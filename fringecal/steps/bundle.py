@@ -58,6 +58,7 @@ class Bundle(Step):
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         from ..calibration import bundle_adjust
+        from ..calibration.bootstrap import bootstrap_calibrations
         from ..calibration.results import write_outputs
 
         b = cfg.bundle
@@ -70,8 +71,12 @@ class Bundle(Step):
             log.warning("%s: %s", d.kind, d.message)
         log.info("F RMS %.4f -> %.4f mm in %d iterations (start: %s)", result.before.rms_f_mm, result.after.rms_f_mm,
                  result.iterations, result.extra.get("start"))
-        write_outputs(result, rd, b.volume_diagonal_mm, {"bundle_seconds": seconds, "bundle_compile_seconds": compile_seconds},
-                      covariances=self._covariances(cfg), provenance=self.provenance(rd, cfg, item))
+        t1 = time.perf_counter()
+        bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed)
+        timing = {"bundle_seconds": seconds, "bundle_compile_seconds": compile_seconds,
+                  "bootstrap_draws": b.bootstrap_draws, "bootstrap_seconds": time.perf_counter() - t1}
+        write_outputs(result, rd, b.volume_diagonal_mm, timing, covariances=self._covariances(cfg),
+                      provenance=self.provenance(rd, cfg, item), bootstrap=bootstrap)
 
     @staticmethod
     def _covariances(cfg: Settings):

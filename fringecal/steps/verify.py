@@ -43,9 +43,6 @@ def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm:
     centres, failures, pixels = measure_positions(stores, rig, bar, RejectionConfig(**rejection), pixels=True)
     lengths = ballbar_lengths(centres, "ball-bar centres")
     reference_length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
-    result = evaluate_ballbar(lengths.length_mm, reference_length, lengths.measurement, verification.mpe_mm,
-                              diagonal_mm, verification.certificate_u_mm, verification.certificate_k,
-                              verification.coverage_factor)
     budget = None
     if covariance is not None and len(lengths):
         from ..pipeline.ballbar_uncertainty import ballbar_uncertainty
@@ -54,6 +51,11 @@ def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm:
                                      verification.uncertainty, verification.mpe_mm,
                                      verification.certificate_u_mm / verification.certificate_k, bar.ids[:2],
                                      halves=halves, points_verdict=points_verdict)
+        # the lengths corrected for the calibration's bias (bootstrap), when it was estimated
+        lengths = lengths.assign(length_mm=[e["length_mm"] for e in budget["lengths"]])
+    result = evaluate_ballbar(lengths.length_mm, reference_length, lengths.measurement, verification.mpe_mm,
+                              diagonal_mm, verification.certificate_u_mm, verification.certificate_k,
+                              verification.coverage_factor)
     return centres, failures, result, budget
 
 
