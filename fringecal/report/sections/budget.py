@@ -49,14 +49,18 @@ def length_budget(unc: dict | None) -> dict | None:
     disagreements and the budget; None when the run recorded no uncertainty per length."""
     if not unc:
         return None
-    rows = [[e["measurement"], um(e["error_mm"]), um(e["u_mm"], 2), um(e["U_mm"]), _monte_carlo(e.get("monte_carlo")),
-             ISO.get(e["iso14253"], e["iso14253"]),
-             ("yes", "pass") if e["covered"] else ("NO: not covered by the budget", "fail")]
+    corrected = any("calibration_bias" in e for e in unc["lengths"])
+    rows = [[e["measurement"], um(e["error_mm"])]
+            + ([um(e["calibration_bias"]["bias_mm"], 1) if "calibration_bias" in e else "-"] if corrected else [])
+            + [um(e["u_mm"], 2), um(e["U_mm"]), _monte_carlo(e.get("monte_carlo")),
+               ISO.get(e["iso14253"], e["iso14253"]),
+               ("yes", "pass") if e["covered"] else ("NO: not covered by the budget", "fail")]
             for e in unc["lengths"]]
     mc = unc.get("monte_carlo")
+    head = ["Length", "Error"] + (["Calibration bias subtracted (bootstrap)"] if corrected else [])
     return {"k": num(unc["coverage_factor"], "g"),
-            "table": table(["Length", "Error", "u (linear)", "U", "u (Monte Carlo, JCGM 101)", "ISO 14253-1",
-                            "|error| <= U"], rows, left=1),
+            "table": table(head + ["u (linear)", "U", "u (Monte Carlo, JCGM 101)", "ISO 14253-1", "|error| <= U"],
+                           rows, left=1),
             "not_covered": ", ".join(unc["not_covered"]) if unc["not_covered"] else None,
             "disagree": ", ".join(mc["disagree"]) if mc is not None and not mc["all_agree"] else None,
             "budget": _budget(unc)}
