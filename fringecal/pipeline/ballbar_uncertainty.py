@@ -30,8 +30,9 @@ import numpy as np
 import pandas as pd
 
 from ..calibration.propagation import sensor_covariance
-from ..length_uncertainty import (BUDGET_TERMS, bootstrap_bias, ParameterCovariances, SightingPoints, length_budget, length_gradient,
-                                  monte_carlo_lengths, refitted_length, sighting_model, validate_linear)
+from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, bootstrap_bias, length_budget,
+                                  length_gradient, monte_carlo_lengths, refitted_length, sighting_model,
+                                  validate_linear)
 from ..rig import Rig
 from ..store import open_store
 from .verify import store_scanner
