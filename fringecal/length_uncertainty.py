@@ -49,7 +49,7 @@ from .rig import Scanner
 
 __all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
            "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
-           "BUDGET_TERMS", "bootstrap_bias"]
+           "BUDGET_TERMS", "bootstrap_bias", "block_params"]
 
 #: the contributions of a length's budget, in report order
 BUDGET_TERMS = ("calibration", "calibration bias correction", "artefact CMM", "artefact temperature", "sphere fits",
@@ -72,6 +72,17 @@ class SightingPoints:
     centre: np.ndarray
     radius_mm: float
     rms_mm: float
+
+    @property
+    def params(self) -> np.ndarray:
+        """(28,) the scanner's camera then projector parameters."""
+        return np.concatenate([self.scanner.camera.params, self.scanner.projector.params])
+
+
+def block_params(sensor_params: np.ndarray, block: int) -> np.ndarray:
+    """(28,) scanner ``block``'s parameters out of per-sensor ones (n_sensors, 14),
+    the sensors in rig order (camera, projector of each scanner)."""
+    return np.concatenate([sensor_params[2 * block], sensor_params[2 * block + 1]])
 
 
 @dataclass(frozen=True)
@@ -196,8 +207,7 @@ def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCova
     blocks = sorted({a.block, b.block})
     idx = np.concatenate([np.arange(28 * k, 28 * k + 28) for k in blocks])
     F = _draw_sqrt(cov.total[np.ix_(idx, idx)])
-    base = {k: np.concatenate([s.scanner.camera.params, s.scanner.projector.params])
-            for k, s in ((a.block, a), (b.block, b))}
+    base = {s.block: s.params for s in (a, b)}
     X0 = {id(s): triangulate_mm(s.scanner, s.cam_mm, s.prj_mm) for s in (a, b)}
     normals = {id(s): _normals(X0[id(s)], s.centre) for s in (a, b)}
     out = np.empty(draws)
@@ -234,12 +244,8 @@ def bootstrap_bias(a: SightingPoints, b: SightingPoints, params: np.ndarray) -> 
     ``u_bias = spread / sqrt(draws)`` the uncertainty of the estimated bias. Subtract
     ``bias`` from the measured length.
     """
-    def block(p, s):
-        return np.concatenate([p[2 * s.block], p[2 * s.block + 1]])
-
-    base = {s.block: np.concatenate([s.scanner.camera.params, s.scanner.projector.params]) for s in (a, b)}
-    L = refitted_length(a, b, base[a.block], base[b.block])
-    Ls = np.array([refitted_length(a, b, block(p, a), block(p, b)) for p in params])
+    L = refitted_length(a, b, a.params, b.params)
+    Ls = np.array([refitted_length(a, b, block_params(p, a.block), block_params(p, b.block)) for p in params])
     spread = float(np.std(Ls, ddof=1))
     return float(Ls.mean() - L), spread / math.sqrt(len(Ls)), spread
 

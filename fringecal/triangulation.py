@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["closest_points", "closest_approach", "triangulate"]
+__all__ = ["closest_points", "closest_approach", "triangulate", "sphere_hits"]
 
 
 def closest_points(o1, d1, o2, d2) -> tuple[np.ndarray, np.ndarray]:
@@ -84,3 +84,15 @@ def triangulate(camera, projector, pixels_uv, tau) -> tuple[np.ndarray, np.ndarr
     o1, d1 = camera.rays(camera.image_mm(pixels_uv))
     o2, d2 = projector.rays(projector.image_mm(tau))
     return closest_approach(o1, d1, o2, d2)
+
+
+def sphere_hits(origin, directions, centres, radius) -> np.ndarray:
+    """First intersections (..., 3) of rays ``origin + t directions`` (unit directions)
+    with spheres, one sphere per ray (shapes broadcast: centres (..., 3), radius (...));
+    NaN where a ray misses its sphere."""
+    oc = origin - centres
+    b = np.einsum("...k,...k->...", directions, oc)
+    disc = b * b - (np.einsum("...k,...k->...", oc, oc) - radius * radius)
+    with np.errstate(invalid="ignore"):
+        t = np.where(disc >= 0, -b - np.sqrt(disc), np.nan)
+    return origin + t[..., None] * directions

@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..rotation import rotation_matrix
+from ..triangulation import sphere_hits
 from .bundle import BundleResult, bundle_adjust
 
 __all__ = ["predicted_projector_mm", "bootstrap_calibrations"]
@@ -44,12 +45,7 @@ def predicted_projector_mm(result: BundleResult) -> np.ndarray:
         m, s = problem.meas_idx[sel], problem.sphere_idx[sel]
         C = poses[m, :3] + np.einsum("nji,nj->ni", R[m], centres[s])  # S_t = R^T s + t
         origin, d = scanner.camera.rays(problem.cam_mm[sel])
-        oc = origin - C
-        b = np.einsum("nk,nk->n", d, oc)
-        disc = b * b - (np.einsum("nk,nk->n", oc, oc) - radii[s] ** 2)
-        with np.errstate(invalid="ignore"):
-            t = -b - np.sqrt(disc)
-        out[sel] = scanner.projector.project(origin + t[:, None] * d)
+        out[sel] = scanner.projector.project(sphere_hits(origin, d, C, radii[s]))
     return out
 
 

@@ -30,9 +30,9 @@ import numpy as np
 import pandas as pd
 
 from ..calibration.propagation import sensor_covariance
-from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, bootstrap_bias, length_budget,
-                                  length_gradient, monte_carlo_lengths, refitted_length, sighting_model,
-                                  validate_linear)
+from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, block_params, bootstrap_bias,
+                                  length_budget, length_gradient, monte_carlo_lengths, refitted_length,
+                                  sighting_model, validate_linear)
 from ..rig import Rig
 from ..store import open_store
 from .verify import store_scanner
@@ -175,8 +175,7 @@ def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params
     C = halves["covariance_a"] + halves["covariance_b"]
 
     def params(which: str, block: int) -> np.ndarray:
-        p = halves[f"params_{which}"]
-        return np.concatenate([p[2 * block], p[2 * block + 1]])
+        return block_params(halves[f"params_{which}"], block)
 
     rows = []
     for r in lengths.itertuples():

@@ -121,9 +121,8 @@ def second_pass(store, candidates, scanner: Scanner, artefact, rods: pd.DataFram
                                 spacing_px=control_point_config.spacing_px, erode_px=control_point_config.rim_px,
                                 incidence=incidence,
                                 max_incidence_deg=None if incidence is None else control_point_config.max_incidence_deg)
-    cps = correct_control_points(cps, pd.DataFrame(fits.rows, columns=["sphere_id", "x_mm", "y_mm", "z_mm",
-                                                                       "radius_mm"]),
-                                 scanner, control_point_config.pixel_integration_px)
+    rows = pd.DataFrame(fits.rows)
+    cps = correct_control_points(cps, rows, scanner, control_point_config.pixel_integration_px)
     dims = ("v", "u")
     sphere_index = np.full(labels.shape, -1, np.int16)
     for c in fitted:
@@ -131,6 +130,5 @@ def second_pass(store, candidates, scanner: Scanner, artefact, rods: pd.DataFram
     write_store(labels_out, xr.Dataset({"sphere_label": xr.DataArray(sphere_index, dims=dims)},
                                        attrs={"measurement": measurement, "scanner": scanner.name,
                                               "sphere_label_ids": list(artefact.ids)}))
-    rows = pd.DataFrame(fits.rows)
     failures = pd.DataFrame(fits.failures, columns=["measurement", "scanner", "candidate", "sphere_id", "reason"])
     return ExtractionResult(rows, failures, cps)

@@ -38,6 +38,7 @@ import pandas as pd
 
 from ..rig import Scanner
 from ..sensor import Sensor
+from ..triangulation import sphere_hits
 
 __all__ = ["phase_integration_bias", "correct_control_points", "CORRECTION_COLUMNS"]
 
@@ -45,20 +46,9 @@ __all__ = ["phase_integration_bias", "correct_control_points", "CORRECTION_COLUM
 CORRECTION_COLUMNS = ("pixel_integration_x_rad", "pixel_integration_y_rad")
 
 
-def _hits(origin, directions, centres, radius):
-    """First intersections (..., 3) of rays with spheres; NaN where a ray misses."""
-    oc = origin - centres
-    b = np.einsum("...k,...k->...", directions, oc)
-    disc = b * b - (np.einsum("...k,...k->...", oc, oc) - radius * radius)
-    with np.errstate(invalid="ignore"):
-        t = -b - np.sqrt(disc)
-    t = np.where(disc >= 0, t, np.nan)
-    return origin + t[..., None] * directions
-
-
 def _phase_and_irradiance(camera: Sensor, projector: Sensor, uv, centres, radius):
     origin, d = camera.rays(camera.image_mm(uv))
-    X = _hits(origin, d, centres, radius)
+    X = sphere_hits(origin, d, centres, radius)
     normal = (X - centres) / radius[..., None]
     to_prj = projector.pinhole - X
     dist = np.linalg.norm(to_prj, axis=-1)
