@@ -22,9 +22,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from fringecal.acquisition import load_simulated_rig, simulate_measurement
-from fringecal.runconfig import load_run_config
+from fringecal.run.config import load_run_config
+from fringecal.simulate.measurement import simulate_measurement
 from fringecal.simulate.scenes import artefact_scene
+from fringecal.simulate.source import load_simulated_rig
 
 
 def store_mb(path: Path) -> float:

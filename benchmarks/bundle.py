@@ -4,7 +4,7 @@ Prints one JSON document. Cases (each in its own process, so its peak memory is 
 
 * ``thesis``: the thesis-scale problem: table 6-8 rig (2 scanners = 4 sensors), the 12
   poses of table 6-1, control points every 10 px with a 75 degree rim limit (13,564
-  points; the thesis had 13,604), from the DLT start of fringecal.calibration.synthetic.
+  points; the thesis had 13,604), from the DLT start of fringecal.simulate.control_points.
 * ``large``: 8 scanners on a ring (copies of the thesis scanners), 50 random artefact
   poses, control points every 5 px: about 10^6 control points, from the DLT start.
 
@@ -36,8 +36,13 @@ import numpy as np
 
 def _problem(case: str):
     from fringecal.calibration.model import BundleProblem
-    from fringecal.calibration.synthetic import (dlt_start, random_poses, ring_truth, simulate_control_points,
-                                                 thesis_truth)
+    from fringecal.simulate.control_points import (
+        dlt_start,
+        random_poses,
+        ring_truth,
+        simulate_control_points,
+        thesis_truth,
+    )
 
     t0 = time.perf_counter()
     if case == "thesis":

@@ -1,14 +1,14 @@
 """Convergence basin of the bundle adjustment: from how rough a start does it reach the
 noise floor? Prints (and with ``--out`` writes) one JSON document.
 
-For every rig, control points are simulated (``fringecal.calibration.synthetic``,
+For every rig, control points are simulated (``fringecal.simulate.control_points``,
 phase noise for a 45 um epsilon-1, grid spacing chosen for about ``--points`` control
 points) and the adjustment is started
 
 * once from the truth (``start="given"``): its epsilon-2 RMS is the noise floor of these
   data;
 * ``--starts`` times per scale from rough start values
-  (``fringecal.calibration.basin.rough_start``: at scale 1, free pinholes 2 mm, free
+  (``fringecal.simulate.basin.rough_start``: at scale 1, free pinholes 2 mm, free
   sensor angles 2 mrad, free principal distances 0.4 % of c, distortion zero, poses
   1 mm / 1 mrad, random signs; the reference camera's external parameters are fixed and
   define the world, so they stay at the truth), with the default options
@@ -61,8 +61,8 @@ CONFIGS = {"row3": ROOT / "configs" / "row3" / "rig.yaml", "ring6": ROOT / "conf
 
 def _truth(name: str, configs: dict):
     """(rig, artefact, poses frame, spheres_of or None, source) of a named rig."""
-    from fringecal.calibration import synthetic
-    from fringecal.calibration.basin import flat_poses, independent_spheres, load_rig_config
+    from fringecal.simulate import control_points as synthetic
+    from fringecal.simulate.basin import flat_poses, independent_spheres, load_rig_config
 
     base, flat = (name[:-5], True) if name.endswith("-flat") else (name, False)
     if base in configs and Path(configs[base]).exists():
@@ -89,7 +89,7 @@ def _truth(name: str, configs: dict):
 
 
 def _simulate(rig, art, poses, spheres_of, target: int, seed: int):
-    from fringecal.calibration.synthetic import simulate_control_points
+    from fringecal.simulate.control_points import simulate_control_points
 
     probe = simulate_control_points(rig, art, poses, spacing_px=20, noise_eps1_mm=0.0, spheres_of=spheres_of)
     spacing = max(2, round(20 * float(np.sqrt(len(probe.control_points) / target))))
@@ -101,9 +101,9 @@ def _load():
 
 
 def run_rig(name: str, configs: dict, starts: int, scales: list, target: int, seed: int, log) -> dict:
-    from fringecal.calibration.basin import rough_start
     from fringecal.calibration.bundle import BundleOptions, bundle_adjust
     from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
+    from fringecal.simulate.basin import rough_start
 
     load_before = _load()
     rig, art, poses, spheres_of, source = _truth(name, configs)
@@ -204,7 +204,7 @@ def main(argv=None) -> dict:
     def log(msg):
         print(msg, file=sys.stderr, flush=True)
 
-    from fringecal.calibration.basin import ERRORS_1X
+    from fringecal.simulate.basin import ERRORS_1X
 
     doc = {"benchmark": "convergence_basin", "command": "python benchmarks/convergence_basin.py " + " ".join(
                argv if argv is not None else sys.argv[1:]),

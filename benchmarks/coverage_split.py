@@ -8,8 +8,13 @@ does not hold.
 
     PYTHONPATH=. python benchmarks/coverage_split.py W [W2 ...]
 """
-import json, subprocess, sys, numpy as np
+import json
+import subprocess
+import sys
 from pathlib import Path
+
+import numpy as np
+
 rows = []
 for d in sorted(Path(p) for a in sys.argv[1:] for p in Path(a).glob("*-seed*")):
     if not (d / "verification.json").exists():

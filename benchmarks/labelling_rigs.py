@@ -3,7 +3,7 @@ errors, with and without planned poses; prints one JSON object.
 
     PYTHONPATH=. python benchmarks/labelling_rigs.py [--seeds 0 1 2] [--out FILE]
 
-Rigs (``fringecal.spheres.labelling_synthetic``): the thesis's two scanners (six
+Rigs (``fringecal.simulate.sphere_centres``): the thesis's two scanners (six
 spheres per view), the three-scanner row (scanner1 sees only the triangle 1-2-3), a
 six-scanner ring with a narrow field (3-14 spheres per view). Each scanner's centres
 are 0.4-0.6 % off in scale about its own origin, warped by ~1 mm and noisy by 0.1 mm,
@@ -31,13 +31,12 @@ from collections import Counter
 from dataclasses import asdict, replace
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fringecal.simulate.sphere_centres import RIGS, PriorErrors, link_errors, observe_rig  # noqa: E402
 from fringecal.spheres.labelling import LabellingConfig, ambiguous_subsets  # noqa: E402
-from fringecal.spheres.labelling_synthetic import RIGS, PriorErrors, link_errors, observe_rig  # noqa: E402
-from fringecal.spheres.steps import label_pose_link  # noqa: E402
+from fringecal.spheres.poses_and_links import label_pose_link  # noqa: E402
 
 
 def run(obs, planned) -> tuple[dict, object]:

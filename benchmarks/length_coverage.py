@@ -105,7 +105,7 @@ def errors_wired() -> bool:
     """Whether ``simulate.errors`` exists in the run config (fringecal.simulate.errors)."""
     from pydantic import ValidationError
 
-    from fringecal.runconfig import SimulationConfig
+    from fringecal.simulate.settings import SimulationConfig
 
     try:
         return SimulationConfig(errors={"profile": "realistic"}).errors.profile_name == "realistic"
@@ -144,10 +144,10 @@ def true_length(rd, profile: str, ids) -> tuple[float, str]:
 
 
 def run_seed(profile: str, i: int, config_path: Path, workdir: Path, with_errors: bool, keep: bool) -> dict:
-    from fringecal.runconfig import load_run_config
+    from fringecal.run.config import load_run_config
+    from fringecal.run.summary import manifest
     from fringecal.rundir import RunDir
     from fringecal.steps import run_pipeline
-    from fringecal.summary import manifest
 
     overrides = seed_overrides(profile, i, with_errors)
     out = {"seed_index": i, "seeds": {"acquisition": 1000 + i, "verification": 2000 + i, "prior": 3000 + i,
@@ -270,7 +270,7 @@ def main(argv=None) -> dict:
 
     with_errors = errors_wired()
     if args.profile != "ideal" and not with_errors:
-        ap.error("profile realistic: simulate.errors is not wired into fringecal.runconfig.SimulationConfig yet")
+        ap.error("profile realistic: simulate.errors is not wired into fringecal.simulate.settings.SimulationConfig yet")
     cmd = "PYTHONPATH=. python benchmarks/length_coverage.py " + " ".join(argv if argv is not None else sys.argv[1:])
     poses = [int(x) for x in args.poses.split(",") if x]
     positions = [int(x) for x in args.positions.split(",") if x]

@@ -41,12 +41,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fringecal.artefact import load_artefact  # noqa: E402
-from fringecal.calibration_file import write_calibration_json  # noqa: E402
+from fringecal.calibration.file import write_calibration_json  # noqa: E402
+from fringecal.calibration.propagation import ParameterCovariances  # noqa: E402
 from fringecal.frames import frames_from_rows  # noqa: E402
-from fringecal.length_uncertainty import ParameterCovariances  # noqa: E402
 from fringecal.pointcloud import camera_ray_cache  # noqa: E402
-from fringecal.rig import load_rig  # noqa: E402
-from fringecal.simulate.resolution import scaled_rig  # noqa: E402
+from fringecal.rig import (
+    load_rig,  # noqa: E402
+    scaled_rig,  # noqa: E402
+)
 from fringecal.store import write_store  # noqa: E402
 
 THESIS = ROOT / "configs" / "thesis"
@@ -129,7 +131,7 @@ def main() -> None:
         t = time.perf_counter()
         cal, folders, fractions = make_inputs(root, args.width)
         setup = time.perf_counter() - t
-        cmd = [sys.executable, "-m", "flows.cli", "measure", "--calibration", str(cal),
+        cmd = [sys.executable, "-m", "fringecal.flows.cli", "measure", "--calibration", str(cal),
                *[a for f in folders for a in ("--stores", str(f))], "--out", str(root / "cloud.ply"), "--json"]
         load_start = os.getloadavg()
         runs = []

@@ -33,13 +33,14 @@ from fringecal.artefact import load_artefact  # noqa: E402
 from fringecal.frames import Frame  # noqa: E402
 from fringecal.pointcloud import camera_ray_cache, triangulate_maps  # noqa: E402
 from fringecal.rig import load_rig  # noqa: E402
+from fringecal.schemas import PosePlanTable, SphereCentresTable, read_table  # noqa: E402
 from fringecal.spheres.fit import SphereModel  # noqa: E402
-from fringecal.spheres.labelling import LabellingConfig, label_sphere_fits  # noqa: E402
+from fringecal.spheres.label_scanners import label_sphere_fits  # noqa: E402
+from fringecal.spheres.labelling import LabellingConfig  # noqa: E402
 from fringecal.spheres.reference_data import sphere_reference_data  # noqa: E402
 from fringecal.spheres.robust import fit_sphere_robust  # noqa: E402
 from fringecal.spheres.synthetic import sphere_node_cloud  # noqa: E402
 from fringecal.triangulation import triangulate  # noqa: E402
-from schemas import PosePlanTable, SphereCentresTable, read_table  # noqa: E402
 
 THESIS = ROOT / "configs" / "thesis"
 

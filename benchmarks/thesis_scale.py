@@ -29,11 +29,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fringecal.acquisition import render_frames  # noqa: E402
 from fringecal.frames import frames_from_rows  # noqa: E402
 from fringecal.fringe.measurement import decode_to_store  # noqa: E402
+from fringecal.run.config import RunConfig  # noqa: E402
 from fringecal.rundir import RunDir  # noqa: E402
-from fringecal.runconfig import RunConfig  # noqa: E402
+from fringecal.simulate.measurement import render_frames  # noqa: E402
 from fringecal.simulate.scenes import artefact_scene  # noqa: E402
 from fringecal.steps import COMMON, run_step  # noqa: E402
 from fringecal.store import copy_store  # noqa: E402

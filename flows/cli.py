@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from .common import UserInputError, console, err_console, guarded
+from fringecal.flows.common import UserInputError, console, err_console, guarded
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Calibrate fringe-projection scanners into one global frame.")
@@ -34,10 +34,9 @@ def pose(
     is configured (PREFECT_API_URL or a profile), so that the run shows there.
     """
     from fringecal.artefact import load_artefact
-    from schemas import SphereCentresTable, read_table
-
-    from .common import configured_prefect_api
-    from .validate import output_file
+    from fringecal.flows.common import configured_prefect_api
+    from fringecal.flows.validate import output_file
+    from fringecal.schemas import SphereCentresTable, read_table
 
     output_file(out, "--out")  # validate every input before anything is written
     art = load_artefact(artefact)
@@ -46,12 +45,12 @@ def pose(
     read_table(centres, SphereCentresTable)
 
     if configured_prefect_api():
-        from flows.pose_flow import pose_flow
+        from fringecal.flows.pose_flow import pose_flow
 
         result = pose_flow(str(artefact), str(centres), str(out))
         written, skipped = result["poses"] is not None, result["skipped"]
     else:
-        from fringecal.pose import estimate_poses_file
+        from fringecal.spheres.pose import estimate_poses_file
 
         result = estimate_poses_file(artefact, centres, out)
         written, skipped = len(result.poses) > 0, result.skipped.to_dict("records")
@@ -78,8 +77,20 @@ def pose(
 
 def _register_subcommands():
     """Sub-apps live in flows/cli_<area>.py; they import helpers from this module."""
-    from . import (cli_acquire, cli_artefact, cli_decode, cli_fit, cli_hexapod, cli_interop, cli_measure, cli_report,
-                   cli_run, cli_simulate, cli_step, cli_verify)
+    from fringecal.flows import (
+        cli_acquire,
+        cli_artefact,
+        cli_decode,
+        cli_fit,
+        cli_hexapod,
+        cli_interop,
+        cli_measure,
+        cli_report,
+        cli_run,
+        cli_simulate,
+        cli_step,
+        cli_verify,
+    )
 
     app.command("run")(cli_run.run_command)
     app.command("reproduce")(cli_run.reproduce_command)
@@ -108,7 +119,7 @@ def main():  # pragma: no cover - console entry point
 
 
 if __name__ == "__main__":  # pragma: no cover
-    # `python -m flows.cli`: run the imported module so sub-apps register exactly once.
-    from flows.cli import main as _main
+    # `python -m fringecal.flows.cli`: run the imported module so sub-apps register exactly once.
+    from fringecal.flows.cli import main as _main
 
     sys.exit(_main())

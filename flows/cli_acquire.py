@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from .common import UserInputError, console, fail, user_errors
+from fringecal.flows.common import UserInputError, console, fail, user_errors
 
 CAPTURE_HELP = ("Capture command template, run once per (measurement, scanner), e.g. "
                 "'vendor-scan --scanner {scanner} --out {out}'. Placeholders: {measurement}, {scanner}, {out} "
@@ -36,9 +36,8 @@ def acquire_command(
     3 capture, 130 interrupted."""
     from fringecal.acquisition.live import EXIT_HEXAPOD, EXIT_INPUT, AcquisitionError
     from fringecal.acquisition.live_capture import CaptureTemplateError
+    from fringecal.flows.validate import number
     from fringecal.hexapod import ForwardKinematicsError, HexapodFault, TargetRejected
-
-    from .validate import number
 
     try:
         number(timeout, "--timeout", gt=0, unit="s")

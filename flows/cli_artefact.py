@@ -17,7 +17,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from .common import UserInputError, console, guarded
+from fringecal.flows.common import UserInputError, console, guarded
 
 app = typer.Typer(no_args_is_help=True, help="Artefact engineering: truss, rigidity, sag, thermal, moisture, consistency.")
 
@@ -58,7 +58,7 @@ def _vector(text: str, name: str) -> np.ndarray:
 
 def _supports(value: str, node_ids):
     from fringecal.engineering.supports import parse_supports, supports_from_table
-    from schemas import SupportsTable, read_table
+    from fringecal.schemas import SupportsTable, read_table
 
     if value.lower().endswith(".csv"):
         return supports_from_table(read_table(value, SupportsTable), node_ids)
@@ -118,9 +118,8 @@ def truss(
 ):
     """Member forces (tension +), stresses, displacements and reactions under gravity (section 3.4)."""
     from fringecal.engineering import Truss, load_materials, mass_loads, solve_truss, uniform_loads
-    from schemas import TrussDisplacementsTable, TrussForcesTable, write_table
-
-    from .validate import number, output_file
+    from fringecal.flows.validate import number, output_file
+    from fringecal.schemas import TrussDisplacementsTable, TrussForcesTable, write_table
 
     number(rod_end_load_n, "--rod-end-load-n", unit="N")
     number(node_load_n, "--node-load-n", unit="N")
@@ -225,9 +224,8 @@ def sag(
 ):
     """Move the CMM sphere centres by the gravity sag between the CMM and the use condition."""
     from fringecal.engineering import SupportCondition, gravity_sag_correction, load_materials
-    from schemas import ArtefactTable, TrussDisplacementsTable, write_table
-
-    from .validate import output_file
+    from fringecal.flows.validate import output_file
+    from fringecal.schemas import ArtefactTable, TrussDisplacementsTable, write_table
 
     output_file(out, "--out")
     output_file(table, "--table")
@@ -260,9 +258,8 @@ def cte(
 ):
     """CTE from a cooling log: regression of length on temperature, with its standard uncertainty."""
     from fringecal.engineering import CteFit
-    from schemas import ThermalLogTable, read_table
-
-    from .validate import number
+    from fringecal.flows.validate import number
+    from fringecal.schemas import ThermalLogTable, read_table
 
     number(reference_c, "--reference-c", ge=-273.15, unit="C")
     fit = CteFit.from_log(read_table(log, ThermalLogTable), reference_c)
@@ -290,9 +287,8 @@ def thermal(
     """Scale the CMM coordinates from the reference to the measurement temperature."""
     from fringecal.artefact import load_artefact
     from fringecal.engineering import compensate_temperature
-    from schemas import ArtefactTable, write_table
-
-    from .validate import number, output_file
+    from fringecal.flows.validate import number, output_file
+    from fringecal.schemas import ArtefactTable, write_table
 
     number(temperature_c, "--temperature-c", ge=-273.15, unit="C")
     number(cte_per_c, "--cte", unit="per C")
@@ -332,9 +328,8 @@ def moisture(
 ):
     """Diffusion coefficient and equilibrium uptake: early sqrt(t) slope (eq. 3-24) and full Fickian fit (eq. 3-22)."""
     from fringecal.engineering import EarlyTimeDiffusion, FickianFit, moisture_content_pct
-    from schemas import MoistureUptakeTable, read_table
-
-    from .validate import number, positive
+    from fringecal.flows.validate import number, positive
+    from fringecal.schemas import MoistureUptakeTable, read_table
 
     positive(thickness_mm, "--thickness-mm", "mm")
     positive(dry_mass_g, "--dry-mass-g", "g")
@@ -383,9 +378,8 @@ def cme(
 ):
     """Coefficient of moisture expansion (eq. 3-17) from a length record and a mass change."""
     from fringecal.engineering import LengthChange, moisture_expansion_coefficient
-    from schemas import HumidityLengthsTable, read_table
-
-    from .validate import number
+    from fringecal.flows.validate import number
+    from fringecal.schemas import HumidityLengthsTable, read_table
 
     number(mass_change_pct, "--mass-change-pct", nonzero=True, unit="%")
     path = lengths or _thesis("humidity_lengths_table3-6.csv")
@@ -416,9 +410,8 @@ def consistency(
     """Rod lengths singly vs assembled vs from coordinates (section 3.7): per-rod differences, RMS, worst rods."""
     from fringecal.artefact import load_artefact, load_rods
     from fringecal.engineering import artefact_from_rod_lengths, rod_length_consistency
-    from schemas import RodConsistencyTable, write_table
-
-    from .validate import output_file
+    from fringecal.flows.validate import output_file
+    from fringecal.schemas import RodConsistencyTable, write_table
 
     output_file(out, "--out")
     coords = coords or [_thesis("artefact_cmm1.csv"), _thesis("artefact_cmm2.csv")]

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 from pydantic import ValidationError
 
-from .common import UserInputError, console, guarded
+from fringecal.flows.common import UserInputError, console, guarded
 
 
 def _measurements(frames: Path, out: Path) -> tuple[list[Path], list[Path]]:
@@ -33,12 +33,11 @@ def _decode(dirs: list[Path], outs: list[Path], settings, store_frames: bool) ->
     Directly, unless a Prefect server is configured: then as the decode flow on it,
     whose cache skips folders decoded before with the same frames and settings.
     """
-    from tasks.refs import ref_for
-
-    from .common import configured_prefect_api
+    from fringecal.flows.common import configured_prefect_api
+    from fringecal.tasks.refs import ref_for
 
     if configured_prefect_api():
-        from flows.decode_flow import decode_flow
+        from fringecal.flows.decode_flow import decode_flow
 
         return decode_flow([str(d) for d in dirs], [str(o) for o in outs], settings.model_dump(), store_frames)
     from fringecal.fringe.measurement import decode_folder
@@ -72,7 +71,7 @@ def decode_command(
         settings = DecodeSettings(min_modulation=min_modulation, max_phase_error=max_phase_error)
     except ValidationError as err:
         raise UserInputError("; ".join(f"--{e['loc'][0].replace('_', '-')}: {e['msg']}" for e in err.errors()))
-    from .validate import input_folder, output_folder
+    from fringecal.flows.validate import input_folder, output_folder
 
     input_folder(frames, "--frames", "measurement folder")
     output_folder(out, "--out")

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from .common import UserInputError, console, guarded
+from fringecal.flows.common import UserInputError, console, guarded
 
 fit_app = typer.Typer(add_completion=False, no_args_is_help=True,
                       help="Fit a sphere or a plane to exported points (columns x_mm, y_mm, z_mm).")
@@ -21,7 +21,7 @@ POINTS_HELP = "CSV of points with columns x_mm, y_mm, z_mm (extra columns ignore
 
 
 def _read_points(path: Path):
-    from schemas import PointsTable, read_table
+    from fringecal.schemas import PointsTable, read_table
 
     return read_table(path, PointsTable)[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
 
@@ -49,10 +49,9 @@ def sphere(
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """Least-squares sphere (orthogonal distances), radius free or fixed."""
+    from fringecal.flows.validate import positive
     from fringecal.spheres.fit import FitError, SphereModel
     from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
-
-    from .validate import positive
 
     positive(radius_mm, "--radius-mm", "mm")
     positive(noise_mm, "--noise-mm", "mm")
@@ -78,10 +77,9 @@ def plane(
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """Total-least-squares plane (orthogonal distances)."""
+    from fringecal.flows.validate import positive
     from fringecal.spheres.fit import FitError, PlaneModel
     from fringecal.spheres.robust import fit_plane_robust
-
-    from .validate import positive
 
     positive(noise_mm, "--noise-mm", "mm")
     pts = _read_points(points)

@@ -13,7 +13,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from .common import UserInputError, console, err_console, fail, guarded
+from fringecal.flows.common import UserInputError, console, err_console, fail, guarded
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Stewart-platform hexapod (thesis ch. 4): kinematics, workspace, plan, move, drift.")
@@ -167,10 +167,9 @@ def workspace(
     as_json: bool = typer.Option(False, "--json", help="Print JSON."),
 ):
     """Reach from the home pose along each pose coordinate, with the constraint that limits it."""
+    from fringecal.flows.validate import positive
     from fringecal.hexapod import reach_report
     from fringecal.hexapod.workspace import cube_reach
-
-    from .validate import positive
 
     positive(limit_mm, "--limit-mm", "mm")
     positive(limit_deg, "--limit-deg", "deg")
@@ -224,12 +223,11 @@ def plan(
 ):
     """Artefact poses -> platform poses -> leg lengths -> encoder counts, with reachability."""
     from fringecal.config import thesis_dir
+    from fringecal.flows.validate import output_file
     from fringecal.hexapod import HexapodRig
     from fringecal.hexapod.driver import write_command_file
     from fringecal.hexapod.planning import COUNT_COLUMNS, frames_from_table, plan_with_stations, thesis_grid
-    from schemas import HexapodPlanTable, PosePlanTable, read_table, write_table
-
-    from .validate import output_file
+    from fringecal.schemas import HexapodPlanTable, PosePlanTable, read_table, write_table
 
     output_file(out, "--out")
     output_file(commands, "--commands")
@@ -282,10 +280,9 @@ def drift(
 
     Exit status 0, or 3 when the drift expected in one scan EXCEEDS --tolerance-um.
     """
+    from fringecal.flows.validate import positive
     from fringecal.hexapod.drift import drift_check
-    from schemas import DriftCentresTable, read_table
-
-    from .validate import positive
+    from fringecal.schemas import DriftCentresTable, read_table
 
     positive(interval_s, "--interval-s", "s")
     positive(scan_s, "--scan-s", "s")
@@ -319,8 +316,8 @@ def move(
 ):
     """Move the platform (all six legs together), verify the encoders and report the pose reached."""
     from fringecal.hexapod import HexapodDriver
-    from fringecal.hexapod.planning import counts_from_lengths
     from fringecal.hexapod.kinematics import inverse_kinematics
+    from fringecal.hexapod.planning import counts_from_lengths
 
     cfg = _config(config)
     if (pose is None) == (counts is None):
@@ -357,9 +354,8 @@ def run_file(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help=CONFIG_HELP),
 ):
     """Check a whole command file against stroke and workspace, then run it line by line."""
+    from fringecal.flows.validate import input_file
     from fringecal.hexapod import HexapodDriver
-
-    from .validate import input_file
 
     input_file(commands, "COMMANDS", "command file")
     cfg = _config(config)

@@ -10,7 +10,7 @@ from typing import List, Optional
 import typer
 from rich.table import Table
 
-from .common import UserInputError, console, guarded
+from fringecal.flows.common import UserInputError, console, guarded
 
 export_app = typer.Typer(no_args_is_help=True, help="Export a calibration to other software.")
 import_app = typer.Typer(no_args_is_help=True, help="Import calibrations from other software.")
@@ -23,7 +23,7 @@ def _opencv_errors():
 
 
 def _read_rig(path: Path):
-    from fringecal.calibration_file import read_calibration_json, read_calibration_xml
+    from fringecal.calibration.file import read_calibration_json, read_calibration_xml
     from fringecal.rig import load_rig
 
     if not path.is_file():
@@ -78,9 +78,8 @@ def export_opencv(
 
 
 def _export(calibration: Path, out: Path, as_json: bool) -> None:
+    from fringecal.flows.validate import output_folder
     from fringecal.interop.opencv_storage import write_rig
-
-    from .validate import output_folder
 
     output_folder(out, "--out")
     rig = _read_rig(calibration)
@@ -128,7 +127,7 @@ def _import(stereo, names, out, reference, camera_size, projector_size, camera_w
     if names and len(names) != len(stereo):
         raise UserInputError(f"--scanner: {len(names)} name(s) for {len(stereo)} --stereo file(s); give one name per "
                              "file, in the same order, or none")
-    from .validate import output_file, positive
+    from fringecal.flows.validate import output_file, positive
 
     for option, value in (("--camera-width-mm", camera_width_mm), ("--projector-width-mm", projector_width_mm)):
         positive(value, option, "mm")

@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from .common import UserInputError, console, err_console, guarded
+from fringecal.flows.common import UserInputError, console, err_console, guarded
 
 
 def _settings(decimate: int, max_eps1_mm: Optional[float], uncertainty: bool):
@@ -70,10 +70,9 @@ def measure_command(
 ):
     """Triangulate every valid pixel of every scanner in the global frame into one point cloud
     (per point: scanner, camera pixel, eps1, modulation, standard uncertainty)."""
+    from fringecal.flows.validate import input_folder, output_file, output_folder
     from fringecal.measure import MeasurementSourceError
     from fringecal.measure.run import measure_folder
-
-    from .validate import input_folder, output_file, output_folder
 
     if bool(frames) == bool(stores):
         raise UserInputError("give measurement folders either as --frames DIR or as --stores DIR (not both, not none)")

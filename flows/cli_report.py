@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from .common import UserInputError, console, guarded
+from fringecal.flows.common import UserInputError, console, guarded
 
 
 @guarded

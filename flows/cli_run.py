@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from .common import UserInputError, console, err_console, fail, guarded
+from fringecal.flows.common import UserInputError, console, err_console, fail, guarded
 
 __all__ = ["run_command", "reproduce_command", "serve_command", "validate_run_config", "make_task_runner"]
 
@@ -19,7 +19,7 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
     rig's files and hexapod reach, or a recorded data set's whole layout -- before
     any Prefect work."""
     from fringecal.config import ConfigError
-    from fringecal.runconfig import RunConfig, load_run_config
+    from fringecal.run.config import RunConfig, load_run_config
 
     if isinstance(config, dict):
         try:
@@ -39,7 +39,7 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
 
 def check_simulation(sim) -> None:
     """A simulated rig's files, and every planned pose within the hexapod's reach."""
-    from fringecal.acquisition import load_simulated_rig
+    from fringecal.simulate.source import load_simulated_rig
 
     sr = load_simulated_rig(sim)
     hx = sim.acquisition.hexapod
@@ -72,8 +72,8 @@ def make_task_runner(kind: str, max_workers: int, dask_address: str | None = Non
 def _current(cfg, out: Path) -> dict | None:
     """The summary of ``out`` if every step of this config is current there (checked
     from the files' digests before Prefect starts, which costs seconds), else None."""
+    from fringecal.run.summary import pipeline_status
     from fringecal.rundir import RunDir
-    from fringecal.summary import pipeline_status
 
     rd = RunDir(out)
     if not rd.summary.exists() or pipeline_status(rd, cfg) is not None:
@@ -146,14 +146,16 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
              verbose: bool, command: str, progress_console=None, until: Optional[str] = None) -> dict:
     """Run the flow into ``run_dir``. Ctrl-C or SIGTERM ends the command within seconds
-    with one line (:mod:`flows.interrupt`); no helper process outlives it
+    with one line (:mod:`fringecal.flows.interrupt`); no helper process outlives it
     (:mod:`fringecal.lifeline`); a rerun resumes and says what it reused."""
-    from fringecal import kernel_warmup, lifeline, resume
+    from fringecal import lifeline
+    from fringecal.run import resume
+    from fringecal.run import warmup as kernel_warmup
     from fringecal.rundir import RunDir
 
     if (owner := resume.busy(RunDir(run_dir))) is not None:
         raise UserInputError(resume.describe_busy(RunDir(run_dir), owner))
-    from flows.interrupt import armed
+    from fringecal.flows.interrupt import armed
 
     out = progress_console or console
     warmup = server = None
@@ -161,8 +163,8 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
         with armed(run_dir):
             warmup = kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
             _quiet_prefect(verbose)
-            from flows.progress import RichProgress
-            from flows.run_flow import run_flow
+            from fringecal.flows.progress import RichProgress
+            from fringecal.flows.run_flow import run_flow
 
             kind = runner or cfg.runner.kind
             task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
@@ -215,7 +217,7 @@ def _temporary_server():
 
 def _check_inputs(config: Optional[Path], dataset: Optional[Path], out: Path, workers: Optional[int] = None) -> None:
     """The options' paths and numbers, before the config is read (flows/validate.py)."""
-    from .validate import input_file, input_folder, output_folder, whole
+    from fringecal.flows.validate import input_file, input_folder, output_folder, whole
 
     input_file(config, "--config", "run config YAML file")
     input_folder(dataset, "--dataset", "data set folder")
@@ -290,9 +292,8 @@ def reproduce_command(
     Exit status 0, 1 when the numbers differ, 3 when they agree but the ball-bar
     verification FAILs, 2 on bad input.
     """
+    from fringecal.flows.validate import input_folder, output_folder
     from fringecal.rundir import RunDir
-
-    from .validate import input_folder, output_folder
 
     input_folder(run_dir, "RUN_DIR", "run directory")
     output_folder(out, "--out")
@@ -386,7 +387,7 @@ def serve_command(
     `prefect server start --host 127.0.0.1` (Prefect's temporary server cannot schedule).
     One run at a time; each run's verdict is in OUT/summary.json. Ctrl-C stops serving.
     """
-    from .common import configured_prefect_api
+    from fringecal.flows.common import configured_prefect_api
 
     api = configured_prefect_api()
     if api is None:
@@ -398,7 +399,7 @@ def serve_command(
     _check_prefect_server(api)
     from prefect.types.entrypoint import EntrypointType
 
-    from flows.run_flow import run_flow
+    from fringecal.flows.run_flow import run_flow
 
     run_dir = out.expanduser().absolute()  # the runs start in their own processes and folders
     console.print(f"serving deployment {name!r} ({when}) on {api}; runs write to {run_dir} (Ctrl-C stops)")

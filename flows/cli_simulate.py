@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from .common import UserInputError, console, guarded
+from fringecal.flows.common import UserInputError, console, guarded
 
 
 @guarded
@@ -24,15 +24,13 @@ def simulate_command(
     (the layout `fringecal run --dataset` reads, as a real cell would fill it)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from fringecal.acquisition import acquisition_table, load_simulated_rig
-    from fringecal.acquisition.export import write_dataset
-    from fringecal.acquisition.simulated import object_plans
-
-    from .cli_run import check_simulation, validate_run_config
+    from fringecal.flows.cli_run import check_simulation, validate_run_config
+    from fringecal.simulate.export import write_dataset
+    from fringecal.simulate.source import acquisition_table, load_simulated_rig, object_plans
 
     if fmt not in ("png", "tif"):
         raise UserInputError(f"--format must be png or tif, not {fmt!r}")
-    from .validate import input_file, new_folder
+    from fringecal.flows.validate import input_file, new_folder
 
     truth = truth or out.with_name(out.name + "-truth")
     new_folder(out, "--out")

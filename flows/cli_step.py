@@ -15,15 +15,15 @@ from typing import Optional
 
 import typer
 
-from .common import UserInputError, console, err_console, guarded
+from fringecal.flows.common import UserInputError, console, err_console, guarded
 
 __all__ = ["step_command", "calibrate_command", "run_config_of"]
 
 
 def run_config_of(run: Path, config: Optional[Path]):
     """The settings a step command uses (see the module notes)."""
+    from fringecal.run.config import RunConfig, load_run_config
     from fringecal.rundir import RunDir
-    from fringecal.runconfig import RunConfig, load_run_config
 
     if not run.is_dir():
         raise UserInputError(f"{run}: no such run directory")
@@ -105,9 +105,8 @@ def calibrate_command(
     from fringecal.calibration.diagnostics import DegenerateCalibrationError
     from fringecal.calibration.dlt import DLTError
     from fringecal.config import ConfigError
+    from fringecal.flows.common import fail
     from fringecal.rundir import RunDir
-
-    from .common import fail
 
     try:
         record = _run("bundle", run, config, force)[0]

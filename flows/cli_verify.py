@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from .common import UserInputError, console, guarded
+from fringecal.flows.common import UserInputError, console, guarded
 
 app = typer.Typer(no_args_is_help=True, help="Verification per VDI/VDE 2634 (parts 2 and 3).")
 
@@ -30,10 +30,9 @@ def ballbar(
 
     Exit status 0, or 3 when a length error exceeds --mpe-mm (FAIL), 2 on bad input.
     """
-    from fringecal.verification import ballbar_lengths, evaluate_ballbar
-    from schemas import read_table, SphereCentresTable
-
-    from .validate import number, positive
+    from fringecal.flows.validate import number, positive
+    from fringecal.schemas import SphereCentresTable, read_table
+    from fringecal.verification.lengths import ballbar_lengths, evaluate_ballbar
 
     positive(reference_length_mm, "--reference-length-mm", "mm")
     positive(volume_diagonal_mm, "--volume-diagonal-mm", "mm")
@@ -88,10 +87,9 @@ def plan(
     planned for: record each position with those scanners into
     verification/<position>/<scanner>/ of the data set.
     """
-    from fringecal.ballbar_plan import plan_positions, positions_table, volumes_from_run
+    from fringecal.flows.validate import input_folder, output_file
     from fringecal.rundir import RunDir
-
-    from .validate import input_folder, output_file
+    from fringecal.verification.plan import plan_positions, positions_table, volumes_from_run
 
     input_folder(run, "--run", "run directory")
     output_file(out, "--out")
@@ -111,7 +109,7 @@ def plan(
     table = positions_table(result.positions, bar)
     written = [rd.ballbar_positions_planned.save(table)]
     if out is not None:
-        from schemas import SphereCentresTable, write_table
+        from fringecal.schemas import SphereCentresTable, write_table
 
         written.append(write_table(table, out, SphereCentresTable))
     t = Table(title=f"{len(result.positions)} ball-bar positions ({length:.1f} mm bar)")
@@ -162,11 +160,10 @@ def acceptance(
     Exit status 0 when the cell is accepted (every limited parameter's conformance
     proven), 3 when it is not, 2 on bad input.
     """
+    from fringecal.flows.cli_step import run_config_of
+    from fringecal.flows.validate import input_file, input_folder
     from fringecal.rundir import RunDir
     from fringecal.steps import get_step, run_step
-
-    from .cli_step import run_config_of
-    from .validate import input_file, input_folder
 
     input_folder(run, "--run", "run directory")
     input_file(config, "--config", "run config YAML file")

@@ -1,7 +1,7 @@
 """Console and error handling shared by every CLI module.
 
-Sub-apps (``flows/cli_<area>.py``) import from here, never from ``flows.cli``, so
-``python -m flows.cli`` cannot import the CLI twice.
+Sub-apps (``flows/cli_<area>.py``) import from here, never from ``fringecal.flows.cli``, so
+``python -m fringecal.flows.cli`` cannot import the CLI twice.
 """
 
 from __future__ import annotations
@@ -32,13 +32,13 @@ def fail(message: str, code: int = 2):
 
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that mean "the input is wrong": tables, configs, data sets, files, stores, frames."""
-    from fringecal.calibration_file import CalibrationFileError
+    from fringecal.calibration.file import CalibrationFileError
     from fringecal.config import ConfigError
     from fringecal.dataset import DataSetError
     from fringecal.fringe.importer import FrameStackError
     from fringecal.fringe.sequence import SequenceError
+    from fringecal.schemas import TableError
     from fringecal.store import StoreError
-    from schemas import TableError
 
     return (UserInputError, TableError, ConfigError, DataSetError, FileNotFoundError, CalibrationFileError,
             FrameStackError, SequenceError, StoreError)

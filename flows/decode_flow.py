@@ -6,8 +6,8 @@ from prefect import flow
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from fringecal.store import is_complete
-from tasks.decode import decode_task
-from tasks.refs import Ref, ref_for
+from fringecal.tasks.decode import decode_task
+from fringecal.tasks.refs import Ref, ref_for
 
 
 # One measurement at a time: each decode already uses every core and holds ~1 GB of

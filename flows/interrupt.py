@@ -14,7 +14,7 @@ background threads print connection errors once the server has gone. Nothing nee
 unwinding: every output is written atomically, so the handler prints its line,
 silences the process's stdout and stderr, stops the helpers and ends the process
 at once (``os._exit``). A step interrupted mid-write leaves at most a hidden
-temporary, removed by the next run (:mod:`fringecal.resume`), which reuses every
+temporary, removed by the next run (:mod:`fringecal.run.resume`), which reuses every
 finished step instance.
 
 Prefect installs its SIGTERM handler while a flow runs; the flow calls

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from prefect import flow
 
-from tasks.pose import estimate_poses_task
-from tasks.refs import ref_for
+from fringecal.tasks.pose import estimate_poses_task
+from fringecal.tasks.refs import ref_for
 
 
 @flow(name="pose", log_prints=True)

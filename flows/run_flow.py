@@ -2,7 +2,7 @@
 
 The steps come from :func:`fringecal.steps.pipeline` (a simulated rig's or a
 recorded data set's source steps, then the common ones); each instance runs as
-:func:`tasks.step.step_task`, keyed by what the step declares it reads, its
+:func:`fringecal.tasks.step.step_task`, keyed by what the step declares it reads, its
 settings and its code. Instances of one step are submitted together (bounded
 threads, or a Dask cluster with ``--runner dask``); a step starts when the one
 before it has finished. A rerun with nothing changed is all cache hits; a changed
@@ -10,7 +10,7 @@ input, setting or module reruns exactly the steps that depend on it; a deleted o
 changed output is recomputed; a run killed midway resumes from what had finished:
 the flow first removes the hidden temporaries of the writes the interruption cut
 short and reports, in ``summary.json``'s ``resumed``, how many step instances it
-reused (:mod:`fringecal.resume`).
+reused (:mod:`fringecal.run.resume`).
 """
 
 from __future__ import annotations
@@ -28,13 +28,12 @@ os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
 from prefect import flow  # noqa: E402
 
 from fringecal import resume  # noqa: E402
+from fringecal.flows import interrupt, progress  # noqa: E402
+from fringecal.run.config import RunConfig, load_run_config  # noqa: E402
+from fringecal.run.summary import manifest, run_summary  # noqa: E402
 from fringecal.rundir import RunDir  # noqa: E402
-from fringecal.runconfig import RunConfig, load_run_config  # noqa: E402
 from fringecal.steps import Step, current_record, pipeline, step_key  # noqa: E402
-from fringecal.summary import manifest, run_summary  # noqa: E402
-from tasks.step import step_task  # noqa: E402
-
-from . import interrupt, progress  # noqa: E402
+from fringecal.tasks.step import step_task  # noqa: E402
 
 __all__ = ["run_flow", "StepRunner"]
 

@@ -5,10 +5,10 @@ physical range; input paths must be the right kind (a file, a folder); output pa
 must not be an existing thing of the other kind and must lie in a folder this process
 can write into -- checked by creating and removing a hidden probe file there, which
 also catches read-only file systems and the root user on ``/proc``. Every check
-raises :class:`~flows.common.UserInputError` naming the option and the value, so a
+raises :class:`~fringecal.flows.common.UserInputError` naming the option and the value, so a
 ``@guarded`` command prints one line and exits with status 2 having written nothing.
 
-Table files are checked by :func:`schemas.read_table` (missing file, folder, bytes
+Table files are checked by :func:`fringecal.schemas.read_table` (missing file, folder, bytes
 that are not UTF-8, cells; with file, line and column) and config files by
 :func:`fringecal.config.read_yaml_mapping`; the checks here are for the options.
 """
@@ -21,7 +21,7 @@ import tempfile
 from pathlib import Path
 from typing import Optional
 
-from .common import UserInputError
+from fringecal.flows.common import UserInputError
 
 __all__ = ["number", "positive", "whole", "input_file", "input_folder", "output_file", "output_folder",
            "new_folder"]

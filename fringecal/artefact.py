@@ -20,9 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from schemas import ArtefactTable, RodsTable, TableError, read_table, validate_table
-
-from .atomic import write_text
+from fringecal.atomic import write_text
+from fringecal.schemas import ArtefactTable, RodsTable, TableError, read_table, validate_table
 
 __all__ = [
     "Artefact",

@@ -8,6 +8,7 @@ file and the offending key.
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 from typing import Any, Optional
 
@@ -15,7 +16,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 __all__ = ["ConfigError", "StrictModel", "RigConfig", "load_yaml_model", "read_yaml_mapping", "validate_model",
-           "deep_update", "package_root", "thesis_dir"]
+           "deep_update", "configs_dir", "thesis_dir", "bundled_config"]
 
 
 class ConfigError(ValueError):
@@ -26,13 +27,29 @@ class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-def package_root() -> Path:
-    """The checkout holding ``configs/`` (fringecal is installed editable from it)."""
-    return Path(__file__).resolve().parents[1]
+def configs_dir() -> Path:
+    """The bundled configurations and the thesis's data: the repository's ``configs/``,
+    installed as the package data ``fringecal.configs`` (read through importlib.resources,
+    so an installed fringecal finds them from any working directory)."""
+    return Path(str(resources.files("fringecal.configs")))
 
 
 def thesis_dir() -> Path:
-    return package_root() / "configs" / "thesis"
+    """The thesis's tables and the default rig (``configs/thesis``)."""
+    return configs_dir() / "thesis"
+
+
+def bundled_config(path) -> Path:
+    """``path`` if it names a file, else the bundled configuration of that name
+    (``run_thesis_realistic`` or ``run_thesis_realistic.yaml``); unchanged when neither
+    exists, for the caller's error to name it."""
+    path = Path(path)
+    if path.exists() or path.parent != Path("."):
+        return path
+    for name in (path.name, f"{path.name}.yaml"):
+        if (configs_dir() / name).is_file():
+            return configs_dir() / name
+    return path
 
 
 class RigConfig(StrictModel):

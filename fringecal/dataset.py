@@ -23,7 +23,7 @@ contract::
       poses_planned.csv       optional: measurement, tx_mm, ty_mm, tz_mm, omega_rad, phi_rad,
                               kappa_rad (one row per measurement folder, no more, no fewer)
       hexapod_moves.csv       optional: the hexapod's log of a live acquisition
-                              (schemas.HexapodMovesTable, :mod:`fringecal.acquisition.live`);
+                              (fringecal.schemas.HexapodMovesTable, :mod:`fringecal.acquisition.live`);
                               every row names a measurement folder
       measurements/<measurement>/<scanner>/        image stack: sequence.yaml + frames
                                                    (see :mod:`fringecal.fringe.importer`)
@@ -75,7 +75,7 @@ Decisions
   (binning), but must keep the camera's aspect ratio within one pixel.
 - ``dataset.yaml`` problems raise :class:`DataSetError` with the message of
   :func:`fringecal.config.load_yaml_model` (file and key path). Table problems
-  (:class:`schemas.TableError`), frame-folder problems
+  (:class:`fringecal.schemas.TableError`), frame-folder problems
   (:class:`~fringecal.fringe.importer.FrameStackError`) and store problems
   (:class:`~fringecal.store.StoreError`) propagate unchanged: they already name the
   file, line and column. All of them are ``ValueError``.
@@ -121,16 +121,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Literal, Optional
 
-from fringecal.acceptance.standards import (STANDARDS_FILE, DumbbellStandard, FlatStandard, SphereStandard,
-                                            load_standards)
+from fringecal.acceptance.standards import (
+    STANDARDS_FILE,
+    DumbbellStandard,
+    FlatStandard,
+    SphereStandard,
+    load_standards,
+)
 from fringecal.artefact import load_artefact, load_rods
 from fringecal.config import ConfigError, StrictModel, load_yaml_model
 from fringecal.engineering.corrections import ArtefactCorrections
 from fringecal.fringe.importer import SEQUENCE_FILE, check_levels, check_stack
 from fringecal.fringe.sequence import FringeSequence, SequenceError
 from fringecal.rig import Rig, load_rig
+from fringecal.schemas import HexapodMovesTable, PosePlanTable, TableError, read_table
 from fringecal.store import store_attributes
-from schemas import HexapodMovesTable, PosePlanTable, TableError, read_table
 
 __all__ = [
     "DATASET_FILE", "ARTEFACT_FILE", "RODS_FILE", "SENSORS_PRIOR_FILE", "POSES_PLANNED_FILE",
@@ -262,7 +267,7 @@ class DataSet:
 
         Raises
         ------
-        DataSetError, schemas.TableError, FrameStackError, StoreError
+        DataSetError, fringecal.schemas.TableError, FrameStackError, StoreError
             All ``ValueError``; the message starts with the offending file or folder.
         """
         root = Path(root).expanduser().absolute()

@@ -42,8 +42,7 @@ _RACY_NS = 2_000_000_000
 #: caught, because a step's record must list exactly the outputs it declares now.
 INFRASTRUCTURE_MODULES = frozenset({
     "fringecal", "fringecal.atomic", "fringecal.digests", "fringecal.rundir", "fringecal.config",
-    "fringecal.runconfig", "fringecal.steps", "fringecal.steps.base", "fringecal.steps.keys",
-    "fringecal.steps.pipeline",
+    "fringecal.run.config", "fringecal.steps", "fringecal.steps.base", "fringecal.steps.keys",
 })
 
 
@@ -159,7 +158,7 @@ class DigestCache:
             with self._lock:
                 self._memory[key] = (sig, digest)
             if (entry := self._entry_file(key)) is not None:
-                from .atomic import write_json
+                from fringecal.atomic import write_json
 
                 write_json(entry, {"path": key, "signature": sig, "digest": digest})
         return digest
@@ -167,22 +166,29 @@ class DigestCache:
 
 # -- source code ----------------------------------------------------------------------
 
+#: subpackages that run the steps rather than compute: left out of :func:`code_digest`
+_FACES = ("flows", "tasks")
+
+
 @lru_cache(maxsize=None)
-def _package_roots() -> dict[str, Path]:
-    here = Path(__file__).resolve().parent
-    return {"fringecal": here, "schemas": here.parent / "schemas"}
+def _package_roots() -> tuple[Path, ...]:
+    """Where fringecal's modules live: the package folder, and in a source checkout the
+    checkout itself, whose flows/, tasks/ and schemas/ the package maps in."""
+    import fringecal
+
+    return tuple(Path(p).resolve() for p in fringecal.__path__)
 
 
 @lru_cache(maxsize=None)
 def _module_file(name: str) -> Path | None:
     top, _, rest = name.partition(".")
-    root = _package_roots().get(top)
-    if root is None:
+    if top != "fringecal":
         return None
-    base = root.joinpath(*rest.split(".")) if rest else root
-    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
-        if candidate.is_file():
-            return candidate
+    for root in _package_roots():
+        base = root.joinpath(*rest.split(".")) if rest else root
+        for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+            if candidate.is_file():
+                return candidate
     return None
 
 
@@ -215,7 +221,7 @@ def _imports(name: str) -> tuple[str, ...]:
 
 
 def module_files(modules: Iterable[str]) -> dict[str, Path]:
-    """Module name -> source file of ``modules`` and every fringecal or schemas module
+    """Module name -> source file of ``modules`` and every fringecal module
     they import, directly or not, leaving out :data:`INFRASTRUCTURE_MODULES`."""
     seen: dict[str, Path] = {}
     todo = [m for m in modules]
@@ -225,7 +231,7 @@ def module_files(modules: Iterable[str]) -> dict[str, Path]:
             continue
         path = _module_file(name)
         if path is None:
-            raise ModuleNotFoundError(f"{name}: not a fringecal or schemas module")
+            raise ModuleNotFoundError(f"{name}: not a fringecal module")
         seen[name] = path
         todo += _imports(name)
     return dict(sorted(seen.items()))
@@ -257,12 +263,22 @@ def _source_file_digest(path: str, size: int, mtime_ns: int) -> str:
     return digest_path(path)
 
 
+def _computing_sources() -> list[tuple[str, Path]]:
+    """(label, file) of every module that computes: the package and its table schemas,
+    without the command line and the Prefect adapter."""
+    package, *beside = _package_roots()
+    out = [(p.relative_to(package).as_posix(), p) for p in package.rglob("*.py")
+           if p.relative_to(package).parts[0] not in _FACES]
+    for root in beside:  # a source checkout: only its schemas/ belong to the package
+        out += [(p.relative_to(root).as_posix(), p) for p in (root / "schemas").rglob("*.py")]
+    return sorted(out)
+
+
 def code_digest() -> str:
-    """One digest of every fringecal and schemas source file (provenance in the manifest)."""
+    """One digest of every computing source file of fringecal (provenance in the manifest)."""
     h = hashlib.sha256()
-    for top, root in _package_roots().items():
-        for p in sorted(root.rglob("*.py")):
-            for file in [p, *_template_files(p)]:
-                h.update(str(file.relative_to(root.parent)).encode() + b"\0")
-                _hash_file(h, file)
+    for label, p in _computing_sources():
+        for file in [p, *_template_files(p)]:
+            h.update((label if file == p else f"{label}:{file.relative_to(p.parent).as_posix()}").encode() + b"\0")
+            _hash_file(h, file)
     return h.hexdigest()

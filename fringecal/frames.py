@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rotation import angles_from_matrix, rotation_matrix, to_local, to_world
+from fringecal.rotation import angles_from_matrix, rotation_matrix, to_local, to_world
 
 __all__ = ["Frame", "POSE_COLUMNS", "frame_rows", "frames_from_rows"]
 

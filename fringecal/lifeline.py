@@ -1,7 +1,7 @@
 """Helper processes that never outlive the command that started them.
 
 ``fringecal run`` starts helper processes: Prefect's temporary API server (about
-260 MB) and, on a cold numba cache, the kernel warm-up (:mod:`fringecal.kernel_warmup`).
+260 MB) and, on a cold numba cache, the kernel warm-up (:mod:`fringecal.run.warmup`).
 They must end with the command however the command ends -- normally, on an error,
 on Ctrl-C or SIGTERM, or killed outright (``kill -9``, the OOM killer), when none of
 the command's own code runs any more.
@@ -26,7 +26,7 @@ small process per command that starts helpers.
 
 :func:`stop_all` stops the adopted processes at once (the interrupt handler of
 ``fringecal run`` calls it before it exits); :func:`process_start` identifies a
-process by pid and start time (also used by :mod:`fringecal.resume`).
+process by pid and start time (also used by :mod:`fringecal.run.resume`).
 """
 
 from __future__ import annotations

@@ -41,8 +41,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .lens import first_order_inverse, newton_step
-from .sensor import Sensor
+from fringecal.lens import first_order_inverse, newton_step
+from fringecal.sensor import Sensor
 
 __all__ = [
     "provenance",

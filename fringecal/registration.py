@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .frames import Frame
+from fringecal.frames import Frame
 
 __all__ = ["RigidRegistration", "DegenerateGeometryError", "kabsch", "umeyama"]
 

@@ -13,11 +13,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
+from fringecal.schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
+from fringecal.sensor import PARAM_COLUMNS, Sensor, SensorFormat, scaled_format, sensor_in_frame
 
-from .sensor import PARAM_COLUMNS, Sensor, SensorFormat
-
-__all__ = ["Scanner", "Rig", "load_rig"]
+__all__ = ["Scanner", "Rig", "load_rig", "scaled_scanner", "scaled_rig", "rig_in_frame"]
 
 
 @dataclass(frozen=True)
@@ -162,3 +161,26 @@ class Rig:
 def load_rig(path, reference: str | None = None) -> Rig:
     """Read a sensor-parameter CSV into a :class:`Rig`."""
     return Rig.from_frame(read_csv_text(path), reference=reference, source=str(Path(path)))
+
+
+def scaled_scanner(scanner: Scanner, width_px: int, height_px: int | None = None) -> Scanner:
+    """``scanner`` with its camera resampled to ``width_px`` x ``height_px``."""
+    cam = replace(scanner.camera, format=scaled_format(scanner.camera.format, width_px, height_px))
+    return replace(scanner, camera=cam)
+
+
+def scaled_rig(rig: Rig, width_px: int, height_px: int | None = None) -> Rig:
+    """Every camera of ``rig`` resampled (projectors, parameters and flags unchanged)."""
+    return replace(rig, scanners=tuple(scaled_scanner(s, width_px, height_px) for s in rig.scanners))
+
+
+def rig_in_frame(rig: Rig, links: dict) -> Rig:
+    """A :class:`fringecal.rig.Rig` with every linked scanner's sensors in the reference
+    frame (``links``: scanner -> Frame, or a link with a ``frame``). Scanners without a link raise KeyError."""
+    scanners = []
+    for s in rig.scanners:
+        if s.name not in links:
+            raise KeyError(f"scanner {s.name!r} has no link to the reference frame")
+        T = getattr(links[s.name], "frame", links[s.name])  # a FrameLink or a Frame
+        scanners.append(Scanner(s.name, sensor_in_frame(s.camera, T), sensor_in_frame(s.projector, T)))
+    return replace(rig, scanners=tuple(scanners))

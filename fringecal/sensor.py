@@ -37,10 +37,12 @@ from typing import Literal
 
 import numpy as np
 
-from .frames import Frame
-from .rotation import rotation_matrix
+from fringecal.frames import Frame
+from fringecal.rotation import angles_from_matrix, rotation_matrix
 
 __all__ = [
+    "sensor_in_frame",
+    "scaled_format",
     "PARAM_NAMES",
     "PARAM_COLUMNS",
     "SensorFormat",
@@ -120,6 +122,20 @@ class SensorFormat:
         xy = np.asarray(xy, float)
         half = self.size_mm / 2
         return np.all(np.abs(xy) <= half, axis=-1)
+
+
+def scaled_format(fmt: SensorFormat, width_px: int, height_px: int | None = None) -> SensorFormat:
+    """``fmt`` with ``width_px`` x ``height_px`` pixels (height keeps the aspect ratio
+    if omitted) over the same physical size.
+
+    >>> scaled_format(SensorFormat(2048, 2048, 15.1, 15.1), 256)
+    SensorFormat(width_px=256, height_px=256, width_mm=15.1, height_mm=15.1)
+    """
+    if height_px is None:
+        height_px = max(2, round(width_px * fmt.height_px / fmt.width_px))
+    if width_px < 2 or height_px < 2:
+        raise ValueError(f"a camera needs at least 2 x 2 pixels, not {width_px} x {height_px}")
+    return SensorFormat(int(width_px), int(height_px), fmt.width_mm, fmt.height_mm)
 
 
 def _distortion_terms(x, y, k, p):
@@ -309,3 +325,21 @@ class Sensor:
         if self.role == "camera":
             return self.format.mm_to_pixel(image_mm)
         return self.format.mm_to_phase(image_mm)
+
+
+def sensor_in_frame(sensor: Sensor, T_reference_scanner: Frame, near=None) -> Sensor:
+    """A sensor expressed in the reference frame.
+
+    A sensor frame maps ``x_sensor = R_s (x_scanner - x0)`` and the link maps
+    ``x_scanner = R_T (x_ref - t)``, so in the reference frame the pinhole is
+    ``T(x0)`` and the rotation ``R_s R_T``; the angles are taken on the branch
+    nearest ``near`` (default: the sensor's own angles). Interior and distortion
+    parameters are unchanged.
+    """
+    T = T_reference_scanner
+    R_new = sensor.R @ T.R
+    near = sensor.angles if near is None else near
+    params = np.array(sensor.params, float)
+    params[0:3] = T.to_world(sensor.pinhole)
+    params[3:6] = angles_from_matrix(R_new, near=near)
+    return sensor.with_params(params)

@@ -242,7 +242,7 @@ class LabelOutcomesTable(_Base):
 
 
 class ScannerLinksTable(_Base):
-    """T_reference_scanner per scanner (fringecal.linking), with the spread of the
+    """T_reference_scanner per scanner (fringecal.spheres.linking), with the spread of the
     per-measurement estimates and the path of scanners it was chained through."""
 
     scanner: Series[str] = pa.Field(unique=True)

@@ -6,8 +6,7 @@ from prefect import get_run_logger, task
 
 from fringecal.fringe.decode import DecodeSettings
 from fringecal.fringe.measurement import decode_folder
-
-from .refs import Ref, cache_key, ref_for
+from fringecal.tasks.refs import Ref, cache_key, ref_for
 
 
 def _key(context, parameters) -> str:

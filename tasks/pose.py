@@ -4,13 +4,12 @@ from __future__ import annotations
 
 from prefect import get_run_logger, task
 
-from fringecal.pose import estimate_poses_file
-
-from .refs import Ref, cache_key, ref_for
+from fringecal.spheres.pose import estimate_poses_file
+from fringecal.tasks.refs import Ref, cache_key, ref_for
 
 
 def _key(context, parameters) -> str:
-    return cache_key("estimate-poses", parameters, ("fringecal.pose",))
+    return cache_key("estimate-poses", parameters, ("fringecal.spheres.pose",))
 
 
 @task(name="estimate-poses", cache_key_fn=_key, persist_result=True)

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from prefect import task
 
+from fringecal.run.config import RunConfig
 from fringecal.rundir import RunDir
-from fringecal.runconfig import RunConfig
 from fringecal.steps import get_step, run_step
 
 __all__ = ["step_task"]

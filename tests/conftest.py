@@ -75,8 +75,8 @@ def small_config(tmp_path_factory) -> Path:
 def small_dataset(small_config, tmp_path_factory) -> tuple[Path, Path]:
     """The small rig written as a recorded data set by ``fringecal simulate`` (PNG frames),
     and its truth folder."""
-    from fringecal.acquisition.export import write_dataset
-    from fringecal.runconfig import load_run_config
+    from fringecal.run.config import load_run_config
+    from fringecal.simulate.export import write_dataset
 
     d = tmp_path_factory.mktemp("dataset")
     out, truth = d / "small", d / "small-truth"

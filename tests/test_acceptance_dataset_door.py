@@ -4,12 +4,12 @@ objects' stacks in ``verification/acceptance/``), then processed by ``run --data
 up to the acceptance step, which finds every object and gives every parameter."""
 
 
-from fringecal.acquisition.export import write_dataset
-from fringecal.runconfig import load_run_config
+from fringecal.run.config import load_run_config
+from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
+from fringecal.simulate.export import write_dataset
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.steps import run_pipeline
-from fringecal.summary import manifest
 
 
 def test_acceptance_of_a_data_set_from_its_verification_folder(tmp_path):

@@ -17,12 +17,12 @@ import pytest
 import yaml
 
 from fringecal.acceptance.standards import AcceptanceStandards
-from fringecal.runconfig import load_run_config
+from fringecal.run.config import load_run_config
+from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.steps import run_pipeline
 from fringecal.steps.acceptance import acceptance_document, acceptance_stores
-from fringecal.summary import manifest
 
 
 @pytest.fixture(scope="module")

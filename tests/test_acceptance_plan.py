@@ -7,14 +7,22 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fringecal.acceptance.plan import (FLAT_POSITIONS, PLAN_COLUMNS, dumbbell_bars, flat_face_points, flat_fits,
-                                       flat_frame, plan_acceptance, volume_box)
+from fringecal.acceptance.plan import (
+    FLAT_POSITIONS,
+    PLAN_COLUMNS,
+    dumbbell_bars,
+    flat_face_points,
+    flat_fits,
+    flat_frame,
+    plan_acceptance,
+    volume_box,
+)
 from fringecal.acceptance.standards import AcceptanceStandards, DumbbellStandard, FlatStandard, load_standards
-from fringecal.acquisition.simulated import acquisition_table, load_simulated_rig, true_volumes
 from fringecal.config import ConfigError
 from fringecal.frames import frames_from_rows
-from fringecal.runconfig import SimulationConfig
-from fringecal.verification import seven_ballbar_positions
+from fringecal.simulate.settings import SimulationConfig
+from fringecal.simulate.source import acquisition_table, load_simulated_rig, true_volumes
+from fringecal.verification.lengths import seven_ballbar_positions
 
 COUNTS = {"sphere": 10, "dumbbell": 7, "flat": 6}
 

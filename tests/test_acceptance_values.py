@@ -9,7 +9,7 @@ import pytest
 from fringecal.acceptance.evaluate import VALUE_COLUMNS, certificate, parameters, verdict
 from fringecal.acceptance.measure import probe_flat, probe_sphere, trim_by_residual
 from fringecal.acceptance.standards import AcceptanceLimits, SphereStandard
-from fringecal.verification import ballbar_lengths
+from fringecal.verification.lengths import ballbar_lengths
 
 
 def symmetric_directions(n_base: int, seed: int = 0) -> np.ndarray:

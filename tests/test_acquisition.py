@@ -11,16 +11,17 @@ import xarray as xr
 import yaml
 from typer.testing import CliRunner
 
-from flows.cli import app
-from fringecal.acquisition import (acquisition_table, load_simulated_rig, measurement_rng, move_hexapod, poses_table,
-                                   simulate_measurement, truth_from_store)
+from fringecal.flows.cli import app
 from fringecal.frames import Frame
 from fringecal.fringe.decode import decode
 from fringecal.fringe.sequence import FringeSequence
 from fringecal.pointcloud import triangulate_maps
-from fringecal.runconfig import load_run_config
+from fringecal.run.config import load_run_config
 from fringecal.simulate import RenderConfig, artefact_scene, backdrop, phase_noise, render_measurement, scaled_scanner
 from fringecal.simulate.evaluation import pure_mask, tau_error_summary, tau_residuals
+from fringecal.simulate.measurement import measurement_rng, simulate_measurement, truth_from_store
+from fringecal.simulate.moves import move_hexapod, poses_table
+from fringecal.simulate.source import acquisition_table, load_simulated_rig
 from fringecal.store import is_complete, open_store
 
 runner = CliRunner()
@@ -179,7 +180,6 @@ def test_hexapod_moves_reach_the_plan_to_encoder_quantisation(tmp_path):
 
 def test_hexapod_faults_and_unreachable_poses_name_the_pose(tmp_path):
     from fringecal.hexapod import HexapodFault, TargetRejected
-
     from fringecal.hexapod.simulator import get_controller
 
     def move(sim):
@@ -236,7 +236,7 @@ def _stamp(path):
 
 @pytest.mark.flow
 def test_simulated_acquisition_two_poses_two_scanners(prefect_harness, tmp_path, thesis):
-    from flows.run_flow import run_flow
+    from fringecal.flows.run_flow import run_flow
     from fringecal.rundir import RunDir
 
     cfg = tiny_config(tmp_path, width=128, url="hexsim://flowtest")

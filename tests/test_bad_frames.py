@@ -20,7 +20,7 @@ import tifffile
 import yaml
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 from fringecal.fringe.importer import FrameStackError, check_levels, check_stack, write_frames
 from fringecal.fringe.sequence import FringeSequence
 
@@ -172,9 +172,9 @@ def test_bad_frame_stops_before_decoding(small_dataset, tmp_path, monkeypatch, c
     def trap(*args, **kwargs):
         raise AssertionError("the command went on to decode")
 
-    monkeypatch.setattr("flows.cli_run._execute", trap)  # Prefect would start here
+    monkeypatch.setattr("fringecal.flows.cli_run._execute", trap)  # Prefect would start here
     if damage is not dark_middle_frame:  # that one is found by the decode's own read
-        monkeypatch.setattr("flows.cli_decode._decode", trap)
+        monkeypatch.setattr("fringecal.flows.cli_decode._decode", trap)
     data = tmp_path / "ds"
     shutil.copytree(small_dataset[0], data, copy_function=os.link)
     stack = _stack(data, group)

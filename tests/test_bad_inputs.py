@@ -31,7 +31,7 @@ from typing import Callable
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
 THESIS = ROOT / "configs" / "thesis"
@@ -331,7 +331,7 @@ def test_run_refuses_before_prefect_starts(make, message, tmp_path):
         args += ["-o", str(tmp_path / "run")]
     before = listing(tmp_path)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "flows.cli", "run", *args], cwd=tmp_path, capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "fringecal.flows.cli", "run", *args], cwd=tmp_path, capture_output=True,
                           text=True, timeout=120)
     seconds = time.perf_counter() - t0
     assert proc.returncode == 2, proc.stderr

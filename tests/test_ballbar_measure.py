@@ -17,18 +17,24 @@ import pandas as pd
 import pytest
 
 from fringecal.artefact import Artefact, load_artefact
-from fringecal.ballbar import (Sighting, ballbar_rods, cluster_centres, frame_along, measure_sphere, name_clusters,
-                               thesis_positions)
 from fringecal.fringe.measurement import NoFringesError, decode_to_store
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.pipeline.extract import measurement_maps
-from fringecal.pipeline.verify import measure_position, measure_positions
-from fringecal.rig import load_rig
+from fringecal.rig import load_rig, scaled_rig
 from fringecal.simulate import artefact_scene, render_measurement
 from fringecal.simulate.config import RenderConfig
-from fringecal.simulate.resolution import scaled_rig
+from fringecal.spheres.passes import measurement_maps
 from fringecal.spheres.robust import RejectionConfig
-from fringecal.verification import ballbar_lengths
+from fringecal.verification.ballbar import (
+    Sighting,
+    ballbar_rods,
+    cluster_centres,
+    frame_along,
+    measure_sphere,
+    name_clusters,
+    thesis_positions,
+)
+from fringecal.verification.lengths import ballbar_lengths
+from fringecal.verification.measure import measure_position, measure_positions
 
 WIDTH = 320
 SEQUENCE = FringeSequence((32, 31, 30, 28, 24, 16), 5, ("x", "y"))
@@ -83,7 +89,7 @@ def _true_centres(cell, name):
 
 def _planned_centre(stores, cell, position, sid, scanner) -> dict:
     """The sphere measured with the plan's knowledge: which sphere the scanner sees and
-    the true rod axis (:func:`fringecal.ballbar.measure_sphere`), the reference the
+    the true rod axis (:func:`fringecal.verification.ballbar.measure_sphere`), the reference the
     data-driven measurement must match."""
     bb = cell["bb"]
     here, there = position.T_world_ballbar.to_world(bb.centres[:2])[:: 1 if sid == bb.ids[0] else -1]

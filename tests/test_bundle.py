@@ -1,6 +1,6 @@
 """The bundle adjustment on simulated rigs: the noise floor and the truth within 3 sigma.
 
-Simulation (fringecal.calibration.synthetic): table 6-8 sensors, table 6-1 poses, CMM set 2,
+Simulation (fringecal.simulate.control_points): table 6-8 sensors, table 6-1 poses, CMM set 2,
 control points every 10 px on every visible sphere, phase noise sized for an epsilon-1 RMS
 of 45 um. Tolerances from the issue: epsilon-1 and epsilon-2 RMS within 5 % of their
 values with the true parameters and poses on the same control points; sensor positions,
@@ -14,8 +14,13 @@ import pytest
 
 from fringecal.calibration.bundle import BundleOptions, ResidualStatistics, bundle_adjust
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
-from fringecal.calibration.synthetic import (dlt_start, perturbed_start, simulate_control_points,
-                                             three_scanner_truth, thesis_truth)
+from fringecal.simulate.control_points import (
+    dlt_start,
+    perturbed_start,
+    simulate_control_points,
+    thesis_truth,
+    three_scanner_truth,
+)
 
 EXTERNAL_AND_C = [0, 1, 2, 3, 4, 5, 8]  # x0 y0 z0 omega phi kappa c
 
@@ -120,7 +125,7 @@ def test_robust_loss_resists_outliers(thesis):
     cp.loc[cp.index[bad], "tau_x_rad"] += rng.uniform(-0.05, 0.05, len(bad))
     problem = BundleProblem.from_tables(rig, art, cp, poses)
     plain = bundle_adjust(problem, BundleOptions(start="given"))
-    robust = bundle_adjust(problem, BundleOptions(start="given", loss="cauchy"))
+    robust = bundle_adjust(problem, BundleOptions(start="given", robust_loss="cauchy"))
     ext = replace(rig, free=rig.free & np.isin(np.arange(14), EXTERNAL_AND_C)[None, :]).free
     err_plain = np.abs(plain.rig.params - rig.params)[ext] / robust.rig.uncertainty[ext]
     err_robust = np.abs(robust.rig.params - rig.params)[ext] / robust.rig.uncertainty[ext]

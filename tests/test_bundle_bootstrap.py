@@ -6,7 +6,7 @@ import pytest
 from fringecal.calibration.bootstrap import bootstrap_calibrations, predicted_projector_mm
 from fringecal.calibration.bundle import BundleOptions, bundle_adjust
 from fringecal.calibration.model import BundleProblem
-from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 
 
 @pytest.fixture(scope="module")

@@ -26,13 +26,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fringecal.calibration.basin import flat_poses, independent_spheres, rough_start
 from fringecal.calibration.bundle import BundleOptions, bundle_adjust
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
 from fringecal.calibration.results import summary
 from fringecal.calibration.start import sphere_centre_images, sphere_image_centroids
-from fringecal.calibration.synthetic import simulate_control_points, three_scanner_truth
 from fringecal.frames import Frame
+from fringecal.simulate.basin import flat_poses, independent_spheres, rough_start
+from fringecal.simulate.control_points import simulate_control_points, three_scanner_truth
 
 EXTERNAL_AND_C = [0, 1, 2, 3, 4, 5, 8]
 

@@ -9,7 +9,7 @@ import pytest
 from fringecal.calibration.bundle import BundleOptions, bundle_adjust
 from fringecal.calibration.diagnostics import DegenerateCalibrationError
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
-from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 
 GIVEN = BundleOptions(start="given")
 

@@ -7,10 +7,10 @@ import pytest
 
 from fringecal.calibration.bundle import BundleOptions, StartValueError, bundle_adjust
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
-from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
 from fringecal.frames import Frame
+from fringecal.schemas import TableError
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 from fringecal.triangulation import triangulate
-from schemas import TableError
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import pytest
 
 from fringecal.calibration.bundle import BundleOptions, bundle_adjust
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
-from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 
 
 def test_uncertainties_describe_the_scatter_over_noise_realisations():

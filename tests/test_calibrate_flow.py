@@ -6,17 +6,16 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 from typer.testing import CliRunner
 
-import yaml
-
-from fringecal.calibration import results as results_module
-from fringecal.calibration.synthetic import dlt_start, simulate_control_points, thesis_truth, write_run_inputs
-from fringecal.calibration_file import read_calibration_json, read_calibration_xml
+from fringecal.calibration.file import read_calibration_json, read_calibration_xml
+from fringecal.flows.cli import app
+from fringecal.run.config import RunConfig
 from fringecal.rundir import RunDir
-from fringecal.runconfig import RunConfig
+from fringecal.simulate.control_points import dlt_start, simulate_control_points, thesis_truth, write_run_inputs
+from fringecal.steps import bundle as bundle_step_module
 from fringecal.steps import get_step, run_step
-from flows.cli import app
 
 BUNDLE = get_step("bundle")
 
@@ -128,7 +127,7 @@ def test_outputs_are_all_or_nothing(simulated, tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(results_module, "plot_histograms", broken)
+    monkeypatch.setattr(bundle_step_module, "residual_histograms_png", broken)
     with pytest.raises(RuntimeError, match="disk full"):
         run_step(BUNDLE, rd, cfg)
     assert not any(f.exists() for f in _outputs(rd))

@@ -7,12 +7,18 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
 from fringecal.config import load_yaml_model
-from fringecal.engineering import (ArtefactCorrections, SupportCondition, apply_corrections,
-                                   compensate_temperature, fickian_fraction, gravity_sag_correction,
-                                   load_materials)
-from schemas import TrussDisplacementsTable, TrussForcesTable, read_table
+from fringecal.engineering import (
+    ArtefactCorrections,
+    SupportCondition,
+    apply_corrections,
+    compensate_temperature,
+    fickian_fraction,
+    gravity_sag_correction,
+    load_materials,
+)
+from fringecal.flows.cli import app
+from fringecal.schemas import TrussDisplacementsTable, TrussForcesTable, read_table
 
 runner = CliRunner()
 

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from fringecal.calibration.controlpoints import incidence_map, select_control_points
-from schemas import ControlPointsTable, validate_table
+from fringecal.schemas import ControlPointsTable, validate_table
 
 H, W = 120, 160
 

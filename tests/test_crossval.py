@@ -20,9 +20,9 @@ from fringecal.calibration.crossval import (
 )
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import triangulate_mm
-from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
 from fringecal.registration import kabsch
 from fringecal.rig import Scanner
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 
 SPACING_PX = 40
 N_SAMPLE = 300

@@ -14,12 +14,12 @@ import pytest
 import xarray as xr
 import yaml
 
-from fringecal.dataset import (DataSet, DataSetError, ProcessingOverrides, STORE_VARIABLES, natural_key)
+from fringecal.dataset import STORE_VARIABLES, DataSet, DataSetError, ProcessingOverrides, natural_key
 from fringecal.fringe import importer
 from fringecal.fringe.importer import FrameStackError, read_frames, write_frames
 from fringecal.fringe.sequence import FringeSequence
+from fringecal.schemas import TableError
 from fringecal.store import COMPLETE_ATTR, StoreError, write_store
-from schemas import TableError
 
 THESIS = Path(__file__).resolve().parents[1] / "configs" / "thesis"
 SEQ = FringeSequence((8, 7, 6), 3, ("x", "y"))

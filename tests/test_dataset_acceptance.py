@@ -21,8 +21,8 @@ from fringecal.config import ConfigError
 from fringecal.dataset import ACCEPTANCE_TESTS, DataSet, DataSetError
 from fringecal.fringe.importer import write_frames
 from fringecal.fringe.sequence import FringeSequence
+from fringecal.run.config import load_run_config
 from fringecal.rundir import RunDir
-from fringecal.runconfig import load_run_config
 from fringecal.steps import get_step, run_step
 from fringecal.store import write_store
 

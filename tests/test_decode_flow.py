@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 from fringecal.fringe.importer import write_frames
 from fringecal.fringe.sequence import FringeSequence
 from fringecal.store import open_store
-from tasks.refs import Ref
+from fringecal.tasks.refs import Ref
 
 runner = CliRunner()
 SEQ = FringeSequence((8, 7, 6, 4), 3)
@@ -29,7 +29,7 @@ def measurement(folder, shift=0.0, fmt="tif", scanner="scanner1", name="1"):
 
 @pytest.mark.flow
 def test_decode_flow_one_task_per_measurement_and_caching(prefect_harness, tmp_path):
-    from flows.decode_flow import decode_flow
+    from fringecal.flows.decode_flow import decode_flow
 
     truths = [measurement(tmp_path / "frames" / f"m{i}", shift=0.1 * i, name=str(i)) for i in range(2)]
     dirs = [str(tmp_path / "frames" / f"m{i}") for i in range(2)]

@@ -139,7 +139,7 @@ def test_validation_page_shows_the_benchmarks(site):
 
 
 def test_contracts_page_lists_every_table_model():
-    from schemas import tables
+    from fringecal.schemas import tables
 
     models = {name: cls for name, cls in vars(tables).items()
               if inspect.isclass(cls) and issubclass(cls, tables._Base) and cls is not tables._Base
@@ -184,7 +184,7 @@ def _command_segments(text: str) -> list[str]:
 def test_commands_on_the_user_pages_exist(page):
     import typer.main
 
-    from flows.cli import app
+    from fringecal.flows.cli import app
 
     root = typer.main.get_command(app)
     segments = _command_segments((ROOT / "docs" / page).read_text())

@@ -4,9 +4,17 @@ import numpy as np
 import pytest
 
 from fringecal.artefact import load_artefact, load_rods
-from fringecal.engineering import (SupportCondition, Truss, analyse_rigidity, gravity_in_artefact_frame,
-                                   gravity_sag_correction, load_materials, mass_loads, parse_supports,
-                                   solve_truss)
+from fringecal.engineering import (
+    SupportCondition,
+    Truss,
+    analyse_rigidity,
+    gravity_in_artefact_frame,
+    gravity_sag_correction,
+    load_materials,
+    mass_loads,
+    parse_supports,
+    solve_truss,
+)
 from fringecal.engineering.rigidity import rigid_components
 from fringecal.frames import Frame
 

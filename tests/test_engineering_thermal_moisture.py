@@ -5,10 +5,20 @@ import pytest
 from scipy import stats
 
 from fringecal.artefact import load_artefact, load_rods
-from fringecal.engineering import (CteFit, EarlyTimeDiffusion, EngineeringInputError, FickianFit, LengthChange,
-                                   artefact_from_rod_lengths, compensate_temperature, fickian_fraction,
-                                   moisture_content_pct, moisture_expansion_coefficient, rod_length_consistency)
-from schemas import HumidityLengthsTable, ThermalLogTable, read_table
+from fringecal.engineering import (
+    CteFit,
+    EarlyTimeDiffusion,
+    EngineeringInputError,
+    FickianFit,
+    LengthChange,
+    artefact_from_rod_lengths,
+    compensate_temperature,
+    fickian_fraction,
+    moisture_content_pct,
+    moisture_expansion_coefficient,
+    rod_length_consistency,
+)
+from fringecal.schemas import HumidityLengthsTable, ThermalLogTable, read_table
 
 
 def test_table_3_5_gives_the_thesis_cte(thesis_dir):

@@ -5,11 +5,22 @@ import pandas as pd
 import pytest
 
 from fringecal.artefact import load_artefact, load_rods
-from fringecal.engineering import (MechanismError, SupportError, Supports, Truss, TrussError, free_motions,
-                                   load_materials, mass_loads, octahedral_chain, parse_supports, solve_truss,
-                                   uniform_loads)
+from fringecal.engineering import (
+    MechanismError,
+    SupportError,
+    Supports,
+    Truss,
+    TrussError,
+    free_motions,
+    load_materials,
+    mass_loads,
+    octahedral_chain,
+    parse_supports,
+    solve_truss,
+    uniform_loads,
+)
 from fringecal.rotation import rotation_matrix
-from schemas import TableError, TrussForcesTable, read_table
+from fringecal.schemas import TableError, TrussForcesTable, read_table
 
 REL = 1e-9
 EA = 2.0e7  # N

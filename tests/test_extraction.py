@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from fringecal.extraction import fit_candidates
-from fringecal.fringe.decode import decode
 from fringecal.frames import Frame
+from fringecal.fringe.decode import decode
 from fringecal.pointcloud import triangulate_maps
 from fringecal.simulate import RenderConfig, artefact_scene, render_measurement, scaled_scanner
 from fringecal.spheres.candidates import find_sphere_candidates
+from fringecal.spheres.extraction import fit_candidates
 from fringecal.spheres.robust import RejectionConfig, rod_directions
 
 POSE_1 = Frame.from_params([200.048, -94.194, -457.934, -1.570, -0.0013, 1.646])  # table 6-1

@@ -4,10 +4,15 @@ import numpy as np
 import pytest
 
 from fringecal.artefact import read_legacy_definition, write_legacy_definition
-from fringecal.calibration_file import (CalibrationFileError, read_calibration_json, read_calibration_xml,
-                                        write_calibration_json, write_calibration_xml)
+from fringecal.calibration.file import (
+    CalibrationFileError,
+    read_calibration_json,
+    read_calibration_xml,
+    write_calibration_json,
+    write_calibration_xml,
+)
 from fringecal.rig import Rig
-from schemas import TableError
+from fringecal.schemas import TableError
 
 
 def perturbed_rig(rig: Rig, rng) -> Rig:

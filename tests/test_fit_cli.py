@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 from fringecal.spheres.reference_data import plane_reference_data, sphere_reference_data
 
 runner = CliRunner()

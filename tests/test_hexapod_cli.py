@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 from fringecal.hexapod import load_hexapod_config
 from fringecal.hexapod.kinematics import forward_kinematics, inverse_kinematics
 from fringecal.hexapod.simulator import get_controller
-from schemas import HexapodPlanTable, read_table
+from fringecal.schemas import HexapodPlanTable, read_table
 
 runner = CliRunner()
 CFG = load_hexapod_config()

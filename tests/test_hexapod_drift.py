@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from fringecal.hexapod.drift import drift_check, thesis_reading
-from schemas import DriftCentresTable, TableError, read_table
+from fringecal.schemas import DriftCentresTable, TableError, read_table
 
 
 @pytest.fixture(scope="module")

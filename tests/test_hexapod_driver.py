@@ -11,13 +11,20 @@ import pytest
 import serial
 
 import fringecal.hexapod  # noqa: F401  (registers hexsim://)
-from fringecal.hexapod import HexapodDriver, HexapodFault, HexapodRig, PlatformMover, TargetRejected, load_hexapod_config
+from fringecal.hexapod import (
+    HexapodDriver,
+    HexapodFault,
+    HexapodRig,
+    PlatformMover,
+    TargetRejected,
+    load_hexapod_config,
+)
 from fringecal.hexapod.driver import read_command_file, write_command_file
 from fringecal.hexapod.kinematics import inverse_kinematics
 from fringecal.hexapod.planning import counts_from_lengths, frames_from_table, quantisation_bound
 from fringecal.hexapod.protocol import frame
 from fringecal.hexapod.simulator import get_controller
-from schemas import PosePlanTable, read_table
+from fringecal.schemas import PosePlanTable, read_table
 
 CFG = load_hexapod_config()
 HOME = CFG.home_pose.vector

@@ -17,7 +17,7 @@ from fringecal.hexapod.planning import (
     plan_with_stations,
     thesis_grid,
 )
-from schemas import HexapodPlanTable, PosePlanTable, TableError, read_table, write_table
+from fringecal.schemas import HexapodPlanTable, PosePlanTable, TableError, read_table, write_table
 
 CFG = load_hexapod_config()
 

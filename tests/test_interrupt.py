@@ -28,9 +28,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
 from fringecal import lifeline
-from fringecal.resume import begin, finish, leftovers, remove_leftovers
+from fringecal.flows.cli import app
+from fringecal.run.resume import begin, finish, leftovers, remove_leftovers
 from fringecal.rundir import RunDir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -72,7 +72,7 @@ class Run:
     def __init__(self, config: Path, out: Path, logs: Path, json_out: bool = True):
         self.token = uuid.uuid4().hex
         self.out = out
-        self.cmd = [sys.executable, "-m", "flows.cli", "run", "-c", str(config), "--out", str(out)]
+        self.cmd = [sys.executable, "-m", "fringecal.flows.cli", "run", "-c", str(config), "--out", str(out)]
         self.cmd += ["--json"] if json_out else []
         self.logs = logs
         self.n = 0
@@ -189,7 +189,8 @@ def test_a_signal_stops_the_run_within_seconds_with_one_line(sig, small_config, 
 
 PARENT = """
 import subprocess, sys, time
-from fringecal import kernel_warmup, lifeline
+from fringecal import lifeline
+from fringecal.run import warmup as kernel_warmup
 kernel_warmup.cache_is_cold = lambda: True
 warm = kernel_warmup.start()
 child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])

@@ -6,11 +6,12 @@ import sys
 
 CHECK = """
 import numpy as np, pandas as pd, sys
-from fringecal import compile_clock, kernel_warmup
+from fringecal import compile_clock
+from fringecal.run import warmup as kernel_warmup
 compile_clock.install()
 assert not kernel_warmup.cache_is_cold()
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
-from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 rig, artefact, poses = thesis_truth()
 sim = simulate_control_points(rig, artefact, poses.iloc[3:5], spacing_px=150, rng=1)
 path = sys.argv[1] + "/cp.csv"
@@ -26,10 +27,10 @@ print(compile_clock.totals()["seconds"])
 
 def test_warm_up_leaves_nothing_for_the_bundle_to_compile(tmp_path):
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
-    cold = subprocess.run([sys.executable, "-c", "from fringecal import kernel_warmup as k; print(k.cache_is_cold())"],
+    cold = subprocess.run([sys.executable, "-c", "from fringecal.run import warmup as k; print(k.cache_is_cold())"],
                           env=env, capture_output=True, text=True)
     assert cold.stdout.strip() == "True", cold.stderr[-2000:]
-    warm = subprocess.run([sys.executable, "-m", "fringecal.kernel_warmup"], env=env, capture_output=True, text=True)
+    warm = subprocess.run([sys.executable, "-m", "fringecal.run.warmup"], env=env, capture_output=True, text=True)
     assert warm.returncode == 0, warm.stderr[-2000:]
     check = subprocess.run([sys.executable, "-c", CHECK, str(tmp_path)], env=env, capture_output=True, text=True)
     assert check.returncode == 0, check.stderr[-3000:]

@@ -5,9 +5,14 @@ import pandas as pd
 import pytest
 
 from fringecal.frames import Frame
-from fringecal.spheres.labelling import (LabellingConfig, LabellingRefused, ambiguous_subsets,
-                                         label_sphere_fits, label_spheres)
-from schemas import PosePlanTable, SphereCentresTable, read_table
+from fringecal.schemas import PosePlanTable, SphereCentresTable, read_table
+from fringecal.spheres.labelling import (
+    LabellingConfig,
+    LabellingRefused,
+    ambiguous_subsets,
+    label_sphere_fits,
+    label_spheres,
+)
 
 SCANNER_ONE = [str(i) for i in range(4, 10)]
 SCANNER_TWO = [str(i) for i in range(10, 16)]

@@ -5,7 +5,7 @@ triangle 1-2-3, a six-scanner ring with a narrow field: 3-14 spheres per view) a
 observed through prior calibrations with the documented errors: each scanner 0.4-0.6 %
 off in scale about its own origin (its camera), ~1 mm of smooth warp, 0.1 mm noise,
 its frame arbitrary, and planned poses good to 1 mm / 1 mrad
-(``fringecal.spheres.labelling_synthetic``). The labels are compared with the truth,
+(``fringecal.simulate.sphere_centres``). The labels are compared with the truth,
 the links with the true frames.
 
 Stated tolerances: the scale is estimated per scanner to better than 0.1 % (warp makes
@@ -20,12 +20,13 @@ import pandas as pd
 import pytest
 
 from fringecal.frames import Frame
-from fringecal.linking import FrameLink, LinkResult, pose_contradictions
 from fringecal.registration import kabsch, umeyama
-from fringecal.spheres.labelling import (LabellingConfig, LabellingRefused, label_sphere_fits, label_spheres)
+from fringecal.simulate.sphere_centres import RIGS, PriorErrors, link_errors, observe_rig
 from fringecal.spheres.label_consensus import frame_uncertainty
-from fringecal.spheres.labelling_synthetic import RIGS, PriorErrors, link_errors, observe_rig
-from fringecal.spheres.steps import label_pose_link
+from fringecal.spheres.label_scanners import label_sphere_fits
+from fringecal.spheres.labelling import LabellingConfig, LabellingRefused, label_spheres
+from fringecal.spheres.linking import FrameLink, LinkResult, pose_contradictions
+from fringecal.spheres.poses_and_links import label_pose_link
 
 SEED = 1
 LINK_MM, LINK_RAD, SCALE_TOL = 5.0, 3e-3, 1e-3

@@ -9,13 +9,20 @@ import pytest
 from fringecal.calibration.artefact_sensitivity import artefact_sensitivity
 from fringecal.calibration.bundle import BundleOptions, bundle_adjust
 from fringecal.calibration.model import BundleProblem
-from fringecal.calibration.propagation import sensor_covariance
-from fringecal.calibration.synthetic import simulate_control_points, thesis_truth
-from fringecal.length_uncertainty import (ParameterCovariances, SightingPoints, _draw_sqrt, length_budget,
-                                          monte_carlo_lengths, numerical_tolerance, refitted_length, sighting_model,
-                                          validate_linear)
-from fringecal.pipeline.ballbar_uncertainty import iso14253_verdict
+from fringecal.calibration.propagation import ParameterCovariances, sensor_covariance
 from fringecal.rig import Scanner
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
+from fringecal.verification.budget import (
+    SightingPoints,
+    _draw_sqrt,
+    length_budget,
+    monte_carlo_lengths,
+    numerical_tolerance,
+    refitted_length,
+    sighting_model,
+    validate_linear,
+)
+from fringecal.verification.uncertainty import iso14253_verdict
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +86,7 @@ def _sightings(rig, rng, n=1500, noise_mm=0.05):
 def _with_noise(s: SightingPoints, X, u, rng, sd_mm=0.05):
     """The sighting as measured: points moved along the normal by ``sd_mm``, re-imaged in
     the projector (phase noise), triangulated, the centre fitted and the fit's RMS kept."""
-    from fringecal.length_uncertainty import _refit, triangulate_mm
+    from fringecal.verification.budget import _refit, triangulate_mm
 
     prj = s.scanner.projector.project(X + u * rng.normal(0, sd_mm, len(X))[:, None])
     P = triangulate_mm(s.scanner, s.cam_mm, prj)
@@ -151,7 +158,7 @@ def test_point_uncertainty_map_against_drawn_calibrations(thesis_rig):
     the points triangulated with 400 parameter sets drawn from the covariance (within
     15 % per point: 400 draws scatter a standard deviation by 3.5 %)."""
     from fringecal.calibration.propagation import point_uncertainty_map, triangulate_mm
-    from fringecal.simulate.resolution import scaled_scanner
+    from fringecal.rig import scaled_scanner
 
     sc = scaled_scanner(thesis_rig.scanners[0], 64)
     rng = np.random.default_rng(3)
@@ -186,7 +193,7 @@ def test_length_cross_validation_adds_model_error_only_when_the_points_agree_it_
     points consistent the lengths' verdict is inconclusive and nothing is added."""
     import pandas as pd
 
-    from fringecal.pipeline.ballbar_uncertainty import _cross_validated
+    from fringecal.verification.uncertainty import _cross_validated
 
     rng = np.random.default_rng(8)
     sights = _sightings(thesis_rig, rng)

@@ -5,9 +5,10 @@ import pandas as pd
 import pytest
 
 from fringecal.frames import Frame
-from fringecal.linking import link_scanners, rig_in_frame, robust_mean_frame, sensor_in_frame
-from fringecal.rig import Scanner
-from schemas import PosePlanTable, ScannerLinksTable, SphereCentresTable, read_table, validate_table
+from fringecal.rig import Scanner, rig_in_frame
+from fringecal.schemas import PosePlanTable, ScannerLinksTable, SphereCentresTable, read_table, validate_table
+from fringecal.sensor import sensor_in_frame
+from fringecal.spheres.linking import link_scanners, robust_mean_frame
 
 COLS = ["measurement", "scanner", "tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad",
         "rms_mm", "n_spheres"]

@@ -25,17 +25,17 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from flows.cli import app
 from fringecal.acquisition.live import TOLERANCE_MARGIN, reach_tolerance, stop_on_signals
 from fringecal.acquisition.live_state import acquisition_lock
 from fringecal.dataset import DataSet, DataSetError
+from fringecal.flows.cli import app
 from fringecal.frames import POSE_COLUMNS, Frame
 from fringecal.fringe.importer import read_frames, write_frames
 from fringecal.fringe.sequence import FringeSequence
 from fringecal.hexapod import HexapodRig, load_hexapod_config
 from fringecal.hexapod.kinematics import inverse_kinematics
 from fringecal.hexapod.simulator import controller_for_url, get_controller
-from schemas import HexapodMovesTable, read_table
+from fringecal.schemas import HexapodMovesTable, read_table
 
 ROOT = Path(__file__).resolve().parents[1]
 THESIS = ROOT / "configs" / "thesis"
@@ -305,7 +305,7 @@ def test_sigint_and_sigterm_only_request_a_stop():
 
 
 def _cli(ds, url, capture):
-    return subprocess.Popen([sys.executable, "-m", "flows.cli", "acquire", "--dataset", str(ds), "--hexapod", url,
+    return subprocess.Popen([sys.executable, "-m", "fringecal.flows.cli", "acquire", "--dataset", str(ds), "--hexapod", url,
                              "--capture", capture, "--settle", "0"], cwd=ROOT, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

@@ -19,20 +19,20 @@ import pytest
 from plyfile import PlyData
 from typer.testing import CliRunner
 
+from fringecal.calibration.file import read_calibration
 from fringecal.calibration.propagation import frame_free_covariance, scanner_block
-from fringecal.calibration_file import read_calibration
 from fringecal.frames import frames_from_rows
 from fringecal.measure import MeasureSettings, measure_cloud, point_uncertainty, read_cloud
 from fringecal.measure.overlap import surface_distances
 from fringecal.measure.run import measure_folder
-from fringecal.pipeline.verify import store_scanner
-from fringecal.runconfig import load_run_config
+from fringecal.run.config import load_run_config
+from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.spheres.fit import SphereModel
 from fringecal.steps import run_pipeline
 from fringecal.store import open_store
-from fringecal.summary import manifest
+from fringecal.verification.measure import store_scanner
 
 SCANNERS = ("scanner1", "scanner2")
 
@@ -160,7 +160,7 @@ def test_overlap_distance_of_two_samplings_of_one_surface():
 @pytest.mark.parametrize("case", ["both", "neither", "unknown_scanner", "suffix", "xml_has_no_store",
                                   "out_is_dir", "no_calibration", "decimate"])
 def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
-    from flows.cli import app
+    from fringecal.flows.cli import app
 
     folder, cal = cell["folder"], cell["calibration"]
     out = tmp_path / "out.ply"
@@ -197,7 +197,7 @@ def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
 
 
 def test_cli_summary_json(cell, tmp_path):
-    from flows.cli import app
+    from fringecal.flows.cli import app
 
     out = tmp_path / "c.ply"
     r = CliRunner().invoke(app, ["measure", "-c", str(cell["calibration"]), "--stores", str(cell["folder"]),

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 from fringecal.interop.opencv import from_opencv, to_opencv
 from fringecal.interop.opencv_storage import prior_scanner, read_stereo, write_rig
-from fringecal.linking import sensor_in_frame
-from fringecal.pipeline.prior import scanner_frames
 from fringecal.rig import load_rig
+from fringecal.sensor import sensor_in_frame
+from fringecal.simulate.prior import scanner_frames
 
 runner = CliRunner()
 
@@ -86,7 +86,7 @@ def test_pure_round_trip_gives_the_same_sensor(thesis_rig):
 def test_export_import_files_give_each_scanners_prior(thesis_rig, tmp_path):
     """(b, files) The thesis rig exported as <scanner>.yml and imported back is each
     scanner's calibration in its own (camera) frame, exactly as fringecal's prior
-    convention puts it (fringecal.pipeline.prior): camera params 0..5 exactly zero,
+    convention puts it (fringecal.simulate.prior): camera params 0..5 exactly zero,
     projector positions within 1e-9 mm, angles 1e-12 rad, interior/distortion 1e-12
     relative. The files are plain cv2.FileStorage YAML with stereoCalibrate's keys."""
     written = write_rig(thesis_rig, tmp_path)
@@ -234,12 +234,12 @@ def test_imported_opencv_prior_calibrates_like_the_native_prior(tmp_path):
     to 0 as well; asserted: the tables to 1e-9 (relative), every calibrated parameter to
     1e-3 of its standard uncertainty, the ball-bar-free figure of merit (F RMS) to 1e-9 mm.
     20-35 s on 2 cores (data set 5 s, two runs of 8-15 s)."""
-    from fringecal.acquisition.export import write_dataset
-    from fringecal.runconfig import load_run_config
+    from fringecal.run.config import load_run_config
+    from fringecal.run.summary import manifest
     from fringecal.rundir import RunDir
+    from fringecal.simulate.export import write_dataset
     from fringecal.simulate.small_thesis import write_small_thesis_config
     from fringecal.steps import run_pipeline
-    from fringecal.summary import manifest
 
     config = write_small_thesis_config(tmp_path, width=320, poses=(1, 5, 9, 12), positions=(1,))
     native = write_dataset(load_run_config(config), tmp_path / "native", tmp_path / "native-truth", "png")

@@ -3,8 +3,16 @@
 import numpy as np
 import pytest
 
-from fringecal.pointcloud import (STATUS_INVALID, STATUS_OK, STATUS_PARALLEL, STATUS_UNDISTORT_FAILED,
-                                  CameraRayCache, camera_ray_cache, triangulate_maps, triangulate_rows)
+from fringecal.pointcloud import (
+    STATUS_INVALID,
+    STATUS_OK,
+    STATUS_PARALLEL,
+    STATUS_UNDISTORT_FAILED,
+    CameraRayCache,
+    camera_ray_cache,
+    triangulate_maps,
+    triangulate_rows,
+)
 from fringecal.sensor import Sensor, SensorFormat, distort
 from fringecal.spheres.synthetic import Sphere
 from fringecal.triangulation import triangulate
@@ -145,8 +153,8 @@ def test_region_fit_of_a_rendered_sphere_with_edge_flags(thesis_rig):
     import json
 
     from fringecal.pointcloud import provenance
+    from fringecal.schemas import SphereFitsTable, validate_table
     from fringecal.spheres.regions import boundary_flags, fit_region
-    from schemas import SphereFitsTable, validate_table
 
     s = thesis_rig.scanners[0]
     cam = small_camera(s.camera, 512)

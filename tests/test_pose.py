@@ -5,8 +5,8 @@ import pandas as pd
 import pytest
 
 from fringecal.artefact import Artefact, load_artefact
-from fringecal.pose import estimate_poses
-from schemas import PosePlanTable, SphereCentresTable, read_table
+from fringecal.schemas import PosePlanTable, SphereCentresTable, read_table
+from fringecal.spheres.pose import estimate_poses
 
 COLS = ["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]
 

@@ -6,15 +6,15 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
-from tasks.refs import Ref, digest_path, ref_for
+from fringecal.flows.cli import app
+from fringecal.tasks.refs import Ref, digest_path, ref_for
 
 runner = CliRunner()
 
 
 @pytest.mark.flow
 def test_pose_flow_writes_table_and_caches(prefect_harness, thesis_dir, tmp_path):
-    from flows.pose_flow import pose_flow
+    from fringecal.flows.pose_flow import pose_flow
 
     out = tmp_path / "poses.csv"
     first = pose_flow(str(thesis_dir / "artefact_cmm2.csv"), str(thesis_dir / "centres_scanner2_table6-6.csv"), str(out))
@@ -82,7 +82,7 @@ def test_pose_command_runs_without_prefect(thesis_dir, tmp_path):
     import sys
 
     out = tmp_path / "poses.csv"
-    code = ("import sys; from flows.cli import main; sys.argv = ['fringecal', 'pose', '-a', sys.argv[1], '-c', "
+    code = ("import sys; from fringecal.flows.cli import main; sys.argv = ['fringecal', 'pose', '-a', sys.argv[1], '-c', "
             "sys.argv[2], '-o', sys.argv[3], '--json']\n"
             "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
             "assert 'prefect' not in sys.modules, 'prefect imported'")
@@ -114,7 +114,7 @@ def test_cli_pose_runs_as_a_flow_on_a_configured_server(prefect_harness, thesis_
 
 @pytest.mark.parametrize("where", ["env", "profile", "prefect.toml", "none"])
 def test_configured_prefect_api_is_found_where_prefect_looks(where, tmp_path, monkeypatch):
-    from flows.common import configured_prefect_api
+    from fringecal.flows.common import configured_prefect_api
 
     for k in ("PREFECT_API_URL", "PREFECT_PROFILE", "PREFECT_PROFILES_PATH"):
         monkeypatch.delenv(k, raising=False)

@@ -6,8 +6,13 @@ import pytest
 
 from fringecal.frames import Frame
 from fringecal.spheres.fit import SphereModel
-from fringecal.spheres.robust import (RejectionConfig, SphereRejectionError, fit_plane_robust,
-                                      fit_sphere_robust, rod_directions)
+from fringecal.spheres.robust import (
+    RejectionConfig,
+    SphereRejectionError,
+    fit_plane_robust,
+    fit_sphere_robust,
+    rod_directions,
+)
 from fringecal.spheres.synthetic import sphere_node_cloud
 
 NOISE = 0.02

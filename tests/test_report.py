@@ -1,7 +1,7 @@
 """report.html: atomic, self-contained, shows the run's numbers, degrades and escapes.
 
 The run directory is built here: a real bundle adjustment (the ``bundle`` step) of
-simulated thesis control points (fringecal.calibration.synthetic) gives the
+simulated thesis control points (fringecal.simulate.control_points) gives the
 calibration files, tables and histograms; the files of the other steps (manifest,
 summary, verification, evaluation, acquisition, hexapod and labelling tables) are
 written through their RunDir accessors with plausible values. Every file is reached
@@ -22,12 +22,12 @@ import pytest
 from typer.testing import CliRunner
 
 from fringecal.artefact import Artefact
-from fringecal.calibration.synthetic import dlt_start, simulate_control_points, thesis_truth, write_run_inputs
 from fringecal.report import NO_TRUTH, render_report, write_report
-from fringecal.runconfig import RunConfig
+from fringecal.run.config import RunConfig
 from fringecal.rundir import RunDir, package_versions
+from fringecal.simulate.control_points import dlt_start, simulate_control_points, thesis_truth, write_run_inputs
 from fringecal.steps import get_step, run_step
-from fringecal.verification import evaluate_ballbar
+from fringecal.verification.lengths import evaluate_ballbar
 
 POSE_COLUMNS = ["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]
 REFERENCE_MM = 1015.650
@@ -466,7 +466,7 @@ def test_not_a_run_directory(tmp_path):
 
 
 def test_cli_rewrites_the_report(rd, tmp_path):
-    from flows.cli import app
+    from fringecal.flows.cli import app
 
     runner = CliRunner()
     res = runner.invoke(app, ["report", "--run", str(rd.root)])

@@ -9,18 +9,22 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fringecal.acquisition.simulated import scanners_seeing, sphere_sightings
 from fringecal.artefact import load_artefact
-from fringecal.ballbar_plan import (MeasurementVolume, neighbours, plan_positions, positions_table,
-                                    volumes_from_observations)
 from fringecal.frames import frames_from_rows
-from fringecal.pipeline.prior import simulate_prior_rig
 from fringecal.registration import kabsch
-from fringecal.runconfig import PriorCalibrationConfig
+from fringecal.simulate.prior import simulate_prior_rig
 from fringecal.simulate.rigs import RIG_TABLES, ring_rig, row_rig, write_rig_tables
+from fringecal.simulate.settings import PriorCalibrationConfig
+from fringecal.simulate.source import scanners_seeing, sphere_sightings
 from fringecal.steps.evaluate import poses_in_reference_frame, truth_in_reference_frame
 from fringecal.triangulation import closest_approach
-
+from fringecal.verification.plan import (
+    MeasurementVolume,
+    neighbours,
+    plan_positions,
+    positions_table,
+    volumes_from_observations,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 THESIS = ROOT / "configs" / "thesis"

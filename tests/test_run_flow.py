@@ -15,7 +15,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 from fringecal.rundir import RunDir
 
 runner = CliRunner()
@@ -23,7 +23,7 @@ runner = CliRunner()
 
 @pytest.fixture(scope="module")
 def first_run(prefect_harness, small_config, tmp_path_factory):
-    from flows.run_flow import run_flow
+    from fringecal.flows.run_flow import run_flow
 
     run_dir = tmp_path_factory.mktemp("run") / "small"
     summary = run_flow(str(small_config), str(run_dir))
@@ -66,7 +66,7 @@ def test_run_writes_the_run_directory_and_meets_the_noise_floor(first_run):
 
 @pytest.mark.flow
 def test_rerun_is_all_cache_hits_and_bundle_weights_rerun_only_what_depends_on_them(first_run, small_config):
-    from flows.run_flow import run_flow
+    from fringecal.flows.run_flow import run_flow
 
     run_dir, first = first_run
     again = run_flow(str(small_config), str(run_dir))
@@ -85,7 +85,7 @@ def test_rerun_is_all_cache_hits_and_bundle_weights_rerun_only_what_depends_on_t
 
 @pytest.mark.flow
 def test_deleted_output_is_recomputed(first_run, small_config):
-    from flows.run_flow import run_flow
+    from fringecal.flows.run_flow import run_flow
 
     run_dir, first = first_run
     rd = RunDir(run_dir)
@@ -102,8 +102,8 @@ def test_deleted_output_is_recomputed(first_run, small_config):
 def test_up_to_date_shortcut_redigests_the_inputs(first_run, small_config, tmp_path):
     """Before Prefect starts: an unchanged run is recognised; a rig table edited in
     place is not (the inputs are digested again, not trusted)."""
-    from flows.cli_run import _current
-    from fringecal.runconfig import load_run_config
+    from fringecal.flows.cli_run import _current
+    from fringecal.run.config import load_run_config
 
     run_dir, _ = first_run
     cfg = load_run_config(small_config)
@@ -261,8 +261,8 @@ def test_bad_data_sets_stop_before_any_work(small_dataset, tmp_path, case):
 @pytest.mark.flow
 def test_dask_runner_two_workers(prefect_harness, small_config, tmp_path):
     """The same flow on a two-worker local Dask cluster gives the same calibration."""
-    from flows.cli_run import make_task_runner
-    from flows.run_flow import run_flow
+    from fringecal.flows.cli_run import make_task_runner
+    from fringecal.flows.run_flow import run_flow
 
     flow = run_flow.with_options(task_runner=make_task_runner("dask", 2, dask_workers=2))
     s = flow(str(small_config), str(tmp_path / "dask"))
@@ -271,7 +271,7 @@ def test_dask_runner_two_workers(prefect_harness, small_config, tmp_path):
 
 
 def test_deployment_for_a_nightly_schedule(small_config):
-    from flows.run_flow import run_flow
+    from fringecal.flows.run_flow import run_flow
 
     dep = run_flow.to_deployment(name="nightly-reverification", cron="0 2 * * *",
                                  parameters={"config": str(small_config), "run_dir": "runs/nightly"})
@@ -320,7 +320,7 @@ def test_scanner_without_projector_and_bad_artefact_stop_early(small_config, tmp
 def test_artefact_corrections_in_the_run_config(thesis_dir):
     """Thermal expansion from the CMM's 20 C to the measurement temperature (issue 7)."""
     from fringecal.artefact import load_artefact
-    from fringecal.runconfig import load_run_config
+    from fringecal.run.config import load_run_config
 
     cmm = load_artefact(thesis_dir / "artefact_cmm2.csv")
     assert np.array_equal(load_run_config().simulate.artefact().centres, cmm.centres)
@@ -333,7 +333,7 @@ def test_artefact_corrections_in_the_run_config(thesis_dir):
 
 
 def test_a_data_set_supplies_name_reference_and_processing_overrides(small_dataset, tmp_path):
-    from fringecal.runconfig import load_run_config
+    from fringecal.run.config import load_run_config
 
     data, _ = small_dataset
     cfg = load_run_config(dataset=data)

@@ -20,12 +20,11 @@ from __future__ import annotations
 import pytest
 
 from fringecal.report import render_report
+from fringecal.run.config import load_run_config
+from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
-from fringecal.runconfig import load_run_config
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.steps import run_pipeline
-from fringecal.summary import manifest
-
 
 SCALE = 50e-6
 

@@ -4,8 +4,15 @@ import pytest
 
 from fringecal.artefact import Artefact, load_artefact, load_rods
 from fringecal.rig import load_rig
-from schemas import (ArtefactTable, PosesTable, SensorParametersTable, SphereCentresTable, TableError,
-                     ThermalLogTable, read_table)
+from fringecal.schemas import (
+    ArtefactTable,
+    PosesTable,
+    SensorParametersTable,
+    SphereCentresTable,
+    TableError,
+    ThermalLogTable,
+    read_table,
+)
 
 
 def write(tmp_path, text, name="t.csv"):

@@ -20,7 +20,7 @@ import psutil
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 
 runner = CliRunner()
 BIN = Path(sys.executable).parent

@@ -14,12 +14,12 @@ import pytest
 import yaml
 
 from fringecal.acceptance.standards import AcceptanceStandards, load_standards
-from fringecal.acquisition.measure import truth_from_store
 from fringecal.frames import frames_from_rows
 from fringecal.pointcloud import triangulate_maps
-from fringecal.runconfig import load_run_config
+from fringecal.rig import scaled_scanner
+from fringecal.run.config import load_run_config
 from fringecal.rundir import RunDir
-from fringecal.simulate.resolution import scaled_scanner
+from fringecal.simulate.measurement import truth_from_store
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.spheres.fit import SphereModel
 from fringecal.store import is_complete, open_store
@@ -158,9 +158,9 @@ def test_fringecal_simulate_writes_the_same_acceptance_stacks(run, config, tmp_p
     """The data-set door: certificates as YAML, each stack in
     verification/acceptance/<test>/<position>/<scanner>/ with the very frames the run
     stored, and the positions in the truth folder."""
-    from fringecal.acquisition.export import write_dataset
     from fringecal.fringe.importer import read_frames
     from fringecal.rundir import TruthDir
+    from fringecal.simulate.export import write_dataset
 
     rd, _ = run
     out, truth = tmp_path / "data", tmp_path / "truth"

@@ -13,15 +13,24 @@ import yaml
 
 from fringecal.config import ConfigError, thesis_dir
 from fringecal.frames import Frame
+from fringecal.fringe.sequence import SequenceConfig
 from fringecal.pointcloud import triangulate_maps
-from fringecal.rig import load_rig
-from fringecal.runconfig import SequenceConfig, load_run_config
+from fringecal.rig import load_rig, scaled_rig
+from fringecal.run.config import load_run_config
 from fringecal.simulate import ArtefactHardware, Panel, RenderConfig, Scene, SceneObject, sphere_plate_pose
 from fringecal.simulate import geometry as g
-from fringecal.simulate.objects import (ArtefactObject, ObjectPose, PanelObject, panel_from_truth, panel_of,
-                                        parse_object, plan_object, render_object_stores, truth_distance,
-                                        view_fractions)
-from fringecal.simulate.resolution import scaled_rig
+from fringecal.simulate.objects import (
+    ArtefactObject,
+    ObjectPose,
+    PanelObject,
+    panel_from_truth,
+    panel_of,
+    parse_object,
+    plan_object,
+    render_object_stores,
+    truth_distance,
+    view_fractions,
+)
 from fringecal.store import open_store
 
 #: the small rig's short sequence (fringecal.simulate.small_thesis)
@@ -167,7 +176,7 @@ def test_objects_section_default_empty_and_checked(tmp_path):
             load_run_config(overrides={"simulate": {"objects": [obj]}})
     with pytest.raises(ConfigError, match="unique"):
         load_run_config(overrides={"simulate": {"objects": [objects[0], objects[0]]}})
-    from fringecal.acquisition.simulated import object_plans
+    from fringecal.simulate.source import object_plans
 
     velvet = load_run_config(overrides={"simulate": {"objects": [{**objects[0], "material": "velvet"}]}})
     with pytest.raises(ConfigError, match="material 'velvet' is not one of"):
@@ -298,14 +307,14 @@ def test_dataset_door_writes_objects_that_calibration_ignores(tmp_path):
     truth in ``<truth>/objects/<name>.json``; the frames decode to exactly the stores
     :func:`render_object_stores` renders for the same object, seed and settings; the
     data set opens and ``run --dataset`` calibrates it without reading ``objects/``."""
-    from fringecal.acquisition.export import write_dataset
     from fringecal.artefact import load_rods
     from fringecal.dataset import DataSet
     from fringecal.fringe.measurement import decode_folder
+    from fringecal.run.summary import manifest
     from fringecal.rundir import RunDir, TruthDir
+    from fringecal.simulate.export import write_dataset
     from fringecal.simulate.small_thesis import write_small_thesis_config
     from fringecal.steps import run_pipeline
-    from fringecal.summary import manifest
 
     config = write_small_thesis_config(tmp_path, width=320, poses=(1, 5, 9, 12), positions=(1,))
     doc = yaml.safe_load(config.read_text())
@@ -355,7 +364,7 @@ def test_dataset_door_writes_objects_that_calibration_ignores(tmp_path):
     # world against the true surfaces
     from typer.testing import CliRunner
 
-    from flows.cli import app
+    from fringecal.flows.cli import app
     from fringecal.frames import frames_from_rows
     from fringecal.measure import read_cloud
 

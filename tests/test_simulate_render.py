@@ -8,9 +8,22 @@ import pytest
 from fringecal.artefact import load_rods
 from fringecal.frames import Frame
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.simulate import (LIGHT_LIT, LIGHT_SHADOW, GroundTruth, Material, RenderConfig, Scene, SceneObject,
-                                artefact_scene, backdrop, phase_noise, render_measurement, scaled_scanner,
-                                sphere_plate_pose, sphere_plate_scene)
+from fringecal.simulate import (
+    LIGHT_LIT,
+    LIGHT_SHADOW,
+    GroundTruth,
+    Material,
+    RenderConfig,
+    Scene,
+    SceneObject,
+    artefact_scene,
+    backdrop,
+    phase_noise,
+    render_measurement,
+    scaled_scanner,
+    sphere_plate_pose,
+    sphere_plate_scene,
+)
 from fringecal.simulate.visibility import pixel_centre_rays, sphere_visibility
 
 SHORT = FringeSequence(fringe_counts=(64, 63), n_steps=4)

@@ -7,9 +7,23 @@ import pytest
 from fringecal.artefact import Artefact
 from fringecal.frames import Frame
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.simulate import (SPHERE_PLATE_SEPARATION_MM, ArtefactHardware, Box, Cylinder, Plane, RenderConfig,
-                                Scene, SceneObject, Sphere, artefact_scene, render_measurement, scaled_rig,
-                                scaled_scanner, sphere_plate_pose, sphere_plate_scene)
+from fringecal.simulate import (
+    SPHERE_PLATE_SEPARATION_MM,
+    ArtefactHardware,
+    Box,
+    Cylinder,
+    Plane,
+    RenderConfig,
+    Scene,
+    SceneObject,
+    Sphere,
+    artefact_scene,
+    render_measurement,
+    scaled_rig,
+    scaled_scanner,
+    sphere_plate_pose,
+    sphere_plate_scene,
+)
 from fringecal.simulate.visibility import pixel_centre_rays
 
 

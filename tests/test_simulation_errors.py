@@ -10,7 +10,6 @@ import pytest
 import yaml
 from numpy.polynomial import legendre
 
-from fringecal.acquisition.measure import measurement_rng
 from fringecal.artefact import Artefact, load_artefact, load_rods
 from fringecal.config import ConfigError
 from fringecal.engineering.materials import load_materials
@@ -18,15 +17,32 @@ from fringecal.engineering.sag import SupportCondition, gravity_sag_correction
 from fringecal.frames import Frame
 from fringecal.fringe.decode import decode
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.runconfig import SimulationConfig, load_run_config
-from fringecal.simulate import (Material, RenderConfig, Scene, SceneObject, Sphere, artefact_scene, backdrop,
-                                render_measurement)
+from fringecal.rig import scaled_scanner
+from fringecal.run.config import load_run_config
+from fringecal.simulate import (
+    Material,
+    RenderConfig,
+    Scene,
+    SceneObject,
+    Sphere,
+    artefact_scene,
+    backdrop,
+    render_measurement,
+)
 from fringecal.simulate import geometry as g
 from fringecal.simulate.errors import REALISTIC, SimulationErrors, error_rng
-from fringecal.simulate.resolution import scaled_scanner
+from fringecal.simulate.measurement import measurement_rng
+from fringecal.simulate.settings import SimulationConfig
 from fringecal.simulate.unmodelled import RenderErrors, phase_field, thin_prism
-from fringecal.simulate.world import (as_built_artefact, as_built_ballbar, drifted_scanner, form_rms, render_errors,
-                                      session_displacement, sphere_form_terms)
+from fringecal.simulate.world import (
+    as_built_artefact,
+    as_built_ballbar,
+    drifted_scanner,
+    form_rms,
+    render_errors,
+    session_displacement,
+    sphere_form_terms,
+)
 
 SEQ = FringeSequence()  # the thesis's 7 counts x 7 steps: the aliasing tests need N = 7
 #: Noise-free, one sample per pixel, 16 bits, a white backdrop: frames are the contract to 1e-5.
@@ -108,7 +124,7 @@ def test_profiles_fill_override_and_name():
 
 
 def test_realistic_run_config_is_the_thesis_run_plus_the_profile(tmp_path):
-    from fringecal.runconfig import default_run_config_path
+    from fringecal.run.config import default_run_config_path
 
     base = default_run_config_path()
     real = load_run_config(base.with_name("run_thesis_realistic.yaml"))
@@ -481,8 +497,8 @@ def realistic_config(tmp_path_factory):
 def realistic_run(realistic_config, tmp_path_factory):
     """The small realistic rig through both doors: `fringecal simulate` (data set and
     truth folder) and the simulated run's source steps (run directory)."""
-    from fringecal.acquisition.export import write_dataset
     from fringecal.rundir import RunDir
+    from fringecal.simulate.export import write_dataset
     from fringecal.steps import run_pipeline
 
     cfg = load_run_config(realistic_config)

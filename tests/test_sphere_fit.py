@@ -5,8 +5,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from fringecal.spheres.fit import FitError, PlaneModel, SphereModel
-from fringecal.spheres.reference_data import (plane_reference_data, reference_suite,
-                                              sphere_reference_data)
+from fringecal.spheres.reference_data import plane_reference_data, reference_suite, sphere_reference_data
 
 SUITE = reference_suite(seed=7)
 

@@ -3,8 +3,14 @@
 import numpy as np
 import pytest
 
-from fringecal.spheres.sphere_plate import (CMM_SEPARATION_MM, THESIS_MEAN_SEPARATION_MM, THESIS_ROTATIONS_DEG,
-                                            THESIS_TILTS_DEG, analyse_sphere_plate, plate_normal)
+from fringecal.spheres.sphere_plate import (
+    CMM_SEPARATION_MM,
+    THESIS_MEAN_SEPARATION_MM,
+    THESIS_ROTATIONS_DEG,
+    THESIS_TILTS_DEG,
+    analyse_sphere_plate,
+    plate_normal,
+)
 from fringecal.spheres.synthetic import sphere_plate_cloud
 
 PIXEL = 0.5  # mm at the object: ~1000 sphere points, fast enough for a 20-pose grid

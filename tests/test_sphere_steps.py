@@ -5,12 +5,19 @@ import pandas as pd
 import pytest
 
 from fringecal.frames import Frame
+from fringecal.schemas import (
+    REJECTION_REASONS,
+    LabelOutcomesTable,
+    PosePlanTable,
+    SphereFitsTable,
+    TableError,
+    read_table,
+    write_table,
+)
 from fringecal.spheres.labelling import LabellingConfig
+from fringecal.spheres.poses_and_links import centres_from_fits, label_pose_link, sphere_fit_row
 from fringecal.spheres.reference_data import sphere_reference_data
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
-from fringecal.spheres.steps import centres_from_fits, label_pose_link, sphere_fit_row
-from schemas import (REJECTION_REASONS, LabelOutcomesTable, PosePlanTable, SphereFitsTable, TableError,
-                     read_table, write_table)
 
 T_S1_S2 = Frame.from_params([-1428.7, 4.4, 138.4, -0.026, 0.089, 0.0006])
 VISIBLE = {"scanner1": [str(i) for i in range(4, 10)], "scanner2": [str(i) for i in range(10, 16)]}
@@ -105,10 +112,10 @@ def test_label_pose_link_recovers_poses_and_the_scanner_frame(simulated_fits, th
 
 
 def test_label_step_writes_every_table_and_reports_bad_groups(simulated_fits, thesis_artefact, tmp_path):
+    from fringecal.run.config import RunConfig
     from fringecal.rundir import RunDir, measurement_id
-    from fringecal.runconfig import RunConfig
+    from fringecal.schemas import PosesTable, ScannerLinksTable
     from fringecal.steps import get_step, run_step
-    from schemas import PosesTable, ScannerLinksTable
 
     fits, truth = simulated_fits
     rd = RunDir(tmp_path / "run").create()

@@ -16,7 +16,7 @@ from fringecal.fringe.decode import decode
 from fringecal.fringe.measurement import decode_to_store, measurement_dataset
 from fringecal.fringe.sequence import FringeSequence
 from fringecal.store import COMPLETE_ATTR, StoreError, copy_store, is_complete, open_store, write_store
-from tasks.refs import digest_path
+from fringecal.tasks.refs import digest_path
 
 SEQ = FringeSequence((8, 7, 6, 4), 3)
 

@@ -7,7 +7,7 @@ import yaml
 
 from fringecal.artefact import load_artefact, load_rods
 from fringecal.config import RigConfig, load_yaml_model
-from schemas import PosePlanTable, SphereCentresTable, ThermalLogTable, read_table
+from fringecal.schemas import PosePlanTable, SphereCentresTable, ThermalLogTable, read_table
 
 
 def test_artefact_both_cmm_sets_table_3_13(thesis_dir):

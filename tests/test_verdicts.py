@@ -9,9 +9,9 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
+from fringecal.flows.cli import app
 from fringecal.rundir import RunDir
-from fringecal.verification import evaluate_ballbar
+from fringecal.verification.lengths import evaluate_ballbar
 
 runner = CliRunner()
 NAN = float("nan")
@@ -63,7 +63,7 @@ def _summary(passed: bool) -> dict:
 @pytest.mark.parametrize("passed, status", [(True, 0), (False, 3)])
 def test_run_exits_3_after_the_summary_when_the_verification_fails(small_config, tmp_path, monkeypatch, passed,
                                                                   status):
-    monkeypatch.setattr("flows.cli_run._execute", lambda *args, **kwargs: _summary(passed))
+    monkeypatch.setattr("fringecal.flows.cli_run._execute", lambda *args, **kwargs: _summary(passed))
     args = ["run", "--config", str(small_config), "--out", str(tmp_path / "run")]
     res = runner.invoke(app, args)
     assert res.exit_code == status, res.output
@@ -76,12 +76,12 @@ def test_run_exits_3_after_the_summary_when_the_verification_fails(small_config,
 
 
 def test_reproduce_exits_3_when_the_numbers_agree_but_the_verification_fails(small_config, tmp_path, monkeypatch):
-    from fringecal.runconfig import load_run_config
+    from fringecal.run.config import load_run_config
 
     rd = RunDir(tmp_path / "run").create()
     rd.manifest.save({"config": load_run_config(small_config).model_dump(mode="json")})
     rd.summary.save(_summary(False))
-    monkeypatch.setattr("flows.cli_run._execute", lambda *args, **kwargs: _summary(False))
+    monkeypatch.setattr("fringecal.flows.cli_run._execute", lambda *args, **kwargs: _summary(False))
     res = runner.invoke(app, ["reproduce", str(rd.root)])
     assert res.exit_code == 3, res.output
     assert "reproduced: the summary numbers are identical" in res.stdout and "FAILED" in res.stderr
@@ -106,7 +106,7 @@ def test_step_verify_and_step_acceptance(tmp_path, monkeypatch, ok, status):
     rd = RunDir(tmp_path / "run").create()
     rd.verification.save(_verification(ok))
     rd.acceptance.save(_acceptance(ok))
-    monkeypatch.setattr("flows.cli_step._run", lambda *args, **kwargs: [])
+    monkeypatch.setattr("fringecal.flows.cli_step._run", lambda *args, **kwargs: [])
     for step, line in (("verify", "verification FAILED: ball-bar max |error| 150.0 um"), ("acceptance", "NOT ACCEPTED")):
         res = runner.invoke(app, ["step", step, "--run", str(rd.root)])
         assert res.exit_code == status, res.output

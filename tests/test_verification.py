@@ -7,11 +7,18 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
-from fringecal.verification import (GumStatement, ballbar_lengths, evaluate_ballbar, flatness_error,
-                                    one_part_in, probing_form_error, probing_size_error,
-                                    seven_ballbar_positions)
-from schemas import SphereCentresTable, TableError, read_table
+from fringecal.flows.cli import app
+from fringecal.schemas import SphereCentresTable, TableError, read_table
+from fringecal.verification.lengths import (
+    GumStatement,
+    ballbar_lengths,
+    evaluate_ballbar,
+    flatness_error,
+    one_part_in,
+    probing_form_error,
+    probing_size_error,
+    seven_ballbar_positions,
+)
 
 runner = CliRunner()
 

@@ -19,7 +19,7 @@ volume) or of the whole cell (part 3: E, lengths across scanners):
 
 Uncertainties of the values (stated per value where it is measured):
 
-- SD and E: the length's task-specific budget (:mod:`fringecal.length_uncertainty`,
+- SD and E: the length's task-specific budget (:mod:`fringecal.verification.budget`,
   with the dumbbell's certificate in place of the ball-bar's), expanded with the
   acceptance's coverage factor;
 - P_S: the certificate's diameter uncertainty and the fit's (combined in quadrature);
@@ -36,7 +36,7 @@ import math
 
 import pandas as pd
 
-from .standards import PARAMETERS, AcceptanceLimits
+from fringecal.acceptance.standards import PARAMETERS, AcceptanceLimits
 
 __all__ = ["VALUE_COLUMNS", "verdict", "parameters", "certificate", "form_u", "CELL"]
 
@@ -67,7 +67,7 @@ def verdict(value_mm: float, U_mm: float, mpe_mm: float | None) -> str:
     >>> verdict(0.06, 0.03, 0.1), verdict(0.14, 0.03, 0.1), verdict(-0.09, 0.03, 0.1)
     ('conformance', 'non-conformance', 'uncertainty zone')
     """
-    from ..pipeline.ballbar_uncertainty import iso14253_verdict
+    from fringecal.verification.uncertainty import iso14253_verdict
 
     return "not limited" if mpe_mm is None else iso14253_verdict(value_mm, U_mm, mpe_mm)
 

@@ -2,7 +2,7 @@
 scanner's store, from the data alone.
 
 The dumbbell (SD) and the ball-bar (E) are lengths between two sphere centres and are
-measured by the ball-bar code (:func:`fringecal.pipeline.verify.measure_positions`);
+measured by the ball-bar code (:func:`fringecal.verification.measure.measure_positions`);
 :mod:`fringecal.acceptance.evaluate` gathers all of them.
 
 Decisions (VDI/VDE 2634 part 2 evaluates "the measured points" of the object; which
@@ -10,7 +10,7 @@ points belong to the object is the evaluator's segmentation, stated here):
 
 - **Sphere**: the store is triangulated with the scanner's calibrated sensors (at the
   store's image size) and the sphere found like a ball-bar sphere
-  (:func:`fringecal.ballbar.find_sightings`, robust free-radius fit, which here only
+  (:func:`fringecal.verification.ballbar.find_sightings`, robust free-radius fit, which here only
   locates it: a far noisy sphere counts if it kept 5 % of its disc). Its points are
   every valid pixel whose point lies within ``segment_mm`` of that robust sphere,
   that is not an edge pixel (within 2 px of an invalid pixel, where a pixel mixes the
@@ -38,13 +38,13 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..artefact import Artefact
-from ..ballbar import SightingConfig, find_sightings
-from ..pipeline.verify import store_maps
-from ..rig import Scanner
-from ..spheres.fit import FitError, PlaneModel, SphereModel
-from ..spheres.regions import boundary_flags
-from .standards import FlatStandard, SphereStandard
+from fringecal.acceptance.standards import FlatStandard, SphereStandard
+from fringecal.artefact import Artefact
+from fringecal.rig import Scanner
+from fringecal.spheres.fit import FitError, PlaneModel, SphereModel
+from fringecal.spheres.regions import boundary_flags
+from fringecal.verification.ballbar import SightingConfig, find_sightings
+from fringecal.verification.measure import store_maps
 
 __all__ = ["SphereMeasurement", "FlatMeasurement", "trim_by_residual", "probe_sphere", "probe_flat",
            "measure_sphere_store", "measure_flat_store", "AcceptanceMeasurementError"]

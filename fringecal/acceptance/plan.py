@@ -12,9 +12,9 @@ length and y along its width.
 
 Decisions
 ---------
-- **Volumes** are :class:`~fringecal.ballbar_plan.MeasurementVolume` (both fields and
+- **Volumes** are :class:`~fringecal.verification.plan.MeasurementVolume` (both fields and
   the calibrated depth range): in a simulation from the true rig and the planned
-  poses, for a calibrated run from :func:`~fringecal.ballbar_plan.volumes_from_run`.
+  poses, for a calibrated run from :func:`~fringecal.verification.plan.volumes_from_run`.
   A volume is resized to the sphere being placed (``radius_mm``), so that its whole
   image lies inside both fields with the volume's margin.
 - **Sphere** (P_F, P_S): ``samples`` random candidates of the volume (a pixel and a
@@ -24,7 +24,7 @@ Decisions
 - **Dumbbell** (SD): the guideline's seven directions, four along the space diagonals
   and three along face diagonals (x-y, x-z, y-z) of a box in the scanner's **camera
   frame** (x, y across the image, z the depth along the optical axis), by
-  :func:`fringecal.verification.seven_ballbar_positions`. The box is the part of the
+  :func:`fringecal.verification.lengths.seven_ballbar_positions`. The box is the part of the
   volume around its centre: the centre is the mean of the contained candidates
   (uniform over image and depth), each half size the distance from the centre to the
   volume's boundary along that camera axis. The bar (its certified length) is
@@ -55,7 +55,7 @@ Decisions
   positions than asked (a dumbbell direction that does not fit the volume or cannot
   be tilted clear, a flat position that fits at no depth) are listed in
   :attr:`AcceptancePlan.uncovered`, one line each. Callers decide: the simulation
-  refuses the config (:mod:`fringecal.acquisition.simulated`).
+  refuses the config (:mod:`fringecal.simulate.source`).
 - **Deterministic**: each scanner and test draws from its own generator
   (``seed``, scanner index, test), so adding a scanner or a test leaves the others'
   positions unchanged.
@@ -69,11 +69,11 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from ..ballbar import frame_along
-from ..ballbar_plan import MeasurementVolume, _clear, _spread
-from ..frames import POSE_COLUMNS, Frame
-from ..rig import Rig
-from ..verification import seven_ballbar_positions
+from fringecal.frames import POSE_COLUMNS, Frame
+from fringecal.rig import Rig
+from fringecal.verification.ballbar import frame_along
+from fringecal.verification.lengths import seven_ballbar_positions
+from fringecal.verification.plan import MeasurementVolume, _clear, _spread
 
 __all__ = ["TESTS", "FLAT_POSITIONS", "AcceptancePlan", "plan_acceptance", "sphere_centres", "volume_box",
            "dumbbell_bars", "flat_frame", "flat_face_points", "flat_fits", "position_name", "PLAN_COLUMNS"]

@@ -54,11 +54,17 @@ from typing import Callable, Iterator, Optional
 
 import numpy as np
 
-from ..dataset import MEASUREMENTS_DIR, DataSet
-from ..hexapod import ForwardKinematicsError, HexapodFault, HexapodRig, PlatformMover, TargetRejected
-from .live_capture import CaptureFailed, CaptureTemplateError, StackExpectation, capture_stack, remove_staging
-from .live_plan import TOLERANCE_MARGIN, LivePlan, check_reachable, prepare, reach_tolerance
-from .live_state import MovesLog, Survey, acquisition_lock, move_row, survey
+from fringecal.acquisition.live_capture import (
+    CaptureFailed,
+    CaptureTemplateError,
+    StackExpectation,
+    capture_stack,
+    remove_staging,
+)
+from fringecal.acquisition.live_plan import TOLERANCE_MARGIN, LivePlan, check_reachable, prepare, reach_tolerance
+from fringecal.acquisition.live_state import MovesLog, Survey, acquisition_lock, move_row, survey
+from fringecal.dataset import MEASUREMENTS_DIR, DataSet
+from fringecal.hexapod import ForwardKinematicsError, HexapodFault, HexapodRig, PlatformMover, TargetRejected
 
 __all__ = ["EXIT_HEXAPOD", "EXIT_INPUT", "EXIT_CAPTURE", "EXIT_INTERRUPTED", "TOLERANCE_MARGIN", "AcquisitionError",
            "StopRequest", "stop_on_signals", "LivePlan", "prepare", "check_reachable", "reach_tolerance",

@@ -51,8 +51,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from ..fringe.importer import FrameStackError, StackSpec, read_frames, read_stack_spec
-from ..fringe.sequence import FringeSequence
+from fringecal.fringe.importer import FrameStackError, StackSpec, read_frames, read_stack_spec
+from fringecal.fringe.sequence import FringeSequence
 
 __all__ = ["PLACEHOLDERS", "STAGING_SUFFIX", "CaptureTemplateError", "CaptureFailed", "CaptureCommand",
            "StackExpectation", "staging_folder", "is_staging", "remove_staging", "capture_stack"]

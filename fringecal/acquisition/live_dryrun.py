@@ -19,9 +19,9 @@ from typing import Optional
 
 import numpy as np
 
-from ..frames import Frame
-from ..hexapod import ForwardKinematicsError, HexapodFault
-from .live import EXIT_HEXAPOD, AcquisitionError, LivePlan, check_path, open_mover
+from fringecal.acquisition.live import EXIT_HEXAPOD, AcquisitionError, LivePlan, check_path, open_mover
+from fringecal.frames import Frame
+from fringecal.hexapod import ForwardKinematicsError, HexapodFault
 
 __all__ = ["DryRunRow", "DryRun", "dry_run"]
 

@@ -15,16 +15,24 @@ from typing import Optional
 
 import numpy as np
 
-from ..artefact import load_artefact, load_rods
-from ..config import ConfigError, load_yaml_model
-from ..dataset import (ARTEFACT_FILE, DATASET_FILE, MIN_SPHERES, POSES_PLANNED_FILE, RODS_FILE, SENSORS_PRIOR_FILE,
-                       DataSetError, DatasetConfig)
-from ..frames import Frame, frames_from_rows
-from ..hexapod import HexapodRig, TargetRejected, load_hexapod_config
-from ..hexapod.kinematics import leg_jacobian
-from ..rig import load_rig
-from .live_capture import CaptureCommand
-from .live_state import Survey, survey
+from fringecal.acquisition.live_capture import CaptureCommand
+from fringecal.acquisition.live_state import Survey, survey
+from fringecal.artefact import load_artefact, load_rods
+from fringecal.config import ConfigError, load_yaml_model
+from fringecal.dataset import (
+    ARTEFACT_FILE,
+    DATASET_FILE,
+    MIN_SPHERES,
+    POSES_PLANNED_FILE,
+    RODS_FILE,
+    SENSORS_PRIOR_FILE,
+    DatasetConfig,
+    DataSetError,
+)
+from fringecal.frames import Frame, frames_from_rows
+from fringecal.hexapod import HexapodRig, TargetRejected, load_hexapod_config
+from fringecal.hexapod.kinematics import leg_jacobian
+from fringecal.rig import load_rig
 
 __all__ = ["TOLERANCE_MARGIN", "LivePlan", "prepare", "check_reachable", "reach_tolerance"]
 
@@ -61,10 +69,10 @@ def prepare(dataset, hexapod_config=None, capture: Optional[str] = None) -> Live
 
     Raises
     ------
-    DataSetError, schemas.TableError, FrameStackError, ConfigError, CaptureTemplateError
+    DataSetError, fringecal.schemas.TableError, FrameStackError, ConfigError, CaptureTemplateError
         All ``ValueError``; the message names the file or folder.
     """
-    from schemas import PosePlanTable, read_table
+    from fringecal.schemas import PosePlanTable, read_table
 
     root = Path(dataset).expanduser().absolute()
     if not root.is_dir():

@@ -6,7 +6,7 @@
   staging folders a killed run left behind. Frame stacks already in place are checked
   cheaply (``sequence.yaml`` and the listing, the camera format, one fringe sequence).
 * :class:`MovesLog`: the journal ``.acquire/moves.csv`` (every move, written right after
-  the move) and the published ``hexapod_moves.csv`` (:class:`schemas.HexapodMovesTable`,
+  the move) and the published ``hexapod_moves.csv`` (:class:`fringecal.schemas.HexapodMovesTable`,
   one row per complete measurement: its last move, and how many moves it took). Both
   are rewritten atomically, so a kill at any point leaves either the old or the new file.
 * :func:`acquisition_lock`: one acquirer per data set (``.acquire/lock``, released by
@@ -25,11 +25,11 @@ from typing import Iterator, Optional
 
 import pandas as pd
 
-from ..dataset import HEXAPOD_MOVES_FILE, MEASUREMENTS_DIR, POSES_PLANNED_FILE, STORE_SUFFIX, DataSetError
-from ..frames import POSE_COLUMNS
-from ..fringe.importer import read_stack_spec
-from ..fringe.sequence import FringeSequence
-from .live_capture import is_staging
+from fringecal.acquisition.live_capture import is_staging
+from fringecal.dataset import HEXAPOD_MOVES_FILE, MEASUREMENTS_DIR, POSES_PLANNED_FILE, STORE_SUFFIX, DataSetError
+from fringecal.frames import POSE_COLUMNS
+from fringecal.fringe.importer import read_stack_spec
+from fringecal.fringe.sequence import FringeSequence
 
 __all__ = ["ACQUIRE_DIR", "MeasurementState", "Survey", "survey", "MovesLog", "move_row", "acquisition_lock"]
 
@@ -170,7 +170,7 @@ class MovesLog:
 
     def record(self, row: dict) -> None:
         """Append one move to the journal (atomic rewrite)."""
-        from schemas import write_table
+        from fringecal.schemas import write_table
 
         write_table(pd.concat([self._journal(), pd.DataFrame([row])], ignore_index=True), self.journal)
 
@@ -179,7 +179,7 @@ class MovesLog:
         last journalled move with the number of moves; rows already published for a complete
         measurement that the journal does not hold are kept. Returns the path, or None when
         there is no row to write."""
-        from schemas import HexapodMovesTable, read_table, write_table
+        from fringecal.schemas import HexapodMovesTable, read_table, write_table
 
         journal = self._journal()
         rows: dict[str, dict] = {}

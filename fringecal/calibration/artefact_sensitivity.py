@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from .model import Evaluator
+from fringecal.calibration.model import Evaluator
+from fringecal.calibration.solver import irls_weights
 
 __all__ = ["ArtefactSensitivity", "artefact_sensitivity", "STEP_MM"]
 
@@ -68,9 +69,7 @@ class ArtefactSensitivity:
 
 
 def _weights(result) -> np.ndarray:
-    from .bundle import _irls_weights
-
-    return _irls_weights(result.residuals, result.options.loss, result.robust_scales)
+    return irls_weights(result.residuals, result.options.robust_loss, result.robust_scales)
 
 
 def artefact_sensitivity(result) -> ArtefactSensitivity:
@@ -119,7 +118,7 @@ def artefact_sensitivity(result) -> ArtefactSensitivity:
 
 def _solve(N: np.ndarray, B: np.ndarray) -> np.ndarray:
     """N^-1 B in scaled variables, unobservable directions dropped (as the covariance)."""
-    from .uncertainty import UNOBSERVABLE
+    from fringecal.calibration.uncertainty import UNOBSERVABLE
 
     d = np.sqrt(np.diag(N))
     d[d == 0] = 1.0

@@ -25,9 +25,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..rotation import rotation_matrix
-from ..triangulation import sphere_hits
-from .bundle import BundleResult, bundle_adjust
+from fringecal.calibration.bundle import BundleResult, bundle_adjust
+from fringecal.rotation import rotation_matrix
+from fringecal.triangulation import sphere_hits
 
 __all__ = ["predicted_projector_mm", "bootstrap_calibrations"]
 
@@ -64,7 +64,7 @@ def bootstrap_calibrations(result: BundleResult, draws: int, seed: int = 0) -> n
     residual = np.where(ok[:, None], problem.prj_mm - predicted, 0.0)
     base = np.where(ok[:, None], predicted, problem.prj_mm)
     start = problem.with_start(result.rig, result.poses)
-    options = replace(result.options, start="given")
+    options = result.options.model_copy(update={"start": "given"})
     rng = np.random.default_rng(seed)
     out = np.empty((draws,) + result.rig.params.shape)
     for i in range(draws):

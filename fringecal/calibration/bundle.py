@@ -32,16 +32,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Literal, Optional, Union
 
 import numpy as np
 import pandas as pd
+from pydantic import Field, field_validator
 
-from ..rig import Rig
-from .convergence import SEPARATE_MINIMUM_RATIO, noise_floor_check, same_minimum
-from .diagnostics import DegenerateCalibrationError, Diagnosis, check_rank, check_structure
-from .model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
-from .solver import LMOptions, LMReport, levenberg_marquardt
-from .uncertainty import Uncertainty, estimate_uncertainty
+from fringecal.calibration.convergence import SEPARATE_MINIMUM_RATIO, noise_floor_check, same_minimum
+from fringecal.calibration.diagnostics import DegenerateCalibrationError, Diagnosis, check_rank, check_structure
+from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
+from fringecal.calibration.solver import LMOptions, LMReport, irls_weights, levenberg_marquardt
+from fringecal.calibration.uncertainty import Uncertainty, estimate_uncertainty
+from fringecal.config import StrictModel
+from fringecal.rig import Rig
 
 __all__ = ["BundleOptions", "BundleResult", "ResidualStatistics", "StartValueError", "bundle_adjust",
            "SEPARATE_MINIMUM_RATIO"]
@@ -54,20 +57,44 @@ class StartValueError(ValueError):
     """The start values cannot be evaluated (rays cannot be formed at some control points)."""
 
 
-@dataclass(frozen=True)
-class BundleOptions:
-    """Options of :func:`bundle_adjust` (see :mod:`.solver` for the tolerances)."""
+class BundleOptions(StrictModel):
+    """Settings of the bundle adjustment: the ``bundle:`` section of a run configuration,
+    passed as it is to :func:`bundle_adjust` (eq. 2-24; :mod:`.solver` for the tolerances).
 
-    max_iterations: int = 100  # per LM run
-    ftol: float = 1e-10
-    xtol: float = 1e-10
-    gtol: float = 1e-10
-    loss: str = "none"  # none, huber, cauchy
-    loss_scale_mm: tuple | float | None = None  # (alpha1, alpha2) or one value; None: from the residuals
-    robust_passes: int = 3
-    chunk_size: int = 2048  # control points per parallel work item
-    start: str = "auto"  # given, data, auto, best (see bundle_adjust)
-    coarse_points: int = 150_000  # subsample size of the first stage of large problems; 0: off
+    ``gamma1``, ``gamma2`` weight epsilon-1 and epsilon-2 (:class:`.model.BundleProblem`).
+    ``robust_loss`` (``none``, ``huber``, ``cauchy``) with its ``robust_scale_mm``
+    (one value or (alpha1, alpha2); None: from the residuals). ``start``: which start
+    values to adjust from (:func:`bundle_adjust`). ``volume_diagonal_mm``: the
+    measurement volume's diagonal for the one-part-in-N figures (None: the bounding box
+    of the control points triangulated with the result). ``bootstrap_draws``:
+    wild-bootstrap re-adjustments for the calibration's bias and spread
+    (:mod:`.bootstrap`); 0: none, the lengths are then not corrected for the
+    adjustment's non-linearity. ``coarse_points``: subsample size of the first stage of
+    large problems (0: off); ``chunk_size``: control points per parallel work item.
+    """
+
+    gamma1: float = Field(1.0, gt=0)
+    gamma2: float = Field(1.0, gt=0)
+    robust_loss: Literal["none", "huber", "cauchy"] = "none"
+    robust_scale_mm: Optional[Union[float, tuple[float, float]]] = None
+    robust_passes: int = Field(3, ge=1)
+    max_iterations: int = Field(100, ge=1)  # per LM run
+    ftol: float = Field(1e-10, gt=0)
+    xtol: float = Field(1e-10, gt=0)
+    gtol: float = Field(1e-10, gt=0)
+    start: Literal["given", "data", "auto", "best"] = "auto"
+    volume_diagonal_mm: Optional[float] = Field(None, gt=0)
+    bootstrap_draws: int = Field(32, ge=0, le=1000)
+    bootstrap_seed: int = 0
+    chunk_size: int = Field(2048, ge=1)
+    coarse_points: int = Field(150_000, ge=0)
+
+    @field_validator("robust_scale_mm")
+    @classmethod
+    def _positive_scale(cls, v):
+        if v is not None and min(np.atleast_1d(v)) <= 0:
+            raise ValueError(f"robust_scale_mm must be > 0 (mm), got {v}")
+        return v
 
 
 @dataclass(frozen=True)
@@ -290,7 +317,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions
         # normal matrix is singular there), and the error is raised if none does
         attempt("given", problem, must=options.start == "given")
     if options.start != "given":
-        from .start import reinitialise
+        from fringecal.calibration.start import reinitialise
 
         modes = {}
         for label, mode, basis in DATA_STARTS:
@@ -452,22 +479,22 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
                   "message": coarse.message}
     else:
         e0_lm = e0
-    if options.loss in ("none", "linear"):
+    if options.robust_loss in ("none", "linear"):
         report = levenberg_marquardt(ev.evaluate, x, gamma, lm, start=e0_lm)
         x = report.x
     else:
-        if options.loss not in ROBUST_K:
-            raise ValueError(f"unknown robust loss {options.loss!r}; choose none, huber or cauchy")
-        fixed = options.loss_scale_mm
+        if options.robust_loss not in ROBUST_K:
+            raise ValueError(f"unknown robust loss {options.robust_loss!r}; choose none, huber or cauchy")
+        fixed = options.robust_scale_mm
         res = e0.res
         total_it = total_ev = total_jac = 0
         history = []
         for _ in range(max(1, options.robust_passes)):
-            new = (fixed, fixed) if np.isscalar(fixed) else (tuple(fixed) if fixed else _robust_scales(res, options.loss))
+            new = (fixed, fixed) if np.isscalar(fixed) else (tuple(fixed) if fixed else _robust_scales(res, options.robust_loss))
             if scales != (1.0, 1.0) and all(abs(a - b) <= 0.05 * b for a, b in zip(new, scales)):
                 break
             scales = new
-            rob = Evaluator(problem, layout, options.chunk_size, options.loss, scales)
+            rob = Evaluator(problem, layout, options.chunk_size, options.robust_loss, scales)
             report = levenberg_marquardt(rob.evaluate, x, gamma, lm)
             x = report.x
             total_it += report.iterations
@@ -480,8 +507,8 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
         report = LMReport(x, report.cost, total_it, total_ev, total_jac, report.converged, report.message, history,
                           report.evaluation)
     e1 = report.evaluation  # at x, with the (robust) normal equations
-    plain = ev.evaluate(x, False) if options.loss not in ("none", "linear") else e1
-    weights = _irls_weights(plain.res, options.loss, scales)
+    plain = ev.evaluate(x, False) if options.robust_loss not in ("none", "linear") else e1
+    weights = irls_weights(plain.res, options.robust_loss, scales)
     unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names)
     sp, po = layout.unpack(x, problem.rig.params, problem.poses)
     std_s = np.zeros_like(sp)
@@ -498,12 +525,3 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
                         report, scales, tuple(diags), time.perf_counter() - t0,
                         {"cost": float(gamma[0] * np.sum(plain.res[:, 0] ** 2) + gamma[1] * np.sum(plain.res[:, 1] ** 2)),
                          "coarse": coarse})
-
-
-def _irls_weights(res, loss, scales):
-    if loss in ("none", "linear"):
-        return np.ones_like(res)
-    a = np.abs(res) / np.asarray(scales)[None, :]
-    if loss == "huber":
-        return np.where(a <= 1, 1.0, 1.0 / np.maximum(a, 1e-300))
-    return 1.0 / (1.0 + a**2)

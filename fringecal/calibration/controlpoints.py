@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from scipy import ndimage
 
-from schemas import ControlPointsTable, validate_table
+from fringecal.schemas import ControlPointsTable, validate_table
 
 __all__ = ["select_control_points", "incidence_map", "CONTROL_POINT_COLUMNS"]
 

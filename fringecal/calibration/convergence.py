@@ -136,7 +136,7 @@ def local_residuals(problem, rig, eps1: np.ndarray):
     entered the fits (at least ``MIN_POINTS`` points with finite rays); plus the number
     of sphere images used. Raises :class:`fringecal.sensor.UndistortError` (or returns
     NaN rows) where rays cannot be formed."""
-    from .results import triangulated_points
+    from fringecal.calibration.model import triangulated_points
 
     S = triangulated_points(problem, rig)
     n_sph, n_m = len(problem.artefact), len(problem.measurements)
@@ -188,7 +188,7 @@ def noise_floor_check(problem, rig, residuals: np.ndarray, dof: tuple | None = N
     """The noise-floor test of an adjusted ``rig`` with its ``residuals`` (n, 2) on
     ``problem``'s control points; ``dof`` = (nu_1, nu_2) of the adjustment (None: n
     each, i.e. no correction for the adjusted parameters)."""
-    from ..sensor import UndistortError
+    from fringecal.sensor import UndistortError
 
     n = problem.n_points
     try:

@@ -74,16 +74,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.stats
 
-from ..registration import kabsch
-from ..sensor import PARAM_NAMES
-from .bundle import BundleOptions, BundleResult, bundle_adjust
-from .model import BundleProblem
-from .propagation import (
+from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adjust
+from fringecal.calibration.model import BundleProblem
+from fringecal.calibration.propagation import (
     point_covariance,
     point_jacobian,
     sensor_covariance,
     triangulate_mm,
 )
+from fringecal.registration import kabsch
+from fringecal.sensor import PARAM_NAMES
 
 __all__ = [
     "CONSISTENT_MAX",

@@ -38,10 +38,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..frames import Frame
-from ..sensor import PARAM_NAMES
-from .model import BundleProblem, ParameterLayout
-from .uncertainty import NEAR_SINGULAR, UNOBSERVABLE, weak_directions
+from fringecal.calibration.model import BundleProblem, ParameterLayout
+from fringecal.calibration.uncertainty import NEAR_SINGULAR, UNOBSERVABLE, weak_directions
+from fringecal.frames import Frame
+from fringecal.sensor import PARAM_NAMES
 
 __all__ = ["Diagnosis", "DegenerateCalibrationError", "check_structure", "check_rank", "STANDOFF_SPREAD"]
 

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..rotation import angles_from_matrix, rotation_matrix
+from fringecal.rotation import angles_from_matrix, rotation_matrix
 
 __all__ = ["DLTError", "DLTEstimate", "dlt"]
 

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..lens import first_order_inverse, newton_step
+from fringecal.lens import first_order_inverse, newton_step
 
 __all__ = ["N_LOCAL", "assemble", "scatter", "residual_rows"]
 

@@ -18,15 +18,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from schemas import ControlPointsTable, PosePlanTable, TableError, validate_table
+from fringecal.artefact import Artefact
+from fringecal.calibration import kernels
+from fringecal.rig import Rig
+from fringecal.rotation import rotation_derivatives, rotation_matrix
+from fringecal.schemas import ControlPointsTable, PosePlanTable, TableError, validate_table
+from fringecal.sensor import PARAM_NAMES
+from fringecal.triangulation import closest_approach
 
-from ..artefact import Artefact
-from ..rig import Rig
-from ..rotation import rotation_derivatives, rotation_matrix
-from ..sensor import PARAM_NAMES
-from . import kernels
-
-__all__ = ["BundleProblem", "ParameterLayout", "Evaluator", "Evaluation", "POSE_NAMES", "POSE_COLUMNS"]
+__all__ = ["BundleProblem", "ParameterLayout", "Evaluator", "Evaluation", "POSE_NAMES", "POSE_COLUMNS", "triangulated_points"]
 
 POSE_NAMES = ("tx", "ty", "tz", "omega", "phi", "kappa")
 POSE_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
@@ -402,3 +402,16 @@ class Evaluator:
         start, stop, _, _ = self.problem.groups()
         counts = stop - start
         return np.repeat(a["gmap"], counts, axis=0)
+
+
+def triangulated_points(problem: BundleProblem, rig=None) -> np.ndarray:
+    """Midpoints of closest approach (n, 3) of every control point with ``rig``'s sensors."""
+    rig = problem.rig if rig is None else rig
+    S = np.full((problem.n_points, 3), np.nan)
+    for si, sc in enumerate(rig.scanners):
+        sel = problem.scanner_idx == si
+        if sel.any():
+            o1, d1 = sc.camera.rays(problem.cam_mm[sel])
+            o2, d2 = sc.projector.rays(problem.prj_mm[sel])
+            S[sel], _ = closest_approach(o1, d1, o2, d2)
+    return S

@@ -13,12 +13,14 @@ eight orders of magnitude below the effect).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from ..rig import Rig, Scanner
-from ..pointcloud import triangulate_image_points
+from fringecal.pointcloud import triangulate_image_points
+from fringecal.rig import Rig, Scanner
 
-__all__ = ["sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
+__all__ = ["ParameterCovariances", "parameter_covariances", "sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
            "point_variances", "point_uncertainty_map", "scanner_with", "STEP_FRACTION", "rigid_motion_basis", "frame_free_covariance",
            "ATTITUDE_WEIGHT_MM"]
 
@@ -143,8 +145,8 @@ def rigid_motion_basis(rig: Rig, eps: float = 1e-6) -> np.ndarray:
     """How every sensor parameter changes when the whole rig moves rigidly: shape
     (n_sensors * 14, 6), columns per unit translation along world x, y, z (mm) and
     rotation about them (rad, about the centroid of the projection centres)."""
-    from ..frames import Frame
-    from ..rotation import angles_from_matrix
+    from fringecal.frames import Frame
+    from fringecal.rotation import angles_from_matrix
 
     sensors = rig.sensors
     pivot = np.mean([s.pinhole for s in sensors], axis=0)
@@ -190,3 +192,35 @@ def frame_free_covariance(rig: Rig, covariance: np.ndarray) -> np.ndarray:
     WG = G * w[:, None]
     P = np.eye(G.shape[0]) - G @ np.linalg.solve(G.T @ WG, WG.T)
     return P @ np.asarray(covariance, float) @ P.T
+
+
+@dataclass(frozen=True)
+class ParameterCovariances:
+    """The sensor-parameter covariances (n_sensors * 14 square) and the scale response.
+
+    calibration, cmm : covariance from the adjustment and from the artefact table;
+    scale : (n_sensors * 14,) parameter change per unit relative scale of the artefact;
+    u_scale : relative standard uncertainty of the artefact's scale (temperature).
+    """
+
+    calibration: np.ndarray
+    cmm: np.ndarray
+    scale: np.ndarray
+    u_scale: float
+
+    @property
+    def total(self) -> np.ndarray:
+        return self.calibration + self.cmm + self.u_scale**2 * np.outer(self.scale, self.scale)
+
+
+def parameter_covariances(arrays: dict, u_scale: float, u_factor: float = 1.0) -> ParameterCovariances:
+    """The sensor-parameter covariances of a run's ``calibration_covariance.npz``
+    (``u_factor`` on the artefact table's uncertainties, ``u_scale`` the relative
+    standard uncertainty of the artefact's scale)."""
+    idx = arrays["sensor_index"]
+    S = arrays["artefact_sensitivity"] * (u_factor * arrays["artefact_u"])[None, :]
+    scale = np.zeros(idx.size)
+    flat = idx.reshape(-1)
+    scale[flat >= 0] = arrays["scale_sensitivity"][flat[flat >= 0]]
+    return ParameterCovariances(sensor_covariance(idx, arrays["covariance"]), sensor_covariance(idx, S @ S.T),
+                                scale, float(u_scale))

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-__all__ = ["LMOptions", "LMReport", "levenberg_marquardt"]
+__all__ = ["LMOptions", "LMReport", "levenberg_marquardt", "irls_weights"]
 
 
 @dataclass(frozen=True)
@@ -176,3 +176,14 @@ def levenberg_marquardt(evaluate, x0, gamma, options: LMOptions = LMOptions(), s
             converged, message = True, "xtol: scaled step below xtol"
             break
     return LMReport(x, F, it, n_eval, n_jac, converged, message, history, ev)
+
+
+def irls_weights(res, loss: str, scales) -> np.ndarray:
+    """(n, 2) weights of the residuals ``res`` (n, 2) under a robust ``loss`` (``none``,
+    ``huber``, ``cauchy``) with scales (alpha1, alpha2): iteratively reweighted least squares."""
+    if loss in ("none", "linear"):
+        return np.ones_like(res)
+    a = np.abs(res) / np.asarray(scales)[None, :]
+    if loss == "huber":
+        return np.where(a <= 1, 1.0, 1.0 / np.maximum(a, 1e-300))
+    return 1.0 / (1.0 + a**2)

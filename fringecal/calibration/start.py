@@ -44,13 +44,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.optimize
 
-from ..frames import Frame
-from ..registration import kabsch
-from ..rotation import angles_from_matrix
-from ..sensor import Sensor, UndistortError
-from ..triangulation import closest_points
-from .dlt import DLTError, DLTEstimate
-from .model import BundleProblem
+from fringecal.calibration.dlt import DLTError, DLTEstimate
+from fringecal.calibration.model import BundleProblem
+from fringecal.frames import Frame
+from fringecal.registration import kabsch
+from fringecal.rotation import angles_from_matrix
+from fringecal.sensor import Sensor, UndistortError
+from fringecal.triangulation import closest_points
 
 __all__ = ["reinitialise", "resect_pose", "resect_sensor", "sphere_centre_images", "sphere_image_centroids"]
 

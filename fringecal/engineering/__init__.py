@@ -28,19 +28,25 @@ materials
     ``materials.yaml`` (table 3-1 and the hardware).
 """
 
-from .consistency import ConsistencyReport, artefact_from_rod_lengths, rod_length_consistency
-from .corrections import ArtefactCorrections, apply_corrections
-from .design import THESIS_TRIANGLES, octahedral_chain
-from .errors import EngineeringInputError, MechanismError, SupportError, TrussError
-from .loads import GravityLoads, mass_loads, uniform_loads
-from .materials import Materials, load_materials
-from .moisture import (EarlyTimeDiffusion, FickianFit, LengthChange, fickian_fraction,
-                       moisture_content_pct, moisture_expansion_coefficient)
-from .rigidity import RigidityReport, analyse_rigidity, rigidity_matrix
-from .sag import SagCorrection, SupportCondition, gravity_in_artefact_frame, gravity_sag_correction
-from .supports import Supports, parse_supports
-from .thermal import CteFit, compensate_temperature
-from .truss import Truss, TrussSolution, free_motions, solve_truss
+from fringecal.engineering.consistency import ConsistencyReport, artefact_from_rod_lengths, rod_length_consistency
+from fringecal.engineering.corrections import ArtefactCorrections, apply_corrections
+from fringecal.engineering.design import THESIS_TRIANGLES, octahedral_chain
+from fringecal.engineering.errors import EngineeringInputError, MechanismError, SupportError, TrussError
+from fringecal.engineering.loads import GravityLoads, mass_loads, uniform_loads
+from fringecal.engineering.materials import Materials, load_materials
+from fringecal.engineering.moisture import (
+                       EarlyTimeDiffusion,
+                       FickianFit,
+                       LengthChange,
+                       fickian_fraction,
+                       moisture_content_pct,
+                       moisture_expansion_coefficient,
+)
+from fringecal.engineering.rigidity import RigidityReport, analyse_rigidity, rigidity_matrix
+from fringecal.engineering.sag import SagCorrection, SupportCondition, gravity_in_artefact_frame, gravity_sag_correction
+from fringecal.engineering.supports import Supports, parse_supports
+from fringecal.engineering.thermal import CteFit, compensate_temperature
+from fringecal.engineering.truss import Truss, TrussSolution, free_motions, solve_truss
 
 __all__ = [
     "ArtefactCorrections", "ConsistencyReport", "CteFit", "EarlyTimeDiffusion", "EngineeringInputError",

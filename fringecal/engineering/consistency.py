@@ -21,10 +21,9 @@ import numpy as np
 import pandas as pd
 
 from fringecal.artefact import Artefact, check_rods
+from fringecal.engineering.errors import EngineeringInputError
+from fringecal.engineering.truss import Truss
 from fringecal.registration import kabsch
-
-from .errors import EngineeringInputError
-from .truss import Truss
 
 __all__ = ["ConsistencyReport", "rod_length_consistency", "artefact_from_rod_lengths"]
 

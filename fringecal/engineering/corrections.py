@@ -29,10 +29,9 @@ from pydantic import Field
 
 from fringecal.artefact import Artefact, load_rods
 from fringecal.config import StrictModel
-
-from .materials import load_materials
-from .sag import SupportCondition, gravity_sag_correction
-from .thermal import DEFAULT_CTE_PER_C, REFERENCE_TEMPERATURE_C, compensate_temperature
+from fringecal.engineering.materials import load_materials
+from fringecal.engineering.sag import SupportCondition, gravity_sag_correction
+from fringecal.engineering.thermal import DEFAULT_CTE_PER_C, REFERENCE_TEMPERATURE_C, compensate_temperature
 
 __all__ = ["SagSettings", "ThermalSettings", "ArtefactCorrections", "apply_corrections"]
 

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .errors import EngineeringInputError, TrussError
-from .materials import Materials
-from .truss import Truss
+from fringecal.engineering.errors import EngineeringInputError, TrussError
+from fringecal.engineering.materials import Materials
+from fringecal.engineering.truss import Truss
 
 __all__ = ["STANDARD_GRAVITY", "GravityLoads", "unit_vector", "mass_loads", "uniform_loads"]
 

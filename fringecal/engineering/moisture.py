@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import erfcx
 
-from .errors import EngineeringInputError
+from fringecal.engineering.errors import EngineeringInputError
 
 __all__ = [
     "moisture_content_pct", "fickian_fraction", "EarlyTimeDiffusion", "FickianFit",

@@ -28,12 +28,11 @@ import numpy as np
 import pandas as pd
 
 from fringecal.artefact import Artefact
+from fringecal.engineering.loads import STANDARD_GRAVITY, mass_loads, unit_vector
+from fringecal.engineering.materials import Materials
+from fringecal.engineering.supports import Supports, parse_supports
+from fringecal.engineering.truss import Truss, TrussSolution, solve_truss
 from fringecal.registration import kabsch
-
-from .loads import STANDARD_GRAVITY, mass_loads, unit_vector
-from .materials import Materials
-from .supports import Supports, parse_supports
-from .truss import Truss, TrussSolution, solve_truss
 
 __all__ = ["SupportCondition", "SagCorrection", "gravity_sag_correction", "gravity_in_artefact_frame",
            "remove_rigid_motion"]

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .errors import SupportError
+from fringecal.engineering.errors import SupportError
 
 __all__ = ["Supports", "parse_supports", "supports_from_table", "MIN_CONSTRAINTS"]
 

@@ -24,8 +24,7 @@ import numpy as np
 import pandas as pd
 
 from fringecal.artefact import Artefact
-
-from .errors import EngineeringInputError
+from fringecal.engineering.errors import EngineeringInputError
 
 __all__ = ["CteFit", "compensate_temperature", "DEFAULT_CTE_PER_C", "REFERENCE_TEMPERATURE_C"]
 

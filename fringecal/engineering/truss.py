@@ -35,9 +35,8 @@ import pandas as pd
 from scipy.linalg import null_space
 
 from fringecal.artefact import Artefact, check_rods
-
-from .errors import MechanismError, TrussError
-from .supports import Supports, parse_supports
+from fringecal.engineering.errors import MechanismError, TrussError
+from fringecal.engineering.supports import Supports, parse_supports
 
 __all__ = ["Truss", "TrussSolution", "solve_truss", "free_motions", "describe_motion", "parse_supports"]
 

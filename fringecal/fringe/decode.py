@@ -34,8 +34,8 @@ import numba as nb
 import numpy as np
 from pydantic import Field
 
-from ..config import StrictModel
-from .sequence import FringeSequence
+from fringecal.config import StrictModel
+from fringecal.fringe.sequence import FringeSequence
 
 __all__ = ["DecodeSettings", "DecodedPhase", "decode", "tau_noise_theory"]
 

@@ -87,10 +87,20 @@ import tifffile
 import yaml
 from pydantic import Field, ValidationError
 
-from ..config import StrictModel
-from .frame_files import (SEQUENCE_FILE, FrameStackError, Scratch, empty_file, probe_bmp, probe_png, probe_tif,
-                          read_bmp, read_png, read_tif)
-from .sequence import FringeSequence, SequenceError
+from fringecal.config import StrictModel
+from fringecal.fringe.frame_files import (
+    SEQUENCE_FILE,
+    FrameStackError,
+    Scratch,
+    empty_file,
+    probe_bmp,
+    probe_png,
+    probe_tif,
+    read_bmp,
+    read_png,
+    read_tif,
+)
+from fringecal.fringe.sequence import FringeSequence, SequenceError
 
 __all__ = ["FrameStackError", "StackSpec", "FrameStack", "read_stack_spec", "check_stack", "check_levels",
            "read_frames", "write_frames", "SEQUENCE_FILE", "STACK_FILE", "FRAME_FORMATS", "MAX_SATURATED_FRACTION",

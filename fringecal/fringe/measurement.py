@@ -1,7 +1,7 @@
 """Frames -> decoded maps -> one measurement store.
 
 :func:`decode_to_store` is the whole path for frames already in memory (a simulated
-measurement is render -> ``decode_to_store``, :func:`fringecal.acquisition.simulate_measurement`); :func:`decode_folder` reads a
+measurement is render -> ``decode_to_store``, :func:`fringecal.simulate.measurement.simulate_measurement`); :func:`decode_folder` reads a
 frame folder first. Both refuse a measurement without fringes (zero modulation
 everywhere) or without a single valid pixel, naming the source.
 """
@@ -14,11 +14,11 @@ from typing import Mapping
 import numpy as np
 import xarray as xr
 
-from .. import __version__
-from ..store import write_store
-from .decode import DecodedPhase, DecodeSettings, decode
-from .importer import FrameStackError, read_frames
-from .sequence import FringeSequence
+from fringecal import __version__
+from fringecal.fringe.decode import DecodedPhase, DecodeSettings, decode
+from fringecal.fringe.importer import FrameStackError, read_frames
+from fringecal.fringe.sequence import FringeSequence
+from fringecal.store import write_store
 
 __all__ = ["NoFringesError", "check_decoded", "measurement_dataset", "decode_to_store", "decode_folder",
            "VARIABLE_ATTRS"]

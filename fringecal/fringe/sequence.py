@@ -23,8 +23,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 
-__all__ = ["FringeSequence", "reverse_exponential_counts", "SequenceError"]
+from fringecal.config import StrictModel
+
+__all__ = ["FringeSequence", "SequenceConfig", "reverse_exponential_counts", "SequenceError"]
 
 
 class SequenceError(ValueError):
@@ -128,3 +131,14 @@ class FringeSequence:
         if not 0 <= step < self.n_steps:
             raise SequenceError(f"step {step} outside 0..{self.n_steps - 1}")
         return (o * len(self.fringe_counts) + t) * self.n_steps + step
+
+
+class SequenceConfig(StrictModel):
+    """The projected fringe sequence (thesis: 7 counts x 7 steps x 2 orientations)."""
+
+    fringe_counts: list[int] = Field(default_factory=lambda: [64, 63, 62, 60, 56, 48, 32])
+    n_steps: int = 7
+    orientations: list[str] = Field(default_factory=lambda: ["x", "y"])
+
+    def build(self) -> FringeSequence:
+        return FringeSequence(tuple(self.fringe_counts), self.n_steps, tuple(self.orientations))

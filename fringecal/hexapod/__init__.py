@@ -18,18 +18,18 @@ import serial as _serial
 if "fringecal.hexapod" not in _serial.protocol_handler_packages:
     _serial.protocol_handler_packages.append("fringecal.hexapod")
 
-from .config import HexapodConfig, load_hexapod_config  # noqa: E402
-from .drift import DriftReport, drift_check  # noqa: E402
-from .driver import HexapodDriver, HexapodFault, TargetRejected  # noqa: E402
-from .kinematics import (  # noqa: E402
+from fringecal.hexapod.config import HexapodConfig, load_hexapod_config  # noqa: E402
+from fringecal.hexapod.drift import DriftReport, drift_check  # noqa: E402
+from fringecal.hexapod.driver import HexapodDriver, HexapodFault, TargetRejected  # noqa: E402
+from fringecal.hexapod.kinematics import (  # noqa: E402
     ForwardKinematicsError,
     PlatformGeometry,
     forward_kinematics,
     inverse_kinematics,
 )
-from .mover import ArtefactMove, PlatformMover  # noqa: E402
-from .planning import HexapodRig  # noqa: E402
-from .workspace import check_poses, reach_report  # noqa: E402
+from fringecal.hexapod.mover import ArtefactMove, PlatformMover  # noqa: E402
+from fringecal.hexapod.planning import HexapodRig  # noqa: E402
+from fringecal.hexapod.workspace import check_poses, reach_report  # noqa: E402
 
 __all__ = [
     "ArtefactMove",

@@ -17,9 +17,9 @@ from typing import Optional
 import numpy as np
 from pydantic import Field, model_validator
 
-from ..config import StrictModel, load_yaml_model, package_root
-from ..frames import Frame
-from .kinematics import PlatformGeometry
+from fringecal.config import StrictModel, configs_dir, load_yaml_model
+from fringecal.frames import Frame
+from fringecal.hexapod.kinematics import PlatformGeometry
 
 __all__ = [
     "GeometryConfig",
@@ -131,7 +131,7 @@ class HexapodConfig(StrictModel):
 
     @model_validator(mode="after")
     def _home_in_stroke(self):
-        from .kinematics import inverse_kinematics
+        from fringecal.hexapod.kinematics import inverse_kinematics
 
         lengths = inverse_kinematics(self.platform, self.home_pose.vector)
         stroke = lengths - self.actuator.retracted_length_mm
@@ -147,7 +147,7 @@ class HexapodConfig(StrictModel):
 
 
 def default_hexapod_config_path() -> Path:
-    return package_root() / "configs" / "hexapod" / "thesis_platform.yaml"
+    return configs_dir() / "hexapod" / "thesis_platform.yaml"
 
 
 def load_hexapod_config(path=None) -> HexapodConfig:

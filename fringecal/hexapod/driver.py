@@ -29,12 +29,21 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from ..atomic import write_text
-from .config import HexapodConfig
-from .kinematics import ForwardKinematicsError, forward_kinematics, inverse_kinematics
-from .planning import counts_from_lengths, lengths_from_counts
-from .protocol import Command, ProtocolError, Reply, format_command, frame, parse_command, parse_reply, unframe
-from .workspace import check_poses, describe_violations
+from fringecal.atomic import write_text
+from fringecal.hexapod.config import HexapodConfig
+from fringecal.hexapod.kinematics import ForwardKinematicsError, forward_kinematics, inverse_kinematics
+from fringecal.hexapod.planning import counts_from_lengths, lengths_from_counts
+from fringecal.hexapod.protocol import (
+    Command,
+    ProtocolError,
+    Reply,
+    format_command,
+    frame,
+    parse_command,
+    parse_reply,
+    unframe,
+)
+from fringecal.hexapod.workspace import check_poses, describe_violations
 
 __all__ = ["HexapodDriver", "HexapodFault", "TargetRejected", "read_command_file", "write_command_file"]
 
@@ -109,8 +118,6 @@ class HexapodDriver:
     @classmethod
     def open(cls, url: str, config: HexapodConfig) -> "HexapodDriver":
         """Open ``url`` and check the box identifies with the configured count range."""
-        import fringecal.hexapod  # noqa: F401  (registers hexsim://)
-
         try:
             port = serial.serial_for_url(url, baudrate=config.serial.baudrate,
                                          timeout=config.serial.reply_timeout_s,

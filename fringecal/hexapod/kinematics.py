@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..frames import Frame
+from fringecal.frames import Frame
 
 __all__ = [
     "POSE_NAMES",

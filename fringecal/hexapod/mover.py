@@ -20,10 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..frames import Frame
-from .driver import HexapodDriver, TargetRejected
-from .planning import HexapodRig
-from .workspace import check_poses, describe_violations
+from fringecal.frames import Frame
+from fringecal.hexapod.driver import HexapodDriver, TargetRejected
+from fringecal.hexapod.planning import HexapodRig
+from fringecal.hexapod.workspace import check_poses, describe_violations
 
 __all__ = ["ArtefactMove", "PlatformMover"]
 

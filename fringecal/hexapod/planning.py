@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from ..frames import Frame
-from .config import HexapodConfig
-from .kinematics import forward_kinematics, inverse_kinematics, pose_from_frame, pose_to_frame
-from .workspace import check_poses, describe_violations
+from fringecal.frames import Frame
+from fringecal.hexapod.config import HexapodConfig
+from fringecal.hexapod.kinematics import forward_kinematics, inverse_kinematics, pose_from_frame, pose_to_frame
+from fringecal.hexapod.workspace import check_poses, describe_violations
 
 __all__ = [
     "HexapodRig",
@@ -106,7 +106,7 @@ class HexapodRig:
         return self.artefact_pose_for(fk.poses), fk.poses
 
     def plan(self, artefact_poses: pd.DataFrame, station: str = "1") -> pd.DataFrame:
-        """Plan table (schemas.HexapodPlanTable) for a PosePlanTable of T_world_artefact.
+        """Plan table (fringecal.schemas.HexapodPlanTable) for a PosePlanTable of T_world_artefact.
 
         One row per measurement: the platform pose, leg lengths, strokes, counts, and
         whether the pose is reachable, with the constraints it breaks in ``limits``.
@@ -208,7 +208,7 @@ def quantisation_bound(config: HexapodConfig, platform_pose) -> np.ndarray:
     Linearised: ``|d pose_k| <= q sum_j |(J^-1)_kj|`` with ``q = 0.5 / counts_per_mm``
     and J the leg Jacobian at ``platform_pose``.
     """
-    from .kinematics import leg_jacobian
+    from fringecal.hexapod.kinematics import leg_jacobian
 
     J = leg_jacobian(config.platform, np.asarray(platform_pose, float))
     q = 0.5 / config.actuator.counts_per_mm

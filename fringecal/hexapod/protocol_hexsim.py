@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from .protocol import TERMINATOR
-from .simulator import SimulatedController, controller_for_url
+from fringecal.hexapod.protocol import TERMINATOR
+from fringecal.hexapod.simulator import SimulatedController, controller_for_url
 
 __all__ = ["Serial"]
 

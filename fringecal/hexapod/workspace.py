@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import HexapodConfig
-from .kinematics import POSE_NAMES, leg_vectors, rotation_base_top
+from fringecal.hexapod.config import HexapodConfig
+from fringecal.hexapod.kinematics import POSE_NAMES, leg_vectors, rotation_base_top
 
 __all__ = ["WorkspaceCheck", "check_poses", "AxisRange", "axis_range", "reach_report", "describe_violations",
            "CubeReach", "cube_reach"]

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..rotation import angles_from_matrix
-from ..sensor import Role, Sensor, SensorFormat
+from fringecal.rotation import angles_from_matrix
+from fringecal.sensor import Role, Sensor, SensorFormat
 
 __all__ = ["OpenCVCamera", "ImportedSensor", "to_opencv", "from_opencv", "model_difference", "pixel_map",
            "GRID", "DEPTHS_MM"]

@@ -24,7 +24,7 @@ Reading (:func:`read_stereo`) needs only the six keys of ``cv2.stereoCalibrate``
 output: ``cameraMatrix1``, ``distCoeffs1``, ``cameraMatrix2``, ``distCoeffs2``, ``R``,
 ``T`` (``M1, D1, M2, D2`` of OpenCV's stereo sample are accepted too); the others are
 optional. :func:`prior_scanner` turns it into a scanner's prior calibration in its own
-frame, as a data set's ``sensors_prior.csv`` holds it (:mod:`fringecal.pipeline.prior`):
+frame, as a data set's ``sensors_prior.csv`` holds it (:mod:`fringecal.simulate.prior`):
 the camera at the origin with angles exactly zero, i.e. the scanner's frame is OpenCV's
 first camera frame turned by pi about the optical axis.
 """
@@ -37,12 +37,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..atomic import write_text
-from ..frames import Frame
-from ..linking import sensor_in_frame
-from ..rig import Rig, Scanner
-from ..sensor import SensorFormat
-from .opencv import DEPTHS_MM, GRID, F, ImportedSensor, OpenCVCamera, from_opencv, to_opencv
+from fringecal.atomic import write_text
+from fringecal.frames import Frame
+from fringecal.interop.opencv import DEPTHS_MM, GRID, F, ImportedSensor, OpenCVCamera, from_opencv, to_opencv
+from fringecal.rig import Rig, Scanner
+from fringecal.sensor import SensorFormat, sensor_in_frame
 
 __all__ = ["OpenCVFileError", "StereoFile", "stereo_text", "write_rig", "read_stereo", "prior_scanner",
            "THESIS_WIDTH_MM", "REQUIRED_KEYS"]
@@ -191,7 +190,7 @@ def prior_scanner(st: StereoFile, name: str, camera_name: str, projector_name: s
     arguments; widths default to :data:`THESIS_WIDTH_MM`. The camera sits at the origin
     with angles zero (OpenCV pose ``R = F``, ``t = 0``), the projector at OpenCV pose
     ``(R F, T)``; its Euler angles take the branch of ``projectorAnglesInCamera`` when
-    the file has it (the convention of :func:`fringecal.linking.sensor_in_frame`), else
+    the file has it (the convention of :func:`fringecal.sensor.sensor_in_frame`), else
     phi in [-pi/2, pi/2].
 
     Returns

@@ -21,7 +21,7 @@ u_mm        f4    standard uncertainty of the point's position from the
 =========== ===== =========================================================
 
 The uncertainty is the calibration's covariance (adjustment, artefact CMM and
-artefact scale, :class:`fringecal.length_uncertainty.ParameterCovariances`) propagated
+artefact scale, :class:`fringecal.calibration.propagation.ParameterCovariances`) propagated
 through the triangulation (:func:`fringecal.calibration.propagation.point_jacobian`).
 ``fringecal measure`` first moves it to the frame the sensors realise
 (:func:`fringecal.calibration.propagation.frame_free_covariance`): the adjustment's
@@ -47,9 +47,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration.propagation import point_variances, scanner_block
-from ..pointcloud import triangulate_maps
-from ..rig import Rig, Scanner
+from fringecal.calibration.propagation import point_variances, scanner_block
+from fringecal.pointcloud import triangulate_maps
+from fringecal.rig import Rig, Scanner
 
 __all__ = ["POINT_DTYPE", "Cloud", "MeasureSettings", "scanner_points", "measure_cloud", "point_uncertainty",
            "UNCERTAINTY_STEP", "SAME_SURFACE_MM"]
@@ -197,7 +197,7 @@ def measure_cloud(rig: Rig, stores: Mapping[str, object], settings: MeasureSetti
         rig order (``ParameterCovariances.total``), or None
     measurement : the value of the points' ``measurement`` field
     """
-    from ..pipeline.verify import store_scanner
+    from fringecal.verification.measure import store_scanner
 
     names = tuple(s.name for s in rig.scanners)
     unknown = sorted(set(stores) - set(names))

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .cloud import Cloud
+from fringecal.measure.cloud import Cloud
 
 __all__ = ["OverlapStats", "surface_distances", "overlap_report", "MIN_NEIGHBOURS", "RADIUS_SPACINGS"]
 

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calibration.propagation import frame_free_covariance
-from ..calibration_file import read_calibration
-from .cloud import Cloud, MeasureSettings, measure_cloud
-from .files import CLOUD_SUFFIXES, write_cloud
-from .overlap import overlap_report
-from .sources import MeasurementSourceError, measurement_entries, open_entry
+from fringecal.calibration.file import read_calibration
+from fringecal.calibration.propagation import frame_free_covariance
+from fringecal.measure.cloud import Cloud, MeasureSettings, measure_cloud
+from fringecal.measure.files import CLOUD_SUFFIXES, write_cloud
+from fringecal.measure.overlap import overlap_report
+from fringecal.measure.sources import MeasurementSourceError, measurement_entries, open_entry
 
 __all__ = ["measure_folder", "check_output"]
 

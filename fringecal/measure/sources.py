@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..fringe.importer import SEQUENCE_FILE
-from ..rig import Rig
+from fringecal.fringe.importer import SEQUENCE_FILE
+from fringecal.rig import Rig
 
 __all__ = ["MeasurementSourceError", "measurement_entries", "open_entry"]
 
@@ -62,12 +62,12 @@ def measurement_entries(folder, rig: Rig, kind: str) -> dict[str, Path]:
 
 def _check_entry(entry: Path, camera, kind: str) -> None:
     if kind == "frames":
-        from ..fringe.importer import check_stack
+        from fringecal.fringe.importer import check_stack
 
         spec, _, _ = check_stack(entry)  # every frame's header: empty, truncated, colour, size, depth
         w, h = spec.width_px, spec.height_px
     else:
-        from ..store import StoreError, is_complete, open_store
+        from fringecal.store import StoreError, is_complete, open_store
 
         if not is_complete(entry):
             raise MeasurementSourceError(f"{entry}: not a complete store (interrupted write or not a fringecal store)")
@@ -88,12 +88,12 @@ def _check_entry(entry: Path, camera, kind: str) -> None:
 def open_entry(entry: Path, kind: str, decode_settings=None):
     """The maps of one entry (an opened store, or the frames decoded in memory)."""
     if kind == "stores":
-        from ..store import open_store
+        from fringecal.store import open_store
 
         return open_store(entry)
-    from ..fringe.decode import decode
-    from ..fringe.importer import read_frames
-    from ..fringe.measurement import check_decoded, measurement_dataset
+    from fringecal.fringe.decode import decode
+    from fringecal.fringe.importer import read_frames
+    from fringecal.fringe.measurement import check_decoded, measurement_dataset
 
     stack = read_frames(entry)
     result = decode(stack.frames, stack.sequence, decode_settings, stack.full_scale)

@@ -29,7 +29,7 @@ Images are embedded as base64 PNG, the style sheet is inline, there is no
 JavaScript.
 """
 
-from .page import render_report, write_report
-from .rundata import NO_TRUTH
+from fringecal.report.page import render_report, write_report
+from fringecal.report.rundata import NO_TRUTH
 
 __all__ = ["NO_TRUTH", "render_report", "write_report"]

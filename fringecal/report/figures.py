@@ -1,18 +1,20 @@
 """The report's plots, drawn with matplotlib (Agg, no display) and embedded as PNG.
 
-The residual histograms are the run's own ``figures/*.png``; drawn here are the
-ball-bar errors per position and the acceptance test's positions in the world frame.
+The residual histograms are the run's own ``figures/*.png``
+(:mod:`fringecal.report.plotting`); drawn here are the ball-bar errors per position and
+the acceptance test's positions in the world frame.
 """
 
 from __future__ import annotations
 
 import base64
-import io
 from dataclasses import dataclass
 
 import numpy as np
 
-from .formatting import finite
+from fringecal.report.formatting import finite
+from fringecal.report.plotting import figure as _figure
+from fringecal.report.plotting import png as _png
 
 __all__ = ["TEST_COLOURS", "Image", "acceptance_png", "ballbar_png"]
 
@@ -34,21 +36,6 @@ class Image:
     def src(self) -> str:
         """The ``data:`` URI of the PNG."""
         return "data:image/png;base64," + base64.b64encode(self.png).decode("ascii")
-
-
-def _figure(width_in: float, height_in: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width_in, height_in), dpi=100)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    return buf.getvalue()
 
 
 def ballbar_png(cal: dict, true: dict | None) -> bytes:

@@ -9,10 +9,22 @@ from pathlib import Path
 
 import jinja2
 
-from ..rundir import RunDir
-from .rundata import RunData, Shown, guard
-from .sections import (SECTIONS, acceptance, crossval, header, parameters, provenance, residuals, results, rig,
-                       timing, truth, verification)
+from fringecal.report.rundata import RunData, Shown, guard
+from fringecal.report.sections import (
+    SECTIONS,
+    acceptance,
+    crossval,
+    header,
+    parameters,
+    provenance,
+    residuals,
+    results,
+    rig,
+    timing,
+    truth,
+    verification,
+)
+from fringecal.rundir import RunDir
 
 __all__ = ["render_report", "write_report"]
 
@@ -52,7 +64,7 @@ def render_report(run_dir, timings: dict | None = None, execution: dict | None =
     if not any(f.path.is_file() for f in markers):
         raise FileNotFoundError(f"{rd.root} is not a run directory: none of "
                                 f"{', '.join(f.rel for f in markers)} is there")
-    from .. import __version__
+    from fringecal import __version__
 
     run = RunData(rd)
     generated = generated or datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from ..rundir import RunDir, RunFile
-from .formatting import truthy
+from fringecal.report.formatting import truthy
+from fringecal.rundir import RunDir, RunFile
 
 __all__ = ["NO_TRUTH", "SOURCES", "Missing", "RunData", "Shown", "failure", "guard", "numeric"]
 

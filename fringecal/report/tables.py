@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .formatting import truthy
+from fringecal.report.formatting import truthy
 
 __all__ = ["Cell", "Span", "Table", "column_note", "pass_cell", "table"]
 

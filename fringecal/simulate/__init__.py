@@ -9,14 +9,35 @@ Typical use::
     m.truth       # GroundTruth: tau_x, tau_y, point, object_index, sphere_index, ...
 """
 
-from .config import DEFAULT_MATERIALS, Material, RenderConfig, excess_noise_for_tau_noise, phase_noise, surface_levels
-from .render import (LIGHT_LIT, LIGHT_NO_HIT, LIGHT_OUTSIDE, LIGHT_SHADOW, GroundTruth, Measurement,
-                     render_measurement)
-from .resolution import scaled_format, scaled_rig, scaled_scanner
-from .scene import Box, Cylinder, Hits, Panel, Plane, Scene, SceneObject, Sphere
-from .scenes import (SPHERE_PLATE_SEPARATION_MM, ArtefactHardware, artefact_scene, backdrop, sphere_plate_pose,
-                     sphere_plate_scene)
-from .visibility import pixel_centre_rays, sphere_visibility
+from fringecal.rig import scaled_rig, scaled_scanner
+from fringecal.sensor import scaled_format
+from fringecal.simulate.config import (
+                     DEFAULT_MATERIALS,
+                     Material,
+                     RenderConfig,
+                     excess_noise_for_tau_noise,
+                     phase_noise,
+                     surface_levels,
+)
+from fringecal.simulate.render import (
+                     LIGHT_LIT,
+                     LIGHT_NO_HIT,
+                     LIGHT_OUTSIDE,
+                     LIGHT_SHADOW,
+                     GroundTruth,
+                     Measurement,
+                     render_measurement,
+)
+from fringecal.simulate.scene import Box, Cylinder, Hits, Panel, Plane, Scene, SceneObject, Sphere
+from fringecal.simulate.scenes import (
+                     SPHERE_PLATE_SEPARATION_MM,
+                     ArtefactHardware,
+                     artefact_scene,
+                     backdrop,
+                     sphere_plate_pose,
+                     sphere_plate_scene,
+)
+from fringecal.simulate.visibility import pixel_centre_rays, sphere_visibility
 
 __all__ = [
     "Material", "RenderConfig", "DEFAULT_MATERIALS", "surface_levels", "phase_noise", "excess_noise_for_tau_noise",

@@ -54,13 +54,15 @@ the same pixels).
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from typing import Optional
 
 from pydantic import Field, field_validator, model_validator
 
-from ..config import StrictModel
-from ..fringe.sequence import FringeSequence
+from fringecal.config import StrictModel
+from fringecal.fringe.sequence import FringeSequence, SequenceConfig
 
-__all__ = ["Material", "RenderConfig", "DEFAULT_MATERIALS", "surface_levels", "phase_noise",
+__all__ = ["AcquisitionConfig", "HexapodStepConfig", "Material", "RenderConfig", "DEFAULT_MATERIALS", "surface_levels", "phase_noise",
            "excess_noise_for_tau_noise"]
 
 
@@ -182,3 +184,23 @@ def excess_noise_for_tau_noise(config: RenderConfig, sigma_tau: float, level: fl
     base = phase_noise(config.model_copy(update=dict(excess_noise=0.0)), level, modulation, seq)
     target_i = sigma_tau * math.sqrt(sum(t * t for t in seq.fringe_counts)) * modulation / math.sqrt(2.0 / seq.n_steps)
     return math.sqrt(max(0.0, target_i ** 2 - base["sigma_intensity"] ** 2))
+
+
+class HexapodStepConfig(StrictModel):
+    """Move the (simulated) hexapod before each pose; the reached pose is what is rendered."""
+
+    enabled: bool = True
+    config: Optional[Path] = None  # default: configs/hexapod/thesis_platform.yaml
+    url: str = "hexsim://acquisition"
+
+
+class AcquisitionConfig(StrictModel):
+    """Simulated acquisition of every (pose, scanner) measurement."""
+
+    camera_width_px: int = Field(512, ge=16)
+    render: RenderConfig = Field(default_factory=RenderConfig)
+    sequence: SequenceConfig = Field(default_factory=SequenceConfig)
+    seed: int = 2026
+    backdrop_mm: Optional[float] = None
+    hexapod: HexapodStepConfig = Field(default_factory=HexapodStepConfig)
+    store_frames: bool = False

@@ -54,7 +54,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from ..config import StrictModel
+from fringecal.config import StrictModel
 
 __all__ = ["ARTEFACT_SWITCHES", "REALISTIC", "RENDER_SWITCHES", "SESSION_SWITCHES", "SimulationErrors", "error_rng",
            "errors_subset", "switch_settings"]

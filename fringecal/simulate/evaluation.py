@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fringe.sequence import FringeSequence
-from ..sensor import Sensor
-from .render import GroundTruth
+from fringecal.fringe.sequence import FringeSequence
+from fringecal.sensor import Sensor
+from fringecal.simulate.render import GroundTruth
 
 __all__ = ["pure_mask", "unwrap_threshold", "tau_residuals", "tau_error_summary", "projector_pixel_rad"]
 

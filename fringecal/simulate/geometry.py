@@ -45,9 +45,8 @@ import math
 import numpy as np
 from numba import njit
 
-from ..lens import newton_step
-
-from ..sensor import Sensor
+from fringecal.lens import newton_step
+from fringecal.sensor import Sensor
 
 SPHERE, CYLINDER, BOX, PLANE, PANEL = 0, 1, 2, 3, 4
 P, A, B, C = 0, 3, 6, 9

@@ -29,8 +29,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from . import geometry as g
-from .noise import quantise, record_pixels, stream
+from fringecal.simulate import geometry as g
+from fringecal.simulate.noise import quantise, record_pixels, stream
 
 #: Illumination codes of a hit (the truth's ``light`` map).
 LIGHT_NO_HIT, LIGHT_LIT, LIGHT_SHADOW, LIGHT_OUTSIDE = 0, 1, 2, 3

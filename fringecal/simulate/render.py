@@ -26,14 +26,21 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fringe.sequence import FringeSequence
-from ..atomic import atomic_path
-from ..rig import Scanner
-from . import geometry as g
-from .config import RenderConfig
-from .kernel import LIGHT_LIT, LIGHT_NO_HIT, LIGHT_OUTSIDE, LIGHT_SHADOW, render_tiles
-from .scene import Scene
-from .unmodelled import NO_FIELD, RenderErrors, emitted_harmonics, form_array, frame_weights, phase_field
+from fringecal.atomic import atomic_path
+from fringecal.fringe.sequence import FringeSequence
+from fringecal.rig import Scanner
+from fringecal.simulate import geometry as g
+from fringecal.simulate.config import RenderConfig
+from fringecal.simulate.kernel import LIGHT_LIT, LIGHT_NO_HIT, LIGHT_OUTSIDE, LIGHT_SHADOW, render_tiles
+from fringecal.simulate.scene import Scene
+from fringecal.simulate.unmodelled import (
+    NO_FIELD,
+    RenderErrors,
+    emitted_harmonics,
+    form_array,
+    frame_weights,
+    phase_field,
+)
 
 __all__ = ["GroundTruth", "Measurement", "render_measurement", "LIGHT_NO_HIT", "LIGHT_LIT",
            "LIGHT_SHADOW", "LIGHT_OUTSIDE"]

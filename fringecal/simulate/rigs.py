@@ -31,11 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import package_root, thesis_dir
-from ..frames import Frame
-from ..rig import Rig, Scanner, load_rig
-from ..rotation import angles_from_matrix, rotation_matrix
-from ..sensor import Sensor
+from fringecal.config import configs_dir, thesis_dir
+from fringecal.frames import Frame
+from fringecal.rig import Rig, Scanner, load_rig
+from fringecal.rotation import angles_from_matrix, rotation_matrix
+from fringecal.sensor import Sensor
 
 __all__ = ["carried_scanner", "row_rig", "ring_rig", "RIG_TABLES", "write_rig_tables"]
 
@@ -99,7 +99,7 @@ RIG_TABLES = {"row3": row_rig, "ring6": ring_rig}
 
 def write_rig_tables(root: Path | None = None) -> list[Path]:
     """Write ``configs/<name>/sensors.csv`` for every rig of :data:`RIG_TABLES`."""
-    root = Path(root) if root is not None else package_root() / "configs"
+    root = Path(root) if root is not None else configs_dir()
     out = []
     for name, build in RIG_TABLES.items():
         path = root / name / "sensors.csv"

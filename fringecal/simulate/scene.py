@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from . import geometry as g
+from fringecal.simulate import geometry as g
 
 __all__ = ["Sphere", "Cylinder", "Box", "Plane", "Panel", "SceneObject", "Scene", "Hits"]
 

@@ -20,11 +20,11 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from ..artefact import Artefact
-from ..config import StrictModel, thesis_dir
-from ..frames import Frame
-from ..rig import Scanner
-from .scene import Box, Cylinder, Plane, Scene, SceneObject, Sphere
+from fringecal.artefact import Artefact
+from fringecal.config import StrictModel, thesis_dir
+from fringecal.frames import Frame
+from fringecal.rig import Scanner
+from fringecal.simulate.scene import Box, Cylinder, Plane, Scene, SceneObject, Sphere
 
 __all__ = [
     "ArtefactHardware",
@@ -187,7 +187,7 @@ def dumbbell_scene(standard, T_world_dumbbell: Frame, hardware: ArtefactHardware
     ``A`` at ``T_world_dumbbell``'s origin and ``B`` at (length_mm, 0, 0), joined like
     the ball-bar (:func:`artefact_scene`) by a rod of the dumbbell's rod diameter with
     end caps of that diameter and ``hardware``'s end-cap length."""
-    from ..ballbar import ballbar_rods
+    from fringecal.verification.ballbar import ballbar_rods
 
     hw = (hardware or ArtefactHardware()).model_copy(update={"tube_diameter_mm": standard.rod_diameter_mm,
                                                              "end_cap_diameter_mm": standard.rod_diameter_mm})

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..config import thesis_dir
+from fringecal.config import thesis_dir
 
 __all__ = ["write_small_thesis_config"]
 

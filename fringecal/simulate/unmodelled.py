@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..fringe.sequence import FringeSequence
-from ..sensor import SensorFormat
-from . import geometry as g
+from fringecal.fringe.sequence import FringeSequence
+from fringecal.sensor import SensorFormat
+from fringecal.simulate import geometry as g
 
 __all__ = ["HARMONIC_TAIL", "MAX_HARMONICS", "NO_FIELD", "RenderErrors", "emitted_harmonics", "form_array",
            "frame_weights", "phase_field", "thin_prism"]

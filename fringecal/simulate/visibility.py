@@ -9,12 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ..artefact import Artefact
-from ..frames import Frame
-from ..rig import Scanner
-from .resolution import scaled_scanner
-from .scene import Scene
-from .scenes import ArtefactHardware, artefact_scene
+from fringecal.artefact import Artefact
+from fringecal.frames import Frame
+from fringecal.rig import Scanner, scaled_scanner
+from fringecal.simulate.scene import Scene
+from fringecal.simulate.scenes import ArtefactHardware, artefact_scene
 
 __all__ = ["pixel_centre_rays", "sphere_visibility"]
 

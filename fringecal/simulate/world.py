@@ -34,12 +34,12 @@ from pathlib import Path
 import numpy as np
 from numpy.polynomial import legendre
 
-from ..artefact import Artefact, load_artefact
-from ..config import ConfigError
-from ..rig import Scanner, load_rig
-from ..rotation import angles_from_matrix
-from .errors import SimulationErrors, error_rng
-from .unmodelled import RenderErrors, thin_prism
+from fringecal.artefact import Artefact, load_artefact
+from fringecal.config import ConfigError
+from fringecal.rig import Scanner, load_rig
+from fringecal.rotation import angles_from_matrix
+from fringecal.simulate.errors import SimulationErrors, error_rng
+from fringecal.simulate.unmodelled import RenderErrors, thin_prism
 
 __all__ = ["FORM_DEGREES", "as_built_artefact", "as_built_ballbar", "drifted_scanner", "form_rms", "native_formats",
            "render_errors", "session_displacement", "sphere_form_terms"]
@@ -50,7 +50,7 @@ FORM_DEGREES = (2, 2, 3, 3)
 
 def _true_corrections(sim, errors: SimulationErrors):
     """(corrections, temperature) of the artefact's true state."""
-    from ..engineering.corrections import (
+    from fringecal.engineering.corrections import (
         ArtefactCorrections,
         SagSettings,
         ThermalSettings,
@@ -80,7 +80,7 @@ def _true_corrections(sim, errors: SimulationErrors):
 def as_built_artefact(sim, errors: SimulationErrors) -> Artefact:
     """The artefact the renderer places (module notes); ``sim.artefact()`` itself
     when no artefact switch is on."""
-    from ..engineering.corrections import apply_corrections
+    from fringecal.engineering.corrections import apply_corrections
 
     if not (errors.cmm_deviation or errors.sphere_diameter_sd_mm or errors.artefact_temperature_c is not None
             or errors.artefact_use_gravity is not None or errors.artefact_use_supports is not None):

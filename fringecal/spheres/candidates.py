@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..pointcloud import PointMaps
+from fringecal.pointcloud import PointMaps
 
 __all__ = ["CandidateConfig", "SphereCandidate", "surface_normals", "find_sphere_candidates"]
 

@@ -21,10 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..artefact import Artefact
-from ..frames import Frame
-from ..registration import kabsch
-from .labelling import Labelling, LabellingConfig, LabellingRefused
+from fringecal.artefact import Artefact
+from fringecal.frames import Frame
+from fringecal.registration import kabsch
+from fringecal.spheres.labelling import Labelling, LabellingConfig, LabellingRefused
 
 __all__ = ["scanner_frame_from_plan", "frame_uncertainty", "alternatives"]
 
@@ -144,7 +144,7 @@ class _Consensus:
 
     def refine(self, i0: int):
         """Mean frame of the members of hypothesis ``i0``'s cluster, its misfit and members."""
-        from ..linking import mean_frame
+        from fringecal.spheres.linking import mean_frame
 
         points, sigma, frame = self.P[i0], self.sig[i0], self.hyps[i0].frame
         for _ in range(3):

@@ -48,7 +48,7 @@ scanner's other measurements contradict is refused, never passed on. Per scanner
    and how far off it is in the message.
 
 Without planned poses only steps 1-4 run. The link step
-(:func:`fringecal.spheres.steps.label_pose_link`) then checks every labelling against
+(:func:`fringecal.spheres.poses_and_links.label_pose_link`) then checks every labelling against
 the other scanners' poses of the same measurement, and labels the measurements still
 ambiguous from those poses (the same consensus, with measured poses for planned ones).
 """
@@ -60,11 +60,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
-from ..artefact import Artefact
-from ..frames import Frame
-from ..registration import kabsch, umeyama
-from .label_consensus import _hypothesis, _rms, _split, alternatives, scanner_frame_from_plan
-from .labelling import Labelling, LabellingConfig, LabellingRefused, label_spheres
+from fringecal.artefact import Artefact
+from fringecal.frames import Frame
+from fringecal.registration import kabsch, umeyama
+from fringecal.spheres.label_consensus import _hypothesis, _rms, _split, alternatives, scanner_frame_from_plan
+from fringecal.spheres.labelling import Labelling, LabellingConfig, LabellingRefused, label_spheres
 
 __all__ = ["ScannerEstimate", "label_sphere_fits", "label_with_prior", "estimate_scale", "estimate_centre_u",
            "scanner_frame_from_plan"]
@@ -405,7 +405,7 @@ def label_sphere_fits(fits: pd.DataFrame, artefact: Artefact, config: LabellingC
     Parameters
     ----------
     fits : DataFrame
-        Rows of :class:`schemas.SphereFitsTable` (``measurement, scanner, candidate,
+        Rows of :class:`fringecal.schemas.SphereFitsTable` (``measurement, scanner, candidate,
         x_mm, y_mm, z_mm`` and optionally ``radius_mm``, ``u_x_mm, u_y_mm, u_z_mm``).
         A group whose ``sphere_id`` is already filled (by hand, say) is a *given*
         labelling: checked against the artefact and the scanner's other
@@ -426,7 +426,7 @@ def label_sphere_fits(fits: pd.DataFrame, artefact: Artefact, config: LabellingC
     labelled : DataFrame
         ``fits`` with ``sphere_id`` filled ("" where unlabelled) and ``label_residual_mm``.
     outcomes : DataFrame
-        :class:`schemas.LabelOutcomesTable`: one row per group with ``status``
+        :class:`fringecal.schemas.LabelOutcomesTable`: one row per group with ``status``
         (labelled / refused), ``reason``, ``method`` (distances / planned pose /
         given), ``n_candidates, n_labelled, rms_mm, message``, and ``scale``: the
         scanner's estimated scale (its centres are divided by it for poses).

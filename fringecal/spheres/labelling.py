@@ -39,14 +39,12 @@ import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
-import pandas as pd
 
-from ..artefact import Artefact
-from ..frames import Frame
-from ..registration import DegenerateGeometryError, RigidRegistration, kabsch, umeyama
+from fringecal.artefact import Artefact
+from fringecal.frames import Frame
+from fringecal.registration import DegenerateGeometryError, RigidRegistration, kabsch, umeyama
 
-__all__ = ["LabellingConfig", "Labelling", "LabellingRefused", "label_spheres", "label_sphere_fits",
-           "scanner_frame_from_plan", "ambiguous_subsets", "REFUSAL_REASONS"]
+__all__ = ["LabellingConfig", "Labelling", "LabellingRefused", "label_spheres", "ambiguous_subsets", "REFUSAL_REASONS"]
 
 #: Codes of :class:`LabellingRefused`.
 REFUSAL_REASONS = {
@@ -443,24 +441,6 @@ def label_spheres(centres, artefact: Artefact, uncertainties=None, radii=None, a
         M, t = kabsch(Y, Xs)
         T = Frame.from_matrix(M.T, t)
     return Labelling(ids, residuals, T, rms, why, search.nodes, float(scale * s_fit))
-
-
-def scanner_frame_from_plan(*args, **kwargs):
-    """``T_scanner_world`` of one scanner by consensus of its measurements and the plan;
-    see :func:`fringecal.spheres.label_consensus.scanner_frame_from_plan`."""
-    from .label_consensus import scanner_frame_from_plan as impl
-
-    return impl(*args, **kwargs)
-
-
-def label_sphere_fits(fits: pd.DataFrame, artefact: Artefact, config: LabellingConfig | None = None,
-                      allowed_ids: dict | None = None, planned: dict | None = None,
-                      estimates: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Label every (measurement, scanner) group of a sphere-fits table; see
-    :func:`fringecal.spheres.label_scanners.label_sphere_fits`."""
-    from .label_scanners import label_sphere_fits as impl
-
-    return impl(fits, artefact, config, allowed_ids, planned, estimates)
 
 
 def ambiguous_subsets(artefact: Artefact, subset_size: int, ids=None, config: LabellingConfig | None = None):

@@ -36,9 +36,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ..rig import Scanner
-from ..sensor import Sensor
-from ..triangulation import sphere_hits
+from fringecal.rig import Scanner
+from fringecal.sensor import Sensor
+from fringecal.triangulation import sphere_hits
 
 __all__ = ["phase_integration_bias", "correct_control_points", "CORRECTION_COLUMNS"]
 
@@ -89,7 +89,7 @@ def phase_integration_bias(camera: Sensor, projector: Sensor, uv, centres, radiu
     a symmetric patch: no bias to first order, but curvature still pushes the phase a
     little.
 
-    >>> from fringecal.calibration.synthetic import thesis_truth
+    >>> from fringecal.simulate.control_points import thesis_truth
     >>> scanner = thesis_truth()[0].scanners[0]
     >>> cam, prj = scanner.camera, scanner.projector
     >>> centre = cam.pinhole + 2500.0 * cam.R[2]
@@ -126,7 +126,7 @@ def correct_control_points(control_points: pd.DataFrame, spheres: pd.DataFrame, 
     Parameters
     ----------
     control_points : DataFrame
-        Rows of :class:`schemas.ControlPointsTable` of one (measurement, scanner).
+        Rows of :class:`fringecal.schemas.ControlPointsTable` of one (measurement, scanner).
     spheres : DataFrame
         The measurement's sphere fits (``sphere_id, x_mm, y_mm, z_mm, radius_mm``) in
         the frame of ``scanner``'s sensors.

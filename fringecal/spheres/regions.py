@@ -17,9 +17,9 @@ from typing import Mapping
 import numpy as np
 from scipy import ndimage
 
-from ..pointcloud import PointMaps
-from .robust import RejectionConfig, RobustSphereFit, fit_sphere_robust
-from .steps import sphere_fit_row
+from fringecal.pointcloud import PointMaps
+from fringecal.spheres.poses_and_links import sphere_fit_row
+from fringecal.spheres.robust import RejectionConfig, RobustSphereFit, fit_sphere_robust
 
 __all__ = ["boundary_flags", "RegionPoints", "region_points", "RegionFit", "fit_region"]
 
@@ -79,7 +79,7 @@ class RegionFit:
         return self.pixels.rows[self.fit.kept], self.pixels.cols[self.fit.kept]
 
     def row(self, measurement, scanner, candidate, sphere_id: str = "") -> dict:
-        """The :class:`schemas.SphereFitsTable` row, image region included."""
+        """The :class:`fringecal.schemas.SphereFitsTable` row, image region included."""
         return sphere_fit_row(measurement, scanner, candidate, self.fit, bbox=self.pixels.bbox, sphere_id=sphere_id)
 
 

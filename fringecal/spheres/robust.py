@@ -40,7 +40,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .fit import FitError, PlaneModel, SphereModel
+from fringecal.spheres.fit import FitError, PlaneModel, SphereModel
 
 __all__ = ["RejectionConfig", "RobustSphereFit", "SphereRejectionError", "fit_sphere_robust",
            "rod_directions", "detect_rods", "RobustPlaneFit", "fit_plane_robust"]

@@ -27,8 +27,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from .fit import FitError
-from .robust import RejectionConfig, fit_plane_robust, fit_sphere_robust
+from fringecal.spheres.fit import FitError
+from fringecal.spheres.robust import RejectionConfig, fit_plane_robust, fit_sphere_robust
 
 __all__ = [
     "CMM_SEPARATION_MM", "THESIS_TILTS_DEG", "THESIS_ROTATIONS_DEG", "THESIS_MEAN_SEPARATION_MM",

@@ -19,25 +19,25 @@ every run              ``spheres-first`` -> ``label`` -> ``spheres-second`` -> `
 
 from __future__ import annotations
 
-from .acceptance import Acceptance
-from .base import Rows, Settings, Step, StepError, Value
-from .bundle import Bundle
-from .crossval import CrossValidate
-from .decode import Decode
-from .evaluate import Evaluate
-from .ingest import Ingest
-from .initialise import Initialise
-from .keys import current_record, run_step, step_key
-from .label import Label
-from .report import Report
-from .simulate_acceptance import SimulateDumbbell, SimulateFlat, SimulateSphere
-from .simulate_ballbar import SimulateBallbar
-from .simulate_hexapod import SimulateHexapod
-from .simulate_prepare import SimulatePrepare
-from .simulate_render import SimulateRender
-from .spheres_first import SpheresFirst
-from .spheres_second import SpheresSecond
-from .verify import Verify
+from fringecal.steps.acceptance import Acceptance
+from fringecal.steps.base import Rows, Settings, Step, StepError, Value
+from fringecal.steps.bundle import Bundle
+from fringecal.steps.crossval import CrossValidate
+from fringecal.steps.decode import Decode
+from fringecal.steps.evaluate import Evaluate
+from fringecal.steps.ingest import Ingest
+from fringecal.steps.initialise import Initialise
+from fringecal.steps.keys import current_record, run_step, step_key
+from fringecal.steps.label import Label
+from fringecal.steps.report import Report
+from fringecal.steps.simulate_acceptance import SimulateDumbbell, SimulateFlat, SimulateSphere
+from fringecal.steps.simulate_ballbar import SimulateBallbar
+from fringecal.steps.simulate_hexapod import SimulateHexapod
+from fringecal.steps.simulate_prepare import SimulatePrepare
+from fringecal.steps.simulate_render import SimulateRender
+from fringecal.steps.spheres_first import SpheresFirst
+from fringecal.steps.spheres_second import SpheresSecond
+from fringecal.steps.verify import Verify
 
 __all__ = ["STEPS", "SIMULATED_SOURCE", "DATASET_SOURCE", "COMMON", "pipeline", "get_step", "run_pipeline", "Step",
            "Settings", "Rows", "Value", "StepError", "run_step", "step_key", "current_record"]
@@ -53,7 +53,7 @@ STEPS = {s.name: s for s in SIMULATED_SOURCE + DATASET_SOURCE + COMMON + EVALUAT
 
 
 def pipeline(config) -> list[Step]:
-    """The steps of a run of ``config`` (a :class:`~fringecal.runconfig.RunConfig`), in order."""
+    """The steps of a run of ``config`` (a :class:`~fringecal.run.config.RunConfig`), in order."""
     source = SIMULATED_SOURCE if config.source == "simulated" else DATASET_SOURCE
     evaluation = EVALUATION if config.source == "simulated" else ()
     return list(source + COMMON + evaluation + REPORT)

@@ -17,8 +17,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
-from ..rundir import RunDir
-from .base import Settings, Step, stores_of_kind
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step, stores_of_kind
 
 __all__ = ["Acceptance", "acceptance_stores", "measure_acceptance", "length_values", "ACCEPTANCE_KINDS"]
 
@@ -53,8 +53,8 @@ def length_values(budget: dict | None, lengths: pd.DataFrame, parameter: str, te
 
 
 def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict], list[dict]]:
-    from ..acceptance.evaluate import form_u
-    from ..acceptance.measure import AcceptanceMeasurementError, measure_flat_store, measure_sphere_store
+    from fringecal.acceptance.evaluate import form_u
+    from fringecal.acceptance.measure import AcceptanceMeasurementError, measure_flat_store, measure_sphere_store
 
     position, scanner, store = job
     k = config.coverage_factor
@@ -89,7 +89,7 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
     standards : :class:`~fringecal.acceptance.standards.AcceptanceStandards`
     config : :class:`~fringecal.acceptance.standards.AcceptanceConfig`
     rejection : the run's ``extraction.rejection`` settings
-    length_config : :class:`~fringecal.runconfig.LengthUncertaintyConfig` (the
+    length_config : :class:`~fringecal.verification.settings.LengthUncertaintyConfig` (the
         dumbbell's length budget; its Monte Carlo check is not run here)
     covariance : the run's ``calibration_covariance.npz`` arrays, or None
 
@@ -98,10 +98,10 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
     values : DataFrame with :data:`fringecal.acceptance.evaluate.VALUE_COLUMNS`
     failures : list of dict (test, position, scanner, reason)
     """
-    from ..acceptance.evaluate import VALUE_COLUMNS
-    from ..pipeline.verify import measure_positions
-    from ..spheres.robust import RejectionConfig
-    from ..verification import ballbar_lengths
+    from fringecal.acceptance.evaluate import VALUE_COLUMNS
+    from fringecal.spheres.robust import RejectionConfig
+    from fringecal.verification.lengths import ballbar_lengths
+    from fringecal.verification.measure import measure_positions
 
     rej = RejectionConfig(**rejection)
     rows, failures = [], []
@@ -120,7 +120,7 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
         lengths["error_mm"] = lengths["length_mm"] - bell.length_mm
         budget = None
         if covariance is not None and len(lengths):
-            from ..pipeline.ballbar_uncertainty import ballbar_uncertainty
+            from fringecal.verification.uncertainty import ballbar_uncertainty
 
             cfg = length_config.model_copy(update={"monte_carlo_draws": 0, "coverage_factor": config.coverage_factor})
             budget = ballbar_uncertainty(centres, pixels, stores["dumbbell"], rig, lengths, bell.length_mm,
@@ -143,7 +143,7 @@ class Acceptance(Step):
     name = "acceptance"
     title = "acceptance test"
     settings = ("acceptance", "extraction.rejection", "verification.uncertainty")
-    modules = ("fringecal.acceptance", "fringecal.pipeline.verify", "fringecal.pipeline.ballbar_uncertainty")
+    modules = ("fringecal.acceptance", "fringecal.verification.measure", "fringecal.verification.uncertainty")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for kind in ACCEPTANCE_KINDS for m in stores_of_kind(rd, kind)]
@@ -154,7 +154,7 @@ class Acceptance(Step):
         return [rd.acceptance, rd.acceptance_values]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..acceptance.standards import AcceptanceStandards
+        from fringecal.acceptance.standards import AcceptanceStandards
 
         stores = acceptance_stores(rd)
         standards = (AcceptanceStandards(**rd.acceptance_standards.load()) if rd.acceptance_standards.exists()
@@ -183,11 +183,11 @@ def acceptance_document(rd: RunDir, rig, standards, config, rejection: dict, len
     E comes from ``verification`` (the run's ``verification.json``) when given, else
     the ball-bar is measured with ``rig`` (``ballbar``: the verification settings;
     used to test a rig other than the run's calibration)."""
-    from ..acceptance.evaluate import certificate
+    from fringecal.acceptance.evaluate import certificate
 
     values, failures = measure_acceptance(stores, rig, standards, config, rejection, length_config, covariance)
     if verification is None and ballbar is not None:
-        from .verify import measure_ballbar
+        from fringecal.steps.verify import measure_ballbar
 
         diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
         _, fails, result, budget = measure_ballbar(rd, rig, rejection, ballbar, diagonal, covariance)
@@ -203,7 +203,7 @@ def acceptance_document(rd: RunDir, rig, standards, config, rejection: dict, len
 
 
 def _e_values(verification: dict, k: float) -> pd.DataFrame:
-    from ..acceptance.evaluate import VALUE_COLUMNS
+    from fringecal.acceptance.evaluate import VALUE_COLUMNS
 
     positions = pd.DataFrame(verification["calibrated"]["positions"])
     lengths = pd.DataFrame({"measurement": positions["measurement"].astype(str), "error_mm": positions["error_mm"],

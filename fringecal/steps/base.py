@@ -29,7 +29,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, ClassVar, Union
 
-from ..rundir import RunDir, RunFile, TableFile
+from fringecal.rundir import RunDir, RunFile, TableFile
 
 __all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read", "store_row", "store_fields", "stores_of_kind",
            "save_or_remove"]
@@ -68,7 +68,7 @@ class Rows:
 
 @lru_cache(maxsize=64)
 def _raw_csv(path: str, size: int, mtime_ns: int):
-    from schemas import read_csv_text
+    from fringecal.schemas import read_csv_text
 
     return read_csv_text(path)
 
@@ -93,7 +93,7 @@ Read = Union[RunFile, Path, Rows, Value]
 class Settings:
     """The declared parts of a run configuration; anything else raises AttributeError.
 
-    >>> from fringecal.runconfig import RunConfig
+    >>> from fringecal.run.config import RunConfig
     >>> s = Settings(RunConfig(), ("bundle.gamma1", "extraction"))
     >>> s.bundle.gamma1, type(s.extraction).__name__
     (1.0, 'ExtractionConfig')

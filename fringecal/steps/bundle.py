@@ -1,17 +1,32 @@
 """Bundle adjustment: every sensor and one artefact pose per measurement refined from
-the control points (thesis 2.3.7, 6.4-6.5), with uncertainties and a diagnosis of
-degenerate set-ups. Writes the calibration (JSON and XML), its tables, the residual
-histograms and ``bundle_summary.json``, all or nothing.
+the control points (thesis 2.3.7, 6.4-6.5, :func:`fringecal.calibration.bundle_adjust`),
+with uncertainties, a diagnosis of degenerate set-ups and the wild-bootstrap replicas.
+Writes the calibration (JSON and XML), its tables, the residual histograms, the
+covariance arrays and ``bundle_summary.json``, all or nothing.
 """
 
 from __future__ import annotations
 
+import io
+import json
 import logging
 import time
 
-from .. import compile_clock
-from ..rundir import RunDir
-from .base import Settings, Step
+import numpy as np
+
+from fringecal import compile_clock
+from fringecal.atomic import atomic_paths
+from fringecal.calibration import BundleProblem, bundle_adjust
+from fringecal.calibration.bootstrap import bootstrap_calibrations
+from fringecal.calibration.file import rig_to_dict, xml_text
+from fringecal.calibration.propagation import parameter_covariances
+from fringecal.calibration.results import covariance_arrays, residual_tables, summary
+from fringecal.config import ConfigError
+from fringecal.digests import digest_path, digest_value
+from fringecal.report.plotting import residual_histograms_png
+from fringecal.rundir import RunDir, package_versions
+from fringecal.schemas import validate_table
+from fringecal.steps.base import Settings, Step
 
 __all__ = ["Bundle", "load_problem"]
 
@@ -21,9 +36,6 @@ log = logging.getLogger(__name__)
 def load_problem(rd: RunDir, reference: str | None, gamma1: float = 1.0, gamma2: float = 1.0):
     """The :class:`~fringecal.calibration.BundleProblem` of a run directory's start
     values and control points; one clear error naming the file, line and column."""
-    from ..calibration import BundleProblem
-    from ..config import ConfigError
-
     files = [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial]
     missing = [str(f.path) for f in files if not f.exists()]
     if missing:
@@ -46,7 +58,7 @@ class Bundle(Step):
     # the artefact's share of the calibration's covariance, carried by calibration.json
     settings = ("bundle", "reference_scanner", "verification.uncertainty.artefact_u_factor",
                 "verification.uncertainty.artefact_temperature_u_c", "verification.uncertainty.artefact_cte_per_c")
-    modules = ("fringecal.calibration", "fringecal.pipeline.ballbar_uncertainty")
+    modules = ("fringecal.calibration",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial]
@@ -57,14 +69,10 @@ class Bundle(Step):
                 rd.bundle_summary, rd.covariance]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..calibration import bundle_adjust
-        from ..calibration.bootstrap import bootstrap_calibrations
-        from ..calibration.results import write_outputs
-
         b = cfg.bundle
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         t0, c0 = time.perf_counter(), compile_clock.thread_seconds()
-        result = bundle_adjust(problem, b.options())
+        result = bundle_adjust(problem, b)
         compile_seconds = compile_clock.thread_seconds() - c0
         seconds = time.perf_counter() - t0 - compile_seconds  # the adjustment's own time, as on any later run
         for d in result.diagnostics:
@@ -75,23 +83,51 @@ class Bundle(Step):
         bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed)
         timing = {"bundle_seconds": seconds, "bundle_compile_seconds": compile_seconds,
                   "bootstrap_draws": b.bootstrap_draws, "bootstrap_seconds": time.perf_counter() - t1}
-        write_outputs(result, rd, b.volume_diagonal_mm, timing, covariances=self._covariances(cfg),
-                      provenance=self.provenance(rd, cfg, item), bootstrap=bootstrap)
-
-    @staticmethod
-    def _covariances(cfg: Settings):
-        from ..pipeline.ballbar_uncertainty import parameter_covariances
-
+        arrays = covariance_arrays(result)
+        if len(bootstrap):
+            arrays["bootstrap_params"] = np.asarray(bootstrap, float)
         u = cfg.verification.uncertainty
-        u_scale = abs(u.artefact_cte_per_c) * u.artefact_temperature_u_c
-        return lambda arrays: parameter_covariances(arrays, u_scale, u.artefact_u_factor)
+        covariances = parameter_covariances(arrays, abs(u.artefact_cte_per_c) * u.artefact_temperature_u_c,
+                                            u.artefact_u_factor)
+        write_outputs(rd, result, {**summary(result, b.volume_diagonal_mm), **timing}, arrays, covariances,
+                      self.provenance(rd, cfg, item))
 
     def provenance(self, rd: RunDir, cfg: Settings, item: str) -> dict:
         """What the calibration was computed from: its input files' digests, its
         settings (and their digest), the package versions."""
-        from ..digests import digest_path, digest_value
-        from ..rundir import package_versions
-
         settings = cfg.keyed()
         return {"inputs": {f.rel: digest_path(f.path) for f in self.reads(rd, cfg, item)},
                 "settings": settings, "settings_digest": digest_value(settings), "versions": package_versions()}
+
+
+def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict) -> list:
+    """Write the calibration of ``result`` (a :class:`~fringecal.calibration.BundleResult`)
+    into ``rd``, all or nothing: ``calibration.json`` (with ``covariances``, the
+    :class:`~fringecal.calibration.propagation.ParameterCovariances`, and ``provenance``)
+    and its XML twin, the parameter, pose and residual tables, the residual histograms,
+    ``bundle_summary.json`` (``doc``) and the covariance ``arrays``. Every file is first
+    written under a temporary name and renamed into place only when all are complete."""
+    meta = {"after": doc["after"], "before": doc["before"], "one_part_in_1p96_sigma": doc["one_part_in_1p96_sigma"],
+            "volume_diagonal_mm": doc["volume_diagonal_mm"], "n_control_points": doc["n_control_points"],
+            "iterations": doc["iterations"], "converged": doc["converged"]}
+    per_sphere, per_meas = residual_tables(result)
+    tables = {rd.sensors_calibrated: result.sensors_frame(), rd.poses_calibrated: result.poses_frame(),
+              rd.residuals_per_sphere: per_sphere, rd.residuals_per_measurement: per_meas}
+    tables = {f: validate_table(df, f.schema, str(f.path)) for f, df in tables.items()}
+    figures = dict(zip((rd.histogram("eps1"), rd.histogram("eps2")),
+                       residual_histograms_png(result.residuals_start, result.residuals)))
+    npz = io.BytesIO()
+    np.savez(npz, **arrays)
+    files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary, rd.covariance]
+    with atomic_paths([f.path for f in files]) as tmps:
+        tmp = dict(zip([f.rel for f in files], tmps))
+        tmp[rd.calibration.rel].write_text(json.dumps(rig_to_dict(result.rig, meta, covariances, provenance),
+                                                      indent=2) + "\n")
+        tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta))
+        for f, df in tables.items():
+            df.to_csv(tmp[f.rel], index=False, float_format="%.10g")
+        for f, png in figures.items():
+            tmp[f.rel].write_bytes(png)
+        tmp[rd.bundle_summary.rel].write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
+        tmp[rd.covariance.rel].write_bytes(npz.getvalue())
+    return files

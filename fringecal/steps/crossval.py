@@ -12,9 +12,9 @@ import logging
 
 import numpy as np
 
-from ..rundir import RunDir
-from .base import Settings, Step
-from .bundle import load_problem
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step
+from fringecal.steps.bundle import load_problem
 
 __all__ = ["CrossValidate"]
 
@@ -35,10 +35,8 @@ class CrossValidate(Step):
         return [rd.crossval, rd.crossval_halves]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from dataclasses import replace
-
-        from ..calibration.crossval import cross_validate, split_measurements
-        from ..calibration.model import POSE_COLUMNS
+        from fringecal.calibration.crossval import cross_validate, split_measurements
+        from fringecal.calibration.model import POSE_COLUMNS
 
         b = cfg.bundle
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
@@ -51,7 +49,7 @@ class CrossValidate(Step):
             return
         poses = rd.poses_calibrated.load().set_index("measurement").loc[list(problem.measurements), list(POSE_COLUMNS)]
         solved = problem.with_start(problem.rig.with_params(rd.calibration.load().params), poses.to_numpy(float))
-        cv = cross_validate(solved, replace(b.options(), start="given"))
+        cv = cross_validate(solved, b.model_copy(update={"start": "given"}))
         doc = cv.to_dict()
         for name, s in doc["scanners"].items():
             if s["verdict"] != "consistent":

@@ -16,14 +16,14 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from ..rundir import RunDir
-from .base import Settings, Step, store_fields, store_row, stores_of_kind
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step, store_fields, store_row, stores_of_kind
 
 __all__ = ["Decode"]
 
 log = logging.getLogger(__name__)
 
-#: the kinds of the acquisition table (schemas.AcquisitionTable), in the order decoded;
+#: the kinds of the acquisition table (fringecal.schemas.AcquisitionTable), in the order decoded;
 #: spelt here, not imported from fringecal.dataset, so that an edit of the data-set
 #: checks does not change this step's key
 KINDS = ("artefact", "ballbar", "sphere", "dumbbell", "flat")
@@ -49,8 +49,8 @@ class Decode(Step):
         return [rd.store(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..fringe.measurement import decode_folder
-        from ..store import copy_store
+        from fringecal.fringe.measurement import decode_folder
+        from fringecal.store import copy_store
 
         row = store_fields(rd, item)
         source = self._source(rd, cfg, item)

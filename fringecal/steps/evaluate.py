@@ -14,9 +14,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..rundir import RunDir
-from .base import Settings, Step, stores_of_kind
-from .verify import measure_ballbar
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step, stores_of_kind
+from fringecal.steps.verify import measure_ballbar
 
 __all__ = ["Evaluate", "parameter_errors"]
 
@@ -30,8 +30,8 @@ def truth_in_reference_frame(truth, T_world_reference, near):
     ``near`` (a rig with the same sensors) picks the branch of every sensor's angles,
     so that angle differences are small numbers, not multiples of pi.
     """
-    from ..linking import sensor_in_frame
-    from ..rig import Scanner
+    from fringecal.rig import Scanner
+    from fringecal.sensor import sensor_in_frame
 
     T_reference_world = T_world_reference.inverse()
     angles = {s.name: s.angles for s in near.sensors}
@@ -42,7 +42,7 @@ def truth_in_reference_frame(truth, T_world_reference, near):
 
 def poses_in_reference_frame(poses, T_world_reference):
     """A pose table (``T_world_artefact`` rows) as ``T_reference_artefact`` rows."""
-    from ..frames import frame_rows, frames_from_rows
+    from fringecal.frames import frame_rows, frames_from_rows
 
     T_reference_world = T_world_reference.inverse()
     return frame_rows({m: T_reference_world.compose(T) for m, T in frames_from_rows(poses).items()})
@@ -68,7 +68,7 @@ class Evaluate(Step):
     name = "evaluate"
     title = "evaluation against truth"
     settings = ("bundle.gamma1", "bundle.gamma2", "verification", "extraction.rejection", "reference_scanner")
-    modules = ("fringecal.calibration", "fringecal.pipeline.verify", "fringecal.verification")
+    modules = ("fringecal.calibration", "fringecal.verification.measure", "fringecal.verification.lengths")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.truth.sensors, rd.truth.poses, rd.truth.scanner_frames, rd.calibration, rd.control_points,
@@ -78,8 +78,8 @@ class Evaluate(Step):
         return [rd.evaluation, rd.ballbar_centres_true]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..calibration import BundleOptions, BundleProblem, bundle_adjust
-        from ..frames import frames_from_rows
+        from fringecal.calibration import BundleOptions, BundleProblem, bundle_adjust
+        from fringecal.frames import frames_from_rows
 
         calibrated = rd.calibration.load()
         T_world_reference = frames_from_rows(rd.truth.scanner_frames.load(), key="scanner")[cfg.reference_scanner]

@@ -20,14 +20,13 @@ from dataclasses import replace
 
 import pandas as pd
 
-from schemas import PosePlanTable, read_table
-
-from ..acceptance.standards import load_standards
-from ..artefact import load_artefact, load_rods
-from ..dataset import DataSet
-from ..rig import load_rig
-from ..rundir import RunDir
-from .base import Settings, Step, Value, save_or_remove
+from fringecal.acceptance.standards import load_standards
+from fringecal.artefact import load_artefact, load_rods
+from fringecal.dataset import DataSet
+from fringecal.rig import load_rig
+from fringecal.rundir import RunDir
+from fringecal.schemas import PosePlanTable, read_table
+from fringecal.steps.base import Settings, Step, Value, save_or_remove
 
 __all__ = ["Ingest"]
 
@@ -59,7 +58,7 @@ class Ingest(Step):
                 rd.acquisition]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..engineering.corrections import apply_corrections
+        from fringecal.engineering.corrections import apply_corrections
 
         ds = DataSet.open(cfg.dataset)
         artefact = apply_corrections(load_artefact(ds.artefact), ds.config.artefact_corrections,

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import pandas as pd
 
-from ..pipeline.initialise import initial_calibration
-from ..rundir import RunDir
-from .base import Settings, Step
-from .spheres_first import artefact_items
+from fringecal.calibration.initial import initial_calibration
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step
+from fringecal.steps.spheres_first import artefact_items
 
 __all__ = ["Initialise"]
 
@@ -20,7 +20,7 @@ class Initialise(Step):
     name = "initialise"
     title = "start values"
     settings = ("reference_scanner",)
-    modules = ("fringecal.pipeline.initialise",)
+    modules = ("fringecal.calibration.initial",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.sensors_prior, rd.sphere_centres, rd.poses, rd.scanner_links, rd.artefact] + \

@@ -25,10 +25,10 @@ import logging
 import time
 from pathlib import Path
 
-from .. import compile_clock
-from ..digests import DigestCache, digest_value, source_digest
-from ..rundir import RunDir, RunFile
-from .base import Rows, Settings, Step, StepError, Value
+from fringecal import compile_clock
+from fringecal.digests import DigestCache, digest_value, source_digest
+from fringecal.rundir import RunDir, RunFile
+from fringecal.steps.base import Rows, Settings, Step, StepError, Value
 
 __all__ = ["step_key", "current_record", "run_step", "digests_of"]
 
@@ -110,7 +110,7 @@ def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | Non
              force: bool = False, key: str | None = None) -> dict:
     """Run one instance of ``step`` over ``rd`` unless it is current; return its record.
 
-    ``config`` is the resolved :class:`~fringecal.runconfig.RunConfig`; the step sees
+    ``config`` is the resolved :class:`~fringecal.run.config.RunConfig`; the step sees
     only its declared part. ``context`` holds values that do not change what a step
     computes (the report's step timings) and are not keyed. ``key`` is the
     instance's key when the caller has just computed it (the flow does, to submit the

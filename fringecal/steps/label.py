@@ -17,10 +17,10 @@ import logging
 
 import pandas as pd
 
-from ..frames import frames_from_rows
-from ..rundir import RunDir
-from .base import Settings, Step
-from .spheres_first import artefact_items
+from fringecal.frames import frames_from_rows
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step
+from fringecal.steps.spheres_first import artefact_items
 
 __all__ = ["Label"]
 
@@ -31,7 +31,7 @@ class Label(Step):
     name = "label"
     title = "label, pose, link"
     settings = ("extraction.labelling", "extraction.use_planned_poses", "reference_scanner")
-    modules = ("fringecal.spheres.steps",)
+    modules = ("fringecal.spheres.poses_and_links",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         planned = [rd.poses_planned] if cfg.extraction.use_planned_poses else []
@@ -42,8 +42,8 @@ class Label(Step):
                 rd.scanner_links]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..spheres.labelling import LabellingConfig
-        from ..spheres.steps import label_pose_link
+        from fringecal.spheres.labelling import LabellingConfig
+        from fringecal.spheres.poses_and_links import label_pose_link
 
         fits = [rd.fits_first(m).load() for m in artefact_items(rd)]
         table = pd.concat([f for f in fits if len(f)], ignore_index=True)

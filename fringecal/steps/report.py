@@ -8,8 +8,8 @@ shown on the page but does not decide whether the page is current.
 
 from __future__ import annotations
 
-from ..rundir import RunDir
-from .base import Settings, Step
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step
 
 __all__ = ["Report", "report_inputs"]
 
@@ -36,6 +36,6 @@ class Report(Step):
 
     def run(self, rd: RunDir, cfg: Settings, item: str, timings: dict | None = None, execution: dict | None = None,
             compile_seconds: dict | None = None, **context) -> None:
-        from ..report import write_report
+        from fringecal.report import write_report
 
         write_report(rd, timings, execution, compile_seconds)

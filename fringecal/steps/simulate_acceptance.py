@@ -13,13 +13,13 @@ at their session-start placement (no session drift), as for the ball-bar.
 
 from __future__ import annotations
 
-from ..acceptance.standards import AcceptanceStandards
-from ..acquisition.simulated import acceptance_camera_width
-from ..rundir import RunDir, TableFile
-from ..simulate.resolution import scaled_scanner
-from ..simulate.scenes import ArtefactHardware, Scene, acceptance_scene
-from .base import Settings
-from .simulate_render import RenderStores
+from fringecal.acceptance.standards import AcceptanceStandards
+from fringecal.rig import scaled_scanner
+from fringecal.rundir import RunDir, TableFile
+from fringecal.simulate.scenes import ArtefactHardware, Scene, acceptance_scene
+from fringecal.simulate.source import acceptance_camera_width
+from fringecal.steps.base import Settings
+from fringecal.steps.simulate_render import RenderStores
 
 __all__ = ["SimulateSphere", "SimulateDumbbell", "SimulateFlat"]
 

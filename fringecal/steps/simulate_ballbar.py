@@ -10,12 +10,12 @@ their session-start placement (no session drift).
 
 from __future__ import annotations
 
-from ..ballbar import ballbar_rods
-from ..rundir import RunDir, TableFile
-from ..simulate.resolution import scaled_scanner
-from ..simulate.scenes import ArtefactHardware, Scene, artefact_scene
-from .base import Settings
-from .simulate_render import RenderStores
+from fringecal.rig import scaled_scanner
+from fringecal.rundir import RunDir, TableFile
+from fringecal.simulate.scenes import ArtefactHardware, Scene, artefact_scene
+from fringecal.steps.base import Settings
+from fringecal.steps.simulate_render import RenderStores
+from fringecal.verification.ballbar import ballbar_rods
 
 __all__ = ["SimulateBallbar"]
 

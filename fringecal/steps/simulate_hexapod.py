@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import logging
 
-from ..acquisition.plan import move_hexapod, poses_table
-from ..frames import frame_rows, frames_from_rows
-from ..rundir import RunDir
-from .base import Settings, Step
+from fringecal.frames import frame_rows, frames_from_rows
+from fringecal.rundir import RunDir
+from fringecal.simulate.moves import move_hexapod, poses_table
+from fringecal.steps.base import Settings, Step
 
 __all__ = ["SimulateHexapod"]
 
@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 
 def _hexapod_config_file(hexapod):
-    from ..hexapod.config import default_hexapod_config_path
+    from fringecal.hexapod.config import default_hexapod_config_path
 
     return hexapod.config or default_hexapod_config_path()
 
@@ -41,7 +41,7 @@ class SimulateHexapod(Step):
         return [rd.hexapod_moves, rd.truth.poses]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..runconfig import HexapodStepConfig
+        from fringecal.simulate.config import HexapodStepConfig
 
         hx = cfg.simulate.acquisition.hexapod
         moves = move_hexapod(frames_from_rows(rd.poses_planned.load()),

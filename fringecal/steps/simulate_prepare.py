@@ -6,7 +6,7 @@ measurements) and, apart in ``truth/``, what only the simulator knows (the true
 sensors at the simulated resolution, each scanner frame's true placement, the
 ball-bar positions, the artefact and ball-bar as built, which differ from the CMM
 table and the certificate when ``simulate.errors`` says so). See
-:mod:`fringecal.acquisition.simulated`.
+:mod:`fringecal.simulate.source`.
 
 The acceptance test (``simulate.acceptance``): the objects' certificates go to
 ``acceptance_standards.json`` (what a recorded data set's
@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import pandas as pd
 
-from ..acceptance.plan import PLAN_COLUMNS
-from ..acquisition.simulated import acquisition_table, input_files, load_simulated_rig
-from ..frames import frame_rows
-from ..runconfig import AcquisitionConfig, SimulatedAcceptanceConfig, SimulatedVerificationConfig, SimulationConfig
-from ..rundir import RunDir
-from ..simulate.errors import ARTEFACT_SWITCHES, errors_subset, switch_settings
-from .base import Settings, Step, save_or_remove
+from fringecal.acceptance.plan import PLAN_COLUMNS
+from fringecal.frames import frame_rows
+from fringecal.rundir import RunDir
+from fringecal.simulate.config import AcquisitionConfig
+from fringecal.simulate.errors import ARTEFACT_SWITCHES, errors_subset, switch_settings
+from fringecal.simulate.settings import SimulatedAcceptanceConfig, SimulatedVerificationConfig, SimulationConfig
+from fringecal.simulate.source import acquisition_table, input_files, load_simulated_rig
+from fringecal.steps.base import Settings, Step, save_or_remove
 
 __all__ = ["SimulatePrepare", "simulation_of"]
 
@@ -58,7 +59,7 @@ class SimulatePrepare(Step):
         + switch_settings(ARTEFACT_SWITCHES)
     locations = ("simulate.rig", "simulate.verification.ballbar", "simulate.verification.positions",
                  "simulate.acceptance.standards")
-    modules = ("fringecal.acquisition.simulated", "fringecal.simulate.world", "fringecal.acceptance.plan",
+    modules = ("fringecal.simulate.source", "fringecal.simulate.world", "fringecal.acceptance.plan",
                "fringecal.acceptance.standards")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):

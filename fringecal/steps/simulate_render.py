@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import logging
 
-from ..acquisition.measure import simulate_measurement
-from ..frames import frames_from_rows
-from ..rundir import RunDir, TableFile
-from ..runconfig import AcquisitionConfig
-from ..simulate.errors import RENDER_SWITCHES, SESSION_SWITCHES, errors_subset, switch_settings
-from ..simulate.scenes import ArtefactHardware, Scene, artefact_scene
-from ..simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
-from .base import Rows, Settings, Step, Value, store_fields, store_row, stores_of_kind
+from fringecal.frames import frames_from_rows
+from fringecal.rundir import RunDir, TableFile
+from fringecal.simulate.config import AcquisitionConfig
+from fringecal.simulate.errors import RENDER_SWITCHES, SESSION_SWITCHES, errors_subset, switch_settings
+from fringecal.simulate.measurement import simulate_measurement
+from fringecal.simulate.scenes import ArtefactHardware, Scene, artefact_scene
+from fringecal.simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
+from fringecal.steps.base import Rows, Settings, Step, Value, store_fields, store_row, stores_of_kind
 
 __all__ = ["SimulateRender", "RenderStores", "ACQUISITION_SETTINGS", "hardware_file"]
 
@@ -38,14 +38,14 @@ ACQUISITION_SETTINGS = ("simulate.acquisition.render", "simulate.acquisition.seq
 
 def hardware_file(cfg: Settings):
     """The materials file of the rig (tube and end-cap sizes; the thesis's by default)."""
-    from ..config import RigConfig, load_yaml_model, thesis_dir
+    from fringecal.config import RigConfig, load_yaml_model, thesis_dir
 
     return load_yaml_model(cfg.simulate.rig, RigConfig).materials or thesis_dir() / "materials.yaml"
 
 
 def sensors_file(cfg: Settings):
     """The rig's sensors file (its native formats size the thin-prism error)."""
-    from ..config import RigConfig, load_yaml_model
+    from fringecal.config import RigConfig, load_yaml_model
 
     return load_yaml_model(cfg.simulate.rig, RigConfig).sensors
 
@@ -57,7 +57,7 @@ class RenderStores(Step):
     kind: str
     settings = ACQUISITION_SETTINGS + switch_settings(RENDER_SWITCHES)
     locations = ("simulate.rig",)
-    modules = ("fringecal.acquisition.measure", "fringecal.simulate")
+    modules = ("fringecal.simulate.measurement", "fringecal.simulate")
 
     def placements(self, rd: RunDir) -> TableFile:
         """The table of ``T_world_<object>`` per measurement or position."""

@@ -12,9 +12,9 @@ import logging
 
 import numpy as np
 
-from ..pipeline.extract import first_pass
-from ..rundir import RunDir
-from .base import Settings, Step, store_fields, store_row, stores_of_kind
+from fringecal.rundir import RunDir
+from fringecal.spheres.passes import first_pass
+from fringecal.steps.base import Settings, Step, store_fields, store_row, stores_of_kind
 
 __all__ = ["SpheresFirst", "artefact_items"]
 
@@ -30,7 +30,7 @@ class SpheresFirst(Step):
     name = "spheres-first"
     title = "spheres: first pass"
     settings = ("extraction.candidates", "extraction.rejection")
-    modules = ("fringecal.pipeline.extract",)
+    modules = ("fringecal.spheres.passes",)
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
         return artefact_items(rd)
@@ -42,8 +42,8 @@ class SpheresFirst(Step):
         return [rd.maps(item), rd.fits_first(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..spheres.candidates import CandidateConfig
-        from ..spheres.robust import RejectionConfig
+        from fringecal.spheres.candidates import CandidateConfig
+        from fringecal.spheres.robust import RejectionConfig
 
         row = store_fields(rd, item)
         scanner = rd.sensors_prior.load().scanner(row["scanner"])

@@ -9,11 +9,11 @@ label that changes elsewhere does not redo it.
 
 from __future__ import annotations
 
-from ..pipeline.extract import second_pass
-from ..pipeline.initialise import poses_from_table
-from ..rundir import RunDir
-from .base import Rows, Settings, Step, store_fields, store_row
-from .spheres_first import artefact_items
+from fringecal.calibration.initial import poses_from_table
+from fringecal.rundir import RunDir
+from fringecal.spheres.passes import second_pass
+from fringecal.steps.base import Rows, Settings, Step, store_fields, store_row
+from fringecal.steps.spheres_first import artefact_items
 
 __all__ = ["SpheresSecond"]
 
@@ -22,7 +22,7 @@ class SpheresSecond(Step):
     name = "spheres-second"
     title = "spheres: second pass"
     settings = ("extraction.rejection", "extraction.second_pass_rod_cones", "control_points")
-    modules = ("fringecal.pipeline.extract",)
+    modules = ("fringecal.spheres.passes",)
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
         return artefact_items(rd)
@@ -40,7 +40,7 @@ class SpheresSecond(Step):
         return [rd.fits_final(item), rd.control_points_of(item), rd.sphere_labels(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from ..spheres.robust import RejectionConfig
+        from fringecal.spheres.robust import RejectionConfig
 
         own = self._own(rd, item)
         artefact = rd.artefact.load()

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import logging
 
-from ..rundir import RunDir
-from .base import Settings, Step, stores_of_kind
+from fringecal.rundir import RunDir
+from fringecal.steps.base import Settings, Step, stores_of_kind
 
 __all__ = ["Verify", "ballbar_stores", "measure_ballbar"]
 
@@ -32,11 +32,11 @@ def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm:
                     halves=None, points_verdict=None):
     """Centres, failures and the evaluated lengths of the run's ball-bar with ``rig``;
     with ``covariance`` (the run's ``calibration_covariance.npz`` arrays) also every
-    length's uncertainty budget (:func:`fringecal.pipeline.ballbar_uncertainty.ballbar_uncertainty`),
+    length's uncertainty budget (:func:`fringecal.verification.uncertainty.ballbar_uncertainty`),
     else None in its place."""
-    from ..pipeline.verify import measure_positions
-    from ..spheres.robust import RejectionConfig
-    from ..verification import ballbar_lengths, evaluate_ballbar
+    from fringecal.spheres.robust import RejectionConfig
+    from fringecal.verification.lengths import ballbar_lengths, evaluate_ballbar
+    from fringecal.verification.measure import measure_positions
 
     bar = rd.ballbar.load()
     stores = ballbar_stores(rd)
@@ -45,7 +45,7 @@ def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm:
     reference_length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
     budget = None
     if covariance is not None and len(lengths):
-        from ..pipeline.ballbar_uncertainty import ballbar_uncertainty
+        from fringecal.verification.uncertainty import ballbar_uncertainty
 
         budget = ballbar_uncertainty(centres, pixels, stores, rig, lengths, reference_length, covariance,
                                      verification.uncertainty, verification.mpe_mm,
@@ -63,7 +63,7 @@ class Verify(Step):
     name = "verify"
     title = "verification"
     settings = ("verification", "extraction.rejection")
-    modules = ("fringecal.pipeline.verify", "fringecal.verification")
+    modules = ("fringecal.verification.measure", "fringecal.verification.lengths")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]

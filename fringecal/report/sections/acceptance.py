@@ -3,12 +3,12 @@ ISO 14253-1, the positions in the measurement volume and the value of every posi
 
 from __future__ import annotations
 
-from .. import figures
-from ..figures import Image
-from ..formatting import finite, num, percent, truthy, um
-from ..rundata import RunData, guard
-from ..tables import table
-from .placements import ballbar_segments, pinholes, placement
+from fringecal.report import figures
+from fringecal.report.figures import Image
+from fringecal.report.formatting import finite, num, percent, truthy, um
+from fringecal.report.rundata import RunData, guard
+from fringecal.report.sections.placements import ballbar_segments, pinholes, placement
+from fringecal.report.tables import table
 
 __all__ = ["build"]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..formatting import num, um
-from ..tables import table
+from fringecal.report.formatting import num, um
+from fringecal.report.tables import table
 
 __all__ = ["gum", "length_budget"]
 

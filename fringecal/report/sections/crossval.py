@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from ..formatting import um
-from ..rundata import RunData
-from ..tables import table
+from fringecal.report.formatting import um
+from fringecal.report.rundata import RunData
+from fringecal.report.tables import table
 
 __all__ = ["build"]
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from ..formatting import finite, parts, um
-from ..rundata import RunData
+from fringecal.report.formatting import finite, parts, um
+from fringecal.report.rundata import RunData
 
 __all__ = ["build"]
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 from markupsafe import Markup
 
-from ...sensor import PARAM_NAMES
-from ..formatting import PARAM_LABELS, PARAM_UNITS, plus_minus
-from ..rundata import RunData, guard
-from ..tables import table
+from fringecal.report.formatting import PARAM_LABELS, PARAM_UNITS, plus_minus
+from fringecal.report.rundata import RunData, guard
+from fringecal.report.tables import table
+from fringecal.sensor import PARAM_NAMES
 
 __all__ = ["build", "correlations"]
 

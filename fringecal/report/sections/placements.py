@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...frames import POSE_COLUMNS, Frame
-from ..formatting import finite
-from ..rundata import Missing, RunData, numeric
+from fringecal.frames import POSE_COLUMNS, Frame
+from fringecal.report.formatting import finite
+from fringecal.report.rundata import Missing, RunData, numeric
 
 __all__ = ["ballbar_segments", "pinholes", "placement"]
 

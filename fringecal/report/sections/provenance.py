@@ -6,8 +6,8 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from ..rundata import SOURCES, Missing, RunData
-from ..tables import table
+from fringecal.report.rundata import SOURCES, Missing, RunData
+from fringecal.report.tables import table
 
 __all__ = ["build"]
 

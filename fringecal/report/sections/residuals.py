@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from ..figures import Image
-from ..formatting import length, natural, um
-from ..rundata import Missing, RunData, guard
-from ..tables import table
+from fringecal.report.figures import Image
+from fringecal.report.formatting import length, natural, um
+from fringecal.report.rundata import Missing, RunData, guard
+from fringecal.report.tables import table
 
 __all__ = ["build", "per_measurement", "per_sphere"]
 

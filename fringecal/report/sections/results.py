@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from markupsafe import Markup
 
-from ..formatting import finite, length, num, parts, secs, um
-from ..rundata import Missing, RunData
-from ..tables import column_note, table
+from fringecal.report.formatting import finite, length, num, parts, secs, um
+from fringecal.report.rundata import Missing, RunData
+from fringecal.report.tables import column_note, table
 
 __all__ = ["build"]
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ..formatting import finite, length, num, truthy, um, urad
-from ..rundata import Missing, RunData, failure, guard, numeric
-from ..tables import table
+from fringecal.report.formatting import finite, length, num, truthy, um, urad
+from fringecal.report.rundata import Missing, RunData, failure, guard, numeric
+from fringecal.report.tables import table
 
 __all__ = ["build"]
 

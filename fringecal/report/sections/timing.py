@@ -3,8 +3,8 @@ part of it numba spent compiling kernels (the first run on a machine only)."""
 
 from __future__ import annotations
 
-from ..formatting import finite, secs
-from ..rundata import Missing, RunData
+from fringecal.report.formatting import finite, secs
+from fringecal.report.rundata import Missing, RunData
 
 __all__ = ["build"]
 

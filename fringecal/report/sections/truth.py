@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from ..formatting import finite, length, num, um, urad
-from ..rundata import RunData
-from ..tables import table
+from fringecal.report.formatting import finite, length, num, um, urad
+from fringecal.report.rundata import RunData
+from fringecal.report.tables import table
 
 __all__ = ["build"]
 

@@ -3,12 +3,12 @@ uncertainty of each length under ISO 14253-1."""
 
 from __future__ import annotations
 
-from .. import figures
-from ..figures import Image
-from ..formatting import finite, num, parts, truthy, um
-from ..rundata import Missing, RunData
-from ..tables import column_note, pass_cell, table
-from .budget import gum, length_budget
+from fringecal.report import figures
+from fringecal.report.figures import Image
+from fringecal.report.formatting import finite, num, parts, truthy, um
+from fringecal.report.rundata import Missing, RunData
+from fringecal.report.sections.budget import gum, length_budget
+from fringecal.report.tables import column_note, pass_cell, table
 
 __all__ = ["build"]
 

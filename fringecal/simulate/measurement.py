@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from ..fringe.decode import DecodedPhase
-from ..fringe.measurement import decode_to_store
-from ..rig import Scanner
-from ..sensor import Sensor
-from ..simulate import GroundTruth, Measurement, Scene, SceneObject, backdrop, render_measurement
-from ..simulate.evaluation import pure_mask
-from ..store import write_store
+from fringecal.fringe.decode import DecodedPhase
+from fringecal.fringe.measurement import decode_to_store
+from fringecal.rig import Scanner
+from fringecal.sensor import Sensor
+from fringecal.simulate import GroundTruth, Measurement, Scene, SceneObject, backdrop, render_measurement
+from fringecal.simulate.evaluation import pure_mask
+from fringecal.store import write_store
 
 __all__ = ["AcquiredMeasurement", "simulate_measurement", "render_frames", "measurement_rng", "truth_variables",
            "truth_from_store", "camera_format_attr", "TRUTH_VARIABLES"]
@@ -104,7 +104,7 @@ def _sensor_attr(s: Sensor) -> dict:
 def render_frames(measurement: str, scanner: Scanner, scene: Scene, acquisition, errors=None) -> Measurement:
     """The fringe frames ``scanner`` records of ``scene`` (and the renderer's truth).
 
-    ``acquisition`` is an :class:`~fringecal.runconfig.AcquisitionConfig` (render
+    ``acquisition`` is an :class:`~fringecal.simulate.config.AcquisitionConfig` (render
     settings, sequence, seed, optional backdrop ``backdrop_mm`` in front of the
     camera); the noise comes from :func:`measurement_rng` (seed, measurement id), so a
     measurement renders the same whatever else is rendered and in whatever order.

@@ -7,7 +7,7 @@ bar (:func:`thesis_positions`, :func:`vdi7_positions`), builds its scene for the
 virtual scanner, and measures the sphere a scanner sees in its maps: from a plan that
 says which sphere it sees and where the other one is (:func:`measure_sphere`), or from
 the data alone (:func:`find_sightings`, :func:`cluster_centres`, :func:`name_clusters`,
-:func:`refit_sighting`, put together by :func:`fringecal.pipeline.verify.measure_position`).
+:func:`refit_sighting`, put together by :func:`fringecal.verification.measure.measure_position`).
 """
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .artefact import Artefact
-from .frames import Frame
-from .pointcloud import PointMaps
-from .spheres.candidates import find_sphere_candidates
-from .spheres.fit import FitError
-from .spheres.regions import RegionPoints, boundary_flags, fit_region
-from .spheres.robust import RejectionConfig, fit_sphere_robust
+from fringecal.artefact import Artefact
+from fringecal.frames import Frame
+from fringecal.pointcloud import PointMaps
+from fringecal.spheres.candidates import find_sphere_candidates
+from fringecal.spheres.fit import FitError
+from fringecal.spheres.regions import RegionPoints, boundary_flags, fit_region
+from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
 __all__ = ["BallBarPosition", "frame_along", "thesis_positions", "vdi7_positions", "ballbar_rods",
            "measure_sphere", "SphereMeasurement", "SightingConfig", "Sighting", "find_sightings",

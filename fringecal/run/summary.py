@@ -10,9 +10,9 @@ writing it again for the same run changes nothing. What describes one execution
 
 from __future__ import annotations
 
-from .digests import code_digest, digest_path
-from .rundir import RunDir, package_versions
-from .steps import current_record, pipeline, step_key
+from fringecal.digests import code_digest, digest_path
+from fringecal.rundir import RunDir, package_versions
+from fringecal.steps import current_record, pipeline, step_key
 
 __all__ = ["manifest", "run_summary", "pipeline_status", "source_files", "simulation_profile"]
 
@@ -20,10 +20,10 @@ __all__ = ["manifest", "run_summary", "pipeline_status", "source_files", "simula
 def source_files(cfg) -> list:
     """The files the run's data source is described by (not its image stacks)."""
     if cfg.source == "simulated":
-        from .acquisition.simulated import input_files
+        from fringecal.simulate.source import input_files
 
         return input_files(cfg.simulate)
-    from .dataset import DataSet
+    from fringecal.dataset import DataSet
 
     ds = DataSet.open(cfg.dataset)
     return [p for p in (ds.root / "dataset.yaml", ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned,
@@ -31,7 +31,7 @@ def source_files(cfg) -> list:
 
 
 def manifest(cfg) -> dict:
-    """The manifest of a run of ``cfg`` (a resolved :class:`~fringecal.runconfig.RunConfig`)."""
+    """The manifest of a run of ``cfg`` (a resolved :class:`~fringecal.run.config.RunConfig`)."""
     doc = cfg.model_dump(mode="json")
     return {"config": doc, "config_digest": RunDir.config_digest(doc), "source": cfg.source,
             "code_digest": code_digest(), "versions": package_versions(),

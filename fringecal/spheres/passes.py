@@ -16,14 +16,14 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from ..calibration.controlpoints import incidence_map, select_control_points
-from ..extraction import fit_candidates
-from ..frames import Frame
-from ..pointcloud import PointMaps, provenance, triangulate_maps
-from ..rig import Scanner
-from ..spheres.pixel_integration import correct_control_points
-from ..spheres.robust import rod_directions
-from ..store import open_store, write_store
+from fringecal.calibration.controlpoints import incidence_map, select_control_points
+from fringecal.frames import Frame
+from fringecal.pointcloud import PointMaps, provenance, triangulate_maps
+from fringecal.rig import Scanner
+from fringecal.spheres.extraction import fit_candidates
+from fringecal.spheres.pixel_integration import correct_control_points
+from fringecal.spheres.robust import rod_directions
+from fringecal.store import open_store, write_store
 
 __all__ = ["measurement_maps", "first_pass", "second_pass", "ExtractionResult"]
 

@@ -13,10 +13,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from schemas import PosesTable, SphereCentresTable, read_table, validate_table, write_table
-
-from .artefact import Artefact
-from .registration import DegenerateGeometryError, RigidRegistration
+from fringecal.artefact import Artefact
+from fringecal.registration import DegenerateGeometryError, RigidRegistration
+from fringecal.schemas import PosesTable, SphereCentresTable, read_table, validate_table, write_table
 
 __all__ = ["PoseResult", "estimate_poses", "estimate_poses_file", "POSE_COLUMNS"]
 
@@ -79,7 +78,7 @@ def estimate_poses_file(artefact_path, centres_path, out_path) -> PoseResult:
 
     What ``fringecal pose`` runs, directly or as a Prefect task.
     """
-    from .artefact import load_artefact
+    from fringecal.artefact import load_artefact
 
     art = load_artefact(artefact_path)
     table = read_table(centres_path, SphereCentresTable)

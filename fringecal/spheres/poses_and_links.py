@@ -4,8 +4,8 @@ The image-space step fits one :class:`~fringecal.spheres.robust.RobustSphereFit`
 per candidate region and turns each into a row with :func:`sphere_fit_row`;
 :func:`label_pose_link` then labels every (measurement, scanner)
 (:func:`fringecal.spheres.label_scanners.label_sphere_fits`), estimates one artefact
-pose each by SVD (:func:`fringecal.pose.estimate_poses`) and links the scanners into
-the reference frame (:func:`fringecal.linking.link_scanners`), then refuses every
+pose each by SVD (:func:`fringecal.spheres.pose.estimate_poses`) and links the scanners into
+the reference frame (:func:`fringecal.spheres.linking.link_scanners`), then refuses every
 labelling that the other scanners' poses of the same measurement contradict and links
 again. Every table it returns satisfies its schema in :mod:`schemas`.
 
@@ -23,26 +23,24 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
-from schemas import (LabelOutcomesTable, ScannerLinksTable, SphereCentresTable, SphereFitsTable,
-                     validate_table)
-
-from ..artefact import Artefact
-from ..frames import Frame
-from ..linking import LinkResult, link_scanners, mean_frame, pose_contradictions
-from ..pose import PoseResult, estimate_poses
-from ..registration import kabsch
-from .fit import SphereModel
-from .label_consensus import frame_uncertainty, scanner_frame_from_plan
-from .label_scanners import estimate_scale, label_with_prior
-from .labelling import Labelling, LabellingConfig, label_sphere_fits
-from .robust import RobustSphereFit
+from fringecal.artefact import Artefact
+from fringecal.frames import Frame
+from fringecal.registration import kabsch
+from fringecal.schemas import LabelOutcomesTable, ScannerLinksTable, SphereCentresTable, SphereFitsTable, validate_table
+from fringecal.spheres.fit import SphereModel
+from fringecal.spheres.label_consensus import frame_uncertainty, scanner_frame_from_plan
+from fringecal.spheres.label_scanners import estimate_scale, label_sphere_fits, label_with_prior
+from fringecal.spheres.labelling import Labelling, LabellingConfig
+from fringecal.spheres.linking import LinkResult, link_scanners, mean_frame, pose_contradictions
+from fringecal.spheres.pose import PoseResult, estimate_poses
+from fringecal.spheres.robust import RobustSphereFit
 
 __all__ = ["sphere_fit_row", "centres_from_fits", "label_pose_link", "LabelPoseLink"]
 
 
 def sphere_fit_row(measurement, scanner, candidate, fit: RobustSphereFit | SphereModel, bbox=None,
                    sphere_id: str = "") -> dict:
-    """One :class:`schemas.SphereFitsTable` row.
+    """One :class:`fringecal.schemas.SphereFitsTable` row.
 
     ``bbox`` is the candidate's image region ``(u_min, v_min, u_max, v_max)`` in
     camera pixels. Rejection counts come from a :class:`RobustSphereFit`.
@@ -65,7 +63,7 @@ def sphere_fit_row(measurement, scanner, candidate, fit: RobustSphereFit | Spher
 
 
 def centres_from_fits(fits: pd.DataFrame) -> pd.DataFrame:
-    """The labelled rows of a sphere-fits table as a :class:`schemas.SphereCentresTable`."""
+    """The labelled rows of a sphere-fits table as a :class:`fringecal.schemas.SphereCentresTable`."""
     labelled = fits[fits["sphere_id"].astype(str) != ""].reset_index(drop=True)
     return validate_table(labelled, SphereCentresTable, "labelled sphere fits")
 
@@ -80,7 +78,7 @@ class LabelPoseLink:
     ``T_reference_scanner`` per scanner (``links.table()``) and the unlinked ones;
     ``estimates``: scanner -> :class:`~fringecal.spheres.label_scanners.ScannerEstimate`;
     ``contradictions``: the labellings refused because other scanners' poses of the
-    same measurement contradict them (:func:`fringecal.linking.pose_contradictions`).
+    same measurement contradict them (:func:`fringecal.spheres.linking.pose_contradictions`).
     """
 
     fits: pd.DataFrame
@@ -116,7 +114,7 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
     Parameters
     ----------
     fits : DataFrame
-        :class:`schemas.SphereFitsTable` rows (``sphere_id`` may be empty; a filled
+        :class:`fringecal.schemas.SphereFitsTable` rows (``sphere_id`` may be empty; a filled
         group is a given labelling, checked like the others).
     artefact : Artefact
     reference : str

@@ -34,20 +34,20 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
-from .. import dataset as layout
-from ..artefact import load_rods
-from ..atomic import temporary_sibling
-from ..ballbar import ballbar_rods
-from ..frames import frame_rows, frames_from_rows
-from ..fringe.importer import write_frames
-from ..rundir import TruthDir, measurement_id
-from ..simulate.objects import object_truth
-from ..simulate.resolution import scaled_scanner
-from ..simulate.scenes import acceptance_scene, artefact_scene
-from ..simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
-from .measure import render_frames
-from .plan import move_hexapod, poses_table
-from .simulated import acceptance_camera_width, load_simulated_rig, object_plans
+from fringecal import dataset as layout
+from fringecal.artefact import load_rods
+from fringecal.atomic import temporary_sibling
+from fringecal.frames import frame_rows, frames_from_rows
+from fringecal.fringe.importer import write_frames
+from fringecal.rig import scaled_scanner
+from fringecal.rundir import TruthDir, measurement_id
+from fringecal.simulate.measurement import render_frames
+from fringecal.simulate.moves import move_hexapod, poses_table
+from fringecal.simulate.objects import object_truth
+from fringecal.simulate.scenes import acceptance_scene, artefact_scene
+from fringecal.simulate.source import acceptance_camera_width, load_simulated_rig, object_plans
+from fringecal.simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
+from fringecal.verification.ballbar import ballbar_rods
 
 __all__ = ["write_dataset", "PROCESSING_SECTIONS"]
 
@@ -77,10 +77,16 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
     interrupted export leaves no half data set. ``on_stack(id)`` is called after each
     image stack is written. Refuses to overwrite an existing ``out`` or ``truth_out``.
     """
-    from schemas import ArtefactTable, PosePlanTable, RodsTable, SensorParametersTable, read_table, write_table
-
-    from ..acceptance.plan import PLAN_COLUMNS
-    from ..acceptance.standards import load_standards
+    from fringecal.acceptance.plan import PLAN_COLUMNS
+    from fringecal.acceptance.standards import load_standards
+    from fringecal.schemas import (
+        ArtefactTable,
+        PosePlanTable,
+        RodsTable,
+        SensorParametersTable,
+        read_table,
+        write_table,
+    )
 
     out, truth_out = Path(out), Path(truth_out)
     for p in (out, truth_out):

@@ -17,12 +17,18 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
-from ..ballbar import (Sighting, SightingConfig, cluster_centres, find_sightings, name_clusters, refit_sighting)
-from ..rig import Rig, Scanner
-from ..simulate.resolution import scaled_scanner
-from ..spheres.fit import FitError
-from ..store import open_store
-from .extract import measurement_maps
+from fringecal.rig import Rig, Scanner, scaled_scanner
+from fringecal.spheres.fit import FitError
+from fringecal.spheres.passes import measurement_maps
+from fringecal.store import open_store
+from fringecal.verification.ballbar import (
+    Sighting,
+    SightingConfig,
+    cluster_centres,
+    find_sightings,
+    name_clusters,
+    refit_sighting,
+)
 
 __all__ = ["measure_position", "measure_positions", "store_sightings", "store_scanner", "store_maps", "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
 
@@ -56,7 +62,7 @@ def store_maps(store, scanner: Scanner):
 
 def store_sightings(store, scanner: Scanner, ballbar, rejection_config,
                     config: SightingConfig | None = None) -> tuple[list[Sighting], list[str]]:
-    """The bar spheres one store shows (:func:`fringecal.ballbar.find_sightings`),
+    """The bar spheres one store shows (:func:`fringecal.verification.ballbar.find_sightings`),
     triangulated with ``scanner`` (world frame) at the store's image size."""
     scanner, maps, valid = store_maps(store, scanner)
     return find_sightings(maps, valid, scanner, ballbar, rejection_config, config)
@@ -132,12 +138,12 @@ def measure_position(stores: dict, rig: Rig, ballbar, rejection_config, position
                      config: SightingConfig | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Sphere centres of one ball-bar position from its stores alone: no plan, no truth.
 
-    Decisions (settings in :class:`fringecal.ballbar.SightingConfig`):
+    Decisions (settings in :class:`fringecal.verification.ballbar.SightingConfig`):
 
     1. Every store is triangulated with its scanner's sensors (world frame); a store
        whose image (dims ``v, u``) is smaller or larger than the camera's format is a
        binned readout of the same sensor, so the camera is rescaled to it
-       (:func:`fringecal.simulate.resolution.scaled_scanner`). Sphere candidates of the
+       (:func:`fringecal.rig.scaled_scanner`). Sphere candidates of the
        bar's radius are fitted robustly with a free radius; a fit is a sighting if its
        radius is within ``radius_tolerance`` (10 %) of a certified radius and it kept
        at least ``min_disc_fraction`` (25 %) of the pixels of the sphere's image disc.
@@ -146,7 +152,7 @@ def measure_position(stores: dict, rig: Rig, ballbar, rejection_config, position
        the bar's (smaller) radius are the same sphere (single linkage). Exactly two
        clusters make a position; otherwise one failure row names the position, how
        many spheres were found and which scanners saw them, and it gets no rows.
-    3. The clusters are named with the bar's ids (:func:`fringecal.ballbar.name_clusters`):
+    3. The clusters are named with the bar's ids (:func:`fringecal.verification.ballbar.name_clusters`):
        by fitted radius if the certified diameters differ by more than
        ``distinct_diameter_mm`` (1 mm); else the first id goes to the sphere seen first
        in rig order, and if that scanner sees both, to the one with the smaller mean
@@ -154,7 +160,7 @@ def measure_position(stores: dict, rig: Rig, ballbar, rejection_config, position
        names; they only say which certified radius is fixed and label the rows.
     4. Every sighting is refitted with its sphere's certified radius fixed and the rod
        masked by a cone about the axis from its free-fit centre to the mean free-fit
-       centre of the other sphere (as :func:`fringecal.ballbar.measure_sphere` with
+       centre of the other sphere (as :func:`fringecal.verification.ballbar.measure_sphere` with
        the planned axis).
 
     Parameters

@@ -27,8 +27,8 @@ import shutil
 import socket
 from pathlib import Path
 
-from .lifeline import process_start
-from .rundir import RunDir
+from fringecal.lifeline import process_start
+from fringecal.rundir import RunDir
 
 __all__ = ["leftovers", "remove_leftovers", "busy", "begin", "finish", "RunDirBusy"]
 

@@ -14,26 +14,24 @@ chained through intermediate scanners: the scanners form a graph whose edges are
 shared measurements, and each scanner is reached by the path with the fewest links
 (ties: the most shared measurements).
 
-:func:`sensor_in_frame` then expresses a scanner's sensors in the reference frame,
-so every scanner starts the bundle adjustment in one global frame.
+:func:`fringecal.rig.rig_in_frame` then expresses a scanner's sensors in the reference
+frame, so every scanner starts the bundle adjustment in one global frame.
 """
 
 from __future__ import annotations
 
 import heapq
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 
-from schemas import PosesTable, validate_table
-
-from .frames import Frame
-from .rotation import angles_from_matrix
+from fringecal.frames import Frame
+from fringecal.schemas import PosesTable, validate_table
 
 __all__ = [
     "FrameLink", "LinkResult", "mean_frame", "robust_mean_frame", "link_scanners",
-    "sensor_in_frame", "rig_in_frame", "pose_contradictions", "LINK_COLUMNS",
+    "pose_contradictions", "LINK_COLUMNS",
 ]
 
 LINK_COLUMNS = ["scanner", "reference", "tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad",
@@ -166,7 +164,7 @@ def link_scanners(poses: pd.DataFrame, reference: str, k: float = 4.0, source: s
     Parameters
     ----------
     poses : DataFrame
-        :class:`schemas.PosesTable` rows: ``T_scanner_artefact`` per (measurement, scanner).
+        :class:`fringecal.schemas.PosesTable` rows: ``T_scanner_artefact`` per (measurement, scanner).
     reference : str
         The scanner whose frame becomes the global frame.
     k : float
@@ -297,35 +295,3 @@ def pose_contradictions(poses: pd.DataFrame, result: LinkResult, probe_local, to
                        f"{tol_mm:.0f} mm: one of their labellings is wrong, which one cannot be told")
             rows.append((m, s, d, len(names), why))
     return pd.DataFrame(rows, columns=["measurement", "scanner", "deviation_mm", "n_scanners", "message"])
-
-
-def sensor_in_frame(sensor, T_reference_scanner: Frame, near=None):
-    """A sensor expressed in the reference frame.
-
-    A sensor frame maps ``x_sensor = R_s (x_scanner - x0)`` and the link maps
-    ``x_scanner = R_T (x_ref - t)``, so in the reference frame the pinhole is
-    ``T(x0)`` and the rotation ``R_s R_T``; the angles are taken on the branch
-    nearest ``near`` (default: the sensor's own angles). Interior and distortion
-    parameters are unchanged.
-    """
-    T = T_reference_scanner
-    R_new = sensor.R @ T.R
-    near = sensor.angles if near is None else near
-    params = np.array(sensor.params, float)
-    params[0:3] = T.to_world(sensor.pinhole)
-    params[3:6] = angles_from_matrix(R_new, near=near)
-    return sensor.with_params(params)
-
-
-def rig_in_frame(rig, links: dict):
-    """A :class:`fringecal.rig.Rig` with every linked scanner's sensors in the reference
-    frame (``links``: scanner -> FrameLink or Frame). Scanners without a link raise KeyError."""
-    from .rig import Scanner
-
-    scanners = []
-    for s in rig.scanners:
-        if s.name not in links:
-            raise KeyError(f"scanner {s.name!r} has no link to the reference frame")
-        T = links[s.name].frame if isinstance(links[s.name], FrameLink) else links[s.name]
-        scanners.append(Scanner(s.name, sensor_in_frame(s.camera, T), sensor_in_frame(s.projector, T)))
-    return replace(rig, scanners=tuple(scanners))

@@ -1,7 +1,7 @@
 """Every ball-bar length with its own uncertainty budget and the ISO 14253-1 verdict.
 
 For each measured length (one per position and pair of scanners) the budget of
-:mod:`fringecal.length_uncertainty` (calibration, artefact CMM, artefact temperature,
+:mod:`fringecal.verification.budget` (calibration, artefact CMM, artefact temperature,
 sphere fits, bar certificate, bar temperature), its expanded uncertainty U = k u_c, the
 Monte Carlo check of the linear propagation, and two judgements:
 
@@ -29,28 +29,24 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
-from ..calibration.propagation import sensor_covariance
-from ..length_uncertainty import (BUDGET_TERMS, ParameterCovariances, SightingPoints, block_params, bootstrap_bias,
-                                  length_budget, length_gradient, monte_carlo_lengths, refitted_length,
-                                  sighting_model, validate_linear)
-from ..rig import Rig
-from ..store import open_store
-from .verify import store_scanner
+from fringecal.calibration.propagation import parameter_covariances
+from fringecal.rig import Rig
+from fringecal.store import open_store
+from fringecal.verification.budget import (
+    BUDGET_TERMS,
+    SightingPoints,
+    block_params,
+    bootstrap_bias,
+    length_budget,
+    length_gradient,
+    monte_carlo_lengths,
+    refitted_length,
+    sighting_model,
+    validate_linear,
+)
+from fringecal.verification.measure import store_scanner
 
-__all__ = ["parameter_covariances", "sighting_points", "ballbar_uncertainty", "iso14253_verdict"]
-
-
-def parameter_covariances(arrays: dict, u_scale: float, u_factor: float = 1.0) -> ParameterCovariances:
-    """The sensor-parameter covariances of a run's ``calibration_covariance.npz``
-    (``u_factor`` on the artefact table's uncertainties, ``u_scale`` the relative
-    standard uncertainty of the artefact's scale)."""
-    idx = arrays["sensor_index"]
-    S = arrays["artefact_sensitivity"] * (u_factor * arrays["artefact_u"])[None, :]
-    scale = np.zeros(idx.size)
-    flat = idx.reshape(-1)
-    scale[flat >= 0] = arrays["scale_sensitivity"][flat[flat >= 0]]
-    return ParameterCovariances(sensor_covariance(idx, arrays["covariance"]), sensor_covariance(idx, S @ S.T),
-                                scale, float(u_scale))
+__all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict"]
 
 
 def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float) -> SightingPoints:
@@ -87,9 +83,9 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     centres : the ball-bar centres table (``position, scanner, sphere_id, x_mm, ...``)
     pixels : (position, scanner, sphere_id) -> (rows, cols) of each fit's kept pixels
     stores : position -> scanner -> store path
-    rig : the calibrated rig; lengths : :func:`fringecal.verification.ballbar_lengths`
+    rig : the calibrated rig; lengths : :func:`fringecal.verification.lengths.ballbar_lengths`
     arrays : the run's ``calibration_covariance.npz``
-    config : :class:`~fringecal.runconfig.LengthUncertaintyConfig`
+    config : :class:`~fringecal.verification.settings.LengthUncertaintyConfig`
     certificate_u_mm : standard uncertainty of the certified length
     workers : threads for the lengths' Monte Carlo runs
     halves : the run's ``crossval_halves.npz`` arrays (the lengths are then also

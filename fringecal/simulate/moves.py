@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from ..frames import POSE_COLUMNS, Frame
+from fringecal.frames import POSE_COLUMNS, Frame
 
 __all__ = ["PoseMove", "move_hexapod", "poses_table", "POSE_COLUMNS"]
 
@@ -41,7 +41,7 @@ class PoseMove:
 def move_hexapod(planned: dict[str, Frame], hexapod) -> list[PoseMove]:
     """Move the artefact through ``planned`` (pose id -> T_world_artefact) in order.
 
-    ``hexapod`` is a :class:`~fringecal.runconfig.HexapodStepConfig`. When enabled, the platform at its ``url``
+    ``hexapod`` is a :class:`~fringecal.simulate.config.HexapodStepConfig`. When enabled, the platform at its ``url``
     (``hexsim://...`` for the simulated box) carries the artefact: each pose is
     planned into encoder counts, driven, and the reached pose computed from the counts
     read back. Without it every pose is reached exactly. A pose the platform cannot
@@ -52,7 +52,7 @@ def move_hexapod(planned: dict[str, Frame], hexapod) -> list[PoseMove]:
     hx = hexapod
     if not hx.enabled:
         return [PoseMove(pose, T, T) for pose, T in planned.items()]
-    from ..hexapod import HexapodFault, HexapodRig, PlatformMover, TargetRejected, load_hexapod_config
+    from fringecal.hexapod import HexapodFault, HexapodRig, PlatformMover, TargetRejected, load_hexapod_config
 
     rig = HexapodRig.from_config(load_hexapod_config(hx.config))
     out = []
@@ -73,7 +73,7 @@ def move_hexapod(planned: dict[str, Frame], hexapod) -> list[PoseMove]:
 
 
 def poses_table(moves: list[PoseMove]) -> pd.DataFrame:
-    """One row per pose (``schemas.AcquiredPosesTable``): the pose the artefact reached
+    """One row per pose (``fringecal.schemas.AcquiredPosesTable``): the pose the artefact reached
     (``tx_mm .. kappa_rad``, the truth the measurements were rendered at), the planned
     one (``planned_*``), the differences, and the encoder counts (empty without hexapod)."""
     rows = []

@@ -3,7 +3,7 @@
 In the thesis every scanner arrived calibrated in its own frame from a planar artefact
 (section 6.1); its point clouds gave the sphere centres that located the big artefact.
 A simulated run needs the same, and nothing in it may come from the true placement
-beyond the documented error sizes (:class:`~fringecal.runconfig.PriorCalibrationConfig`):
+beyond the documented error sizes (:class:`~fringecal.simulate.settings.PriorCalibrationConfig`):
 
 - **Frame.** A stereo calibration delivers a scanner in its camera's frame: the camera
   at the origin looking along its own axes. :func:`scanner_frames` gives each scanner's
@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..frames import Frame
-from ..linking import sensor_in_frame
-from ..rig import Rig, Scanner
+from fringecal.frames import Frame
+from fringecal.rig import Rig, Scanner
+from fringecal.sensor import sensor_in_frame
 
 __all__ = ["simulate_prior_rig", "scanner_frames"]
 
@@ -50,7 +50,7 @@ def simulate_prior_rig(truth: Rig, config, seed: int | None = None) -> tuple[Rig
     ----------
     truth : Rig
         True sensors in the world frame.
-    config : fringecal.runconfig.PriorCalibrationConfig
+    config : fringecal.simulate.settings.PriorCalibrationConfig
 
     Returns
     -------

@@ -21,7 +21,7 @@ their standard uncertainties:
   components (by ~20 % for a ball-bar sphere);
 * ``bar certificate`` and ``bar temperature``: the reference length's own uncertainty;
 * ``model error (cross-validation)``: when the two half-calibrations' lengths differ
-  beyond their stated uncertainty, the excess (:mod:`fringecal.pipeline.ballbar_uncertainty`),
+  beyond their stated uncertainty, the excess (:mod:`fringecal.verification.uncertainty`),
   an estimate of what the model leaves out; 0 when they agree.
 
 Linear propagation (GUM): the centre moves with the points as ``dc = (A^T A)^-1 A^T
@@ -44,8 +44,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .calibration.propagation import point_jacobian, scanner_with, triangulate_mm
-from .rig import Scanner
+from fringecal.calibration.propagation import ParameterCovariances, point_jacobian, scanner_with, triangulate_mm
+from fringecal.rig import Scanner
 
 __all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
            "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
@@ -123,25 +123,6 @@ class LengthBudget:
     @property
     def combined_mm(self) -> float:
         return float(math.sqrt(sum(v**2 for v in self.u_mm.values())))
-
-
-@dataclass(frozen=True)
-class ParameterCovariances:
-    """The sensor-parameter covariances (n_sensors * 14 square) and the scale response.
-
-    calibration, cmm : covariance from the adjustment and from the artefact table;
-    scale : (n_sensors * 14,) parameter change per unit relative scale of the artefact;
-    u_scale : relative standard uncertainty of the artefact's scale (temperature).
-    """
-
-    calibration: np.ndarray
-    cmm: np.ndarray
-    scale: np.ndarray
-    u_scale: float
-
-    @property
-    def total(self) -> np.ndarray:
-        return self.calibration + self.cmm + self.u_scale**2 * np.outer(self.scale, self.scale)
 
 
 def length_gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[np.ndarray, np.ndarray, float]:

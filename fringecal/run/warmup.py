@@ -5,7 +5,7 @@ and caches it (``__pycache__`` or ``NUMBA_CACHE_DIR``). Compilation is single-th
 and serialised within a process, so on a first ``fringecal run`` one core compiles
 the renderer's kernel while the other waits. :func:`start` uses that core: when the
 cache holds no compiled decoder yet (a cold cache), it starts ``python -m
-fringecal.kernel_warmup``, a low-priority process that drives the decoder, the
+fringecal.run.warmup``, a low-priority process that drives the decoder, the
 triangulation, the sphere fits and the bundle adjustment's residual and
 normal-equation kernels through their public functions on tiny inputs of the
 pipeline's own types, so that numba writes them to the cache before the run needs
@@ -29,7 +29,7 @@ __all__ = ["cache_is_cold", "start", "warm_up"]
 def cache_is_cold() -> bool:
     """True when numba's cache holds no compiled decoder (a first run on this machine
     or in this checkout)."""
-    from .fringe.decode import _decode_rows
+    from fringecal.fringe.decode import _decode_rows
 
     try:  # numba's cache-index path is internal: if it moves, skip the warm-up rather than the run
         index = _decode_rows._cache._cache_file._index_path
@@ -47,9 +47,9 @@ def start() -> subprocess.Popen | None:
     """
     if not cache_is_cold():
         return None
-    from . import lifeline
+    from fringecal import lifeline
 
-    proc = subprocess.Popen([sys.executable, "-m", "fringecal.kernel_warmup"], stdin=subprocess.DEVNULL,
+    proc = subprocess.Popen([sys.executable, "-m", "fringecal.run.warmup"], stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     lifeline.adopt(proc)
     return proc
@@ -60,13 +60,13 @@ def warm_up() -> None:
     (the run needs it right after rendering the first store)."""
     import numpy as np
 
-    from .calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
-    from .calibration.synthetic import simulate_control_points, thesis_truth
-    from .fringe.decode import DecodeSettings, decode
-    from .fringe.sequence import FringeSequence
-    from .pointcloud import triangulate_image_points, triangulate_maps
-    from .spheres.fit import SphereModel, angular_coverage
-    from .spheres.robust import RejectionConfig, fit_sphere_robust
+    from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
+    from fringecal.fringe.decode import DecodeSettings, decode
+    from fringecal.fringe.sequence import FringeSequence
+    from fringecal.pointcloud import triangulate_image_points, triangulate_maps
+    from fringecal.simulate.control_points import simulate_control_points, thesis_truth
+    from fringecal.spheres.fit import SphereModel, angular_coverage
+    from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
     sequence = FringeSequence()
     decode(np.zeros((sequence.n_frames, 4, 4), np.uint16), sequence, DecodeSettings())

@@ -6,7 +6,7 @@ Two passes, as an operator would work but automatic:
    (:mod:`fringecal.spheres.candidates`), each region fitted robustly
    (:func:`fringecal.spheres.regions.fit_region`: edges, silhouettes, residual outliers
    and rods detected among the outliers are rejected with counts per reason).
-2. After labelling and a pose per measurement (:func:`fringecal.spheres.steps.label_pose_link`),
+2. After labelling and a pose per measurement (:func:`fringecal.spheres.poses_and_links.label_pose_link`),
    :func:`fit_candidates` again on the same regions with each sphere's rod directions
    from the artefact definition: a cone around every rod axis (end cap plus margin)
    is masked, so no rod or end-cap point survives into a fit, even where a cap meets
@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .pointcloud import PointMaps
-from .spheres.candidates import CandidateConfig, find_sphere_candidates
-from .spheres.fit import FitError
-from .spheres.regions import boundary_flags, fit_region
-from .spheres.robust import RejectionConfig
+from fringecal.pointcloud import PointMaps
+from fringecal.spheres.candidates import CandidateConfig, find_sphere_candidates
+from fringecal.spheres.fit import FitError
+from fringecal.spheres.regions import boundary_flags, fit_region
+from fringecal.spheres.robust import RejectionConfig
 
 __all__ = ["MeasurementFits", "fit_candidates"]
 
@@ -38,7 +38,7 @@ class MeasurementFits:
     Attributes
     ----------
     rows : list of dict
-        :class:`schemas.SphereFitsTable` rows, one per fitted candidate.
+        :class:`fringecal.schemas.SphereFitsTable` rows, one per fitted candidate.
     regions : ndarray of int16, shape (rows, cols)
         Candidate index of each pixel of a candidate region, -1 elsewhere.
     kept : ndarray of int16, shape (rows, cols)

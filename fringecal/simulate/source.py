@@ -1,6 +1,6 @@
 """The simulated data source: what the simulator knows before it renders.
 
-:func:`load_simulated_rig` turns a :class:`~fringecal.runconfig.SimulationConfig`
+:func:`load_simulated_rig` turns a :class:`~fringecal.simulate.settings.SimulationConfig`
 into a :class:`SimulatedRig`: the true sensors (cameras at the simulated
 resolution), each scanner's prior calibration in its own frame, the artefact (CMM
 table with the configured corrections: what the run fits against) and the artefact
@@ -35,20 +35,19 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from ..artefact import Artefact, load_artefact, load_rods
-from ..ballbar import BallBarPosition, thesis_positions, vdi7_positions
-from ..config import ConfigError
-from ..frames import frames_from_rows
-from ..pipeline.prior import simulate_prior_rig
-from ..rig import Rig, load_rig
-from ..rundir import measurement_id
-from ..simulate.resolution import scaled_rig
-from ..simulate.scenes import ArtefactHardware
-from ..simulate.unmodelled import emitted_harmonics
-from ..simulate.world import as_built_artefact, as_built_ballbar
+from fringecal.artefact import Artefact, load_artefact, load_rods
+from fringecal.config import ConfigError
+from fringecal.frames import frames_from_rows
+from fringecal.rig import Rig, load_rig, scaled_rig
+from fringecal.rundir import measurement_id
+from fringecal.simulate.prior import simulate_prior_rig
+from fringecal.simulate.scenes import ArtefactHardware
+from fringecal.simulate.unmodelled import emitted_harmonics
+from fringecal.simulate.world import as_built_artefact, as_built_ballbar
+from fringecal.verification.ballbar import BallBarPosition, thesis_positions, vdi7_positions
 
 if TYPE_CHECKING:
-    from ..acceptance.standards import AcceptanceStandards
+    from fringecal.acceptance.standards import AcceptanceStandards
 
 __all__ = ["acceptance_camera_width", "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing",
            "sphere_sightings", "acquisition_table", "true_volumes", "acceptance_plan", "object_plans"]
@@ -104,7 +103,7 @@ def acceptance_camera_width(simulate) -> int | None:
     """The camera width (px) the acceptance stores are recorded at:
     ``simulate.acceptance.camera_width_px``, else the verification's; None: as the
     acquisition (both doors: the ``simulate-sphere/-dumbbell/-flat`` steps and
-    :mod:`fringecal.acquisition.export`)."""
+    :mod:`fringecal.simulate.export`)."""
     a, v = simulate.acceptance.camera_width_px, simulate.verification.camera_width_px
     return a if a is not None else v
 
@@ -142,9 +141,9 @@ def sphere_sightings(rig: Rig, artefact: Artefact, poses: dict) -> pd.DataFrame:
 
 
 def true_volumes(truth: Rig, artefact: Artefact, planned: dict) -> dict:
-    """Each scanner's measurement volume (:class:`~fringecal.ballbar_plan.MeasurementVolume`)
+    """Each scanner's measurement volume (:class:`~fringecal.verification.plan.MeasurementVolume`)
     from the true rig: the artefact spheres it sees in the planned poses."""
-    from ..ballbar_plan import volumes_from_observations
+    from fringecal.verification.plan import volumes_from_observations
 
     return volumes_from_observations(truth, sphere_sightings(truth, artefact, planned), planned, artefact)
 
@@ -152,7 +151,7 @@ def true_volumes(truth: Rig, artefact: Artefact, planned: dict) -> dict:
 def _planned_positions(sim, truth: Rig, artefact: Artefact, planned: dict, ballbar: Artefact):
     """Positions planned from the true rig's measurement volumes: the spheres each
     scanner sees in the planned poses."""
-    from ..ballbar_plan import plan_positions
+    from fringecal.verification.plan import plan_positions
 
     volumes = true_volumes(truth, artefact, planned)
     v = sim.verification
@@ -185,8 +184,8 @@ def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict):
     """(standards, positions) of the simulated acceptance test; (None, None) when
     ``simulate.acceptance`` is disabled. Raises ConfigError, naming every position
     that does not fit, when the plan falls short of the counts asked for."""
-    from ..acceptance.plan import TESTS, plan_acceptance
-    from ..acceptance.standards import load_standards
+    from fringecal.acceptance.plan import TESTS, plan_acceptance
+    from fringecal.acceptance.standards import load_standards
 
     a = sim.acceptance
     if not a.enabled:
@@ -203,7 +202,7 @@ def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict):
 
 def load_simulated_rig(sim) -> SimulatedRig:
     """Build the :class:`SimulatedRig` of a simulation config; errors name the file."""
-    from schemas import PosePlanTable, TableError, read_table
+    from fringecal.schemas import PosePlanTable, TableError, read_table
 
     rc = sim.rig_config()
     if rc.artefact_poses is None:
@@ -245,7 +244,7 @@ def load_simulated_rig(sim) -> SimulatedRig:
 
 
 def acquisition_table(sr: SimulatedRig) -> pd.DataFrame:
-    """Every store the simulation records (``schemas.AcquisitionTable``): each planned
+    """Every store the simulation records (``fringecal.schemas.AcquisitionTable``): each planned
     measurement seen by every scanner, then each ball-bar position by its recorders,
     then each acceptance position (kind ``sphere``, ``dumbbell`` or ``flat``) by the
     scanner it was planned for."""
@@ -266,7 +265,7 @@ def object_plans(sim, truth: Rig, built: Artefact, rods: pd.DataFrame | None, ha
     entry in front of the true rig (the artefact as ``built``); raises ConfigError for an
     unknown material, and, naming the object and every scanner's view fraction, for an
     object no scanner sees."""
-    from ..simulate.objects import plan_object
+    from fringecal.simulate.objects import plan_object
 
     materials = sim.acquisition.render.materials
     for o in sim.objects:

@@ -29,14 +29,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pandas as pd
 
-from ..artefact import Artefact, load_artefact
-from ..config import thesis_dir
-from ..frames import Frame
-from ..rig import Rig, Scanner, load_rig
-from ..rotation import rotation_matrix
-from ..sensor import Sensor
-from ..triangulation import closest_approach
-from .model import POSE_COLUMNS
+from fringecal.artefact import Artefact, load_artefact
+from fringecal.calibration.model import POSE_COLUMNS
+from fringecal.config import thesis_dir
+from fringecal.frames import Frame
+from fringecal.rig import Rig, Scanner, load_rig
+from fringecal.rotation import rotation_matrix
+from fringecal.sensor import Sensor
+from fringecal.triangulation import closest_approach
 
 __all__ = [
     "SimulatedControlPoints",
@@ -252,7 +252,7 @@ def _moved_sensor(sensor: Sensor, name: str, T: Frame) -> Sensor:
     """``sensor`` carried rigidly by T (world -> world), renamed."""
     X0 = T.to_world(sensor.pinhole[None])[0]
     R = sensor.R @ T.R  # x' = R_s (R_T (X_new - t)) ... sensor axes carried along
-    from ..rotation import angles_from_matrix
+    from fringecal.rotation import angles_from_matrix
 
     angles = angles_from_matrix(R, near=sensor.angles)
     params = np.array(sensor.params, copy=True)
@@ -383,12 +383,12 @@ def dlt_start(sim: SimulatedControlPoints, rng, centre_noise_mm: float = 0.05,
     DLT. The reference camera's external parameters are set to the truth: they define the
     world frame (the gauge), which a real calibration takes from that camera's prior
     calibration. The start poses are the SVD registrations of the noisy centres seen by
-    all scanners against the artefact (fringecal.pose).
+    all scanners against the artefact (fringecal.spheres.pose).
 
     Returns the start rig (free flags of the truth rig) and a PosePlanTable frame.
     """
-    from ..pose import estimate_poses
-    from .initial import initial_rig_from_dlt
+    from fringecal.calibration.initial import initial_rig_from_dlt
+    from fringecal.spheres.pose import estimate_poses
 
     rng = np.random.default_rng(rng)
     obs = sphere_centre_observations(sim)

@@ -1,7 +1,7 @@
 """Sphere centres as scanners with imperfect prior calibrations measure them, for
 testing and benchmarking the labelling (no images).
 
-A rig's views come from :mod:`fringecal.calibration.synthetic` (which spheres each
+A rig's views come from :mod:`fringecal.simulate.control_points` (which spheres each
 scanner sees in each pose, occlusion included). Each scanner then reports the centres
 in its own, arbitrary frame (origin at its camera's pinhole, axes turned at random),
 through a prior calibration with the errors the labelling's defaults are sized for
@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from ..artefact import Artefact
-from ..frames import POSE_COLUMNS, Frame
-from ..rotation import rotation_matrix
+from fringecal.artefact import Artefact
+from fringecal.frames import POSE_COLUMNS, Frame
+from fringecal.rotation import rotation_matrix
 
 __all__ = ["PriorErrors", "RigObservations", "observe_rig", "rig_views", "link_errors", "RIGS"]
 
@@ -50,7 +50,7 @@ class PriorErrors:
 class RigObservations:
     """Sphere fits as the labelling step reads them, with the truth.
 
-    ``fits``: :class:`schemas.SphereFitsTable` rows (empty ``sphere_id``) plus
+    ``fits``: :class:`fringecal.schemas.SphereFitsTable` rows (empty ``sphere_id``) plus
     ``truth`` (the true sphere id, "" for a false candidate); ``planned``:
     measurement -> planned ``T_world_artefact``; ``own``: scanner -> true
     ``T_world_scanner`` of its own frame; ``scales``: scanner -> its prior's scale;
@@ -74,13 +74,13 @@ def rig_views(name: str, seed: int = 0):
     DataFrame (measurement, scanner, sphere_id) of the spheres each scanner sees.
 
     ``thesis``: table 6-8's two scanners and table 6-1's poses (six spheres per view);
-    ``three_scanner_row``: :func:`~fringecal.calibration.synthetic.three_scanner_truth`
+    ``three_scanner_row``: :func:`~fringecal.simulate.control_points.three_scanner_truth`
     with its ``spheres_of`` masks (scanner1 sees only the triangle 1-3);
     ``ring6``: six scanners on a ring, ten random poses turned about the vertical, and
     a narrow field: a scanner sees the spheres within 450 mm of its optical axis (3-14
     spheres; views of fewer than three are dropped).
     """
-    from ..calibration import synthetic as syn
+    from fringecal.simulate import control_points as syn
 
     spheres_of = None
     if name == "thesis":
@@ -171,7 +171,7 @@ def observe_rig(name: str, errors: PriorErrors | None = None, seed: int = 0, fal
                          "cap_angle_deg": 70.0, "coverage": 0.3, "n_rejected": 0, "truth": truth[i]})
         if truth.count("") == 0:
             Y = art.centres_of(truth)
-            from ..registration import kabsch
+            from fringecal.registration import kabsch
 
             M, t = kabsch(Y, X)
             sq.append(np.mean(np.sum((Y @ M.T + t - X) ** 2, axis=1)))
@@ -190,7 +190,7 @@ def observe_rig(name: str, errors: PriorErrors | None = None, seed: int = 0, fal
 
 
 def link_errors(obs: "RigObservations", res) -> tuple[float, float]:
-    """Largest error of the links of a :class:`~fringecal.spheres.steps.LabelPoseLink`
+    """Largest error of the links of a :class:`~fringecal.spheres.poses_and_links.LabelPoseLink`
     against the truth, where each scanner measures (mm) and in angle (rad); NaN without links."""
     if res.links is None:
         return float("nan"), float("nan")

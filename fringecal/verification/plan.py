@@ -45,9 +45,9 @@ from itertools import combinations
 import numpy as np
 import pandas as pd
 
-from .ballbar import BallBarPosition, frame_along
-from .frames import Frame
-from .rig import Rig
+from fringecal.frames import Frame
+from fringecal.rig import Rig
+from fringecal.verification.ballbar import BallBarPosition, frame_along
 
 __all__ = ["MeasurementVolume", "VerificationPlan", "neighbours", "volumes_from_observations", "volumes_from_run",
            "plan_positions", "positions_table"]
@@ -133,7 +133,7 @@ def volumes_from_observations(rig: Rig, observations: pd.DataFrame, poses: dict[
 def volumes_from_run(rd, margin: float = 1.5) -> dict[str, MeasurementVolume]:
     """The measurement volumes of a calibrated run directory: calibrated sensors and
     poses, and the spheres that gave control points."""
-    from .frames import frames_from_rows
+    from fringecal.frames import frames_from_rows
 
     cps = rd.control_points.load()
     observations = cps[["measurement", "scanner", "sphere_id"]].drop_duplicates()

@@ -25,7 +25,7 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
 
 * ``covariance`` -- the covariance of every sensor parameter (rig order, 14 per sensor,
   fixed parameters with zero rows; ``parameters`` names them ``<sensor>.<parameter>``),
-  split as the length budget splits it (:class:`fringecal.length_uncertainty.ParameterCovariances`):
+  split as the length budget splits it (:class:`fringecal.calibration.propagation.ParameterCovariances`):
   ``adjustment`` (observation noise through the bundle adjustment), ``artefact_cmm``
   (the artefact table's CMM uncertainty scaled by ``artefact_u_factor``),
   ``artefact_scale`` (parameter change per unit relative scale of the artefact) with
@@ -46,9 +46,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import write_text
-from .rig import Rig, Scanner
-from .sensor import PARAM_NAMES, Sensor, SensorFormat
+from fringecal.atomic import write_text
+from fringecal.rig import Rig, Scanner
+from fringecal.sensor import PARAM_NAMES, Sensor, SensorFormat
 
 __all__ = ["write_calibration_xml", "xml_text", "read_calibration_xml", "write_calibration_json",
            "read_calibration_json", "rig_to_dict", "rig_from_dict", "CalibrationFileError", "Calibration",
@@ -75,7 +75,7 @@ def parameter_names(rig: Rig) -> list[str]:
 
 def covariance_document(rig: Rig, covariances) -> dict:
     """The ``covariance`` block of a calibration document from
-    :class:`~fringecal.length_uncertainty.ParameterCovariances` (matrices (14 n, 14 n))."""
+    :class:`~fringecal.calibration.propagation.ParameterCovariances` (matrices (14 n, 14 n))."""
     n = 14 * sum(len(s.sensors) for s in rig.scanners)
     for name in ("calibration", "cmm"):
         if np.shape(getattr(covariances, name)) != (n, n):
@@ -89,9 +89,9 @@ def covariance_document(rig: Rig, covariances) -> dict:
 
 def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None) -> dict:
     """The JSON document of ``rig``; ``covariances``
-    (:class:`~fringecal.length_uncertainty.ParameterCovariances`) and ``provenance`` are
+    (:class:`~fringecal.calibration.propagation.ParameterCovariances`) and ``provenance`` are
     added when given (see the module notes)."""
-    from . import __version__
+    from fringecal import __version__
 
     out = {"software": "fringecal", "version": __version__, "reference_scanner": rig.reference,
            "scanners": [], "metadata": dict(metadata or {})}
@@ -167,7 +167,7 @@ def read_calibration_json(path) -> Rig:
 @dataclass(frozen=True)
 class Calibration:
     """A calibration file read whole: the rig, the covariance of its sensor parameters
-    (:class:`~fringecal.length_uncertainty.ParameterCovariances`, None when the file has
+    (:class:`~fringecal.calibration.propagation.ParameterCovariances`, None when the file has
     none, e.g. the XML), the provenance and the metadata."""
 
     rig: Rig
@@ -177,7 +177,7 @@ class Calibration:
 
 
 def _covariances(doc: dict, rig: Rig, source: str):
-    from .length_uncertainty import ParameterCovariances
+    from fringecal.calibration.propagation import ParameterCovariances
 
     names = parameter_names(rig)
     n = len(names)

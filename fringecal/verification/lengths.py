@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import pandas as pd
 
-from schemas import BallbarCentresTable, SphereCentresTable, TableError, validate_table
+from fringecal.schemas import BallbarCentresTable, SphereCentresTable, TableError, validate_table
 
 __all__ = [
     "GumStatement",
@@ -112,7 +112,7 @@ def ballbar_lengths(centres: pd.DataFrame, source: str = "<centres>", ids=("A", 
     """Centre distance of spheres ``A`` and ``B`` per position.
 
     Rows are grouped by ``position`` (the table of
-    :func:`fringecal.pipeline.verify.measure_position`) or, in tables without that
+    :func:`fringecal.verification.measure.measure_position`) or, in tables without that
     column, by ``measurement`` (thesis table 6-9, the plan-driven centres). The two
     spheres of a position may come from different scanners (one sphere seen by each,
     as in thesis table 6-9). A sphere seen by several scanners has a row from each;
