@@ -30,6 +30,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Iterable
 
+import fringecal
+from fringecal.atomic import write_json
+
 __all__ = ["digest_path", "digest_value", "DigestCache", "source_digest", "module_files", "code_digest",
            "INFRASTRUCTURE_MODULES"]
 
@@ -158,8 +161,6 @@ class DigestCache:
             with self._lock:
                 self._memory[key] = (sig, digest)
             if (entry := self._entry_file(key)) is not None:
-                from fringecal.atomic import write_json
-
                 write_json(entry, {"path": key, "signature": sig, "digest": digest})
         return digest
 
@@ -174,7 +175,6 @@ _FACES = ("flows", "tasks")
 def _package_roots() -> tuple[Path, ...]:
     """Where fringecal's modules live: the package folder, and in a source checkout the
     checkout itself, whose flows/, tasks/ and schemas/ the package maps in."""
-    import fringecal
 
     return tuple(Path(p).resolve() for p in fringecal.__path__)
 

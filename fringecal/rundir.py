@@ -123,7 +123,7 @@ class TableFile(RunFile):
     schema: type | None = None
 
     def load(self) -> pd.DataFrame:
-        from fringecal.schemas import read_csv_text, validate_table
+        from fringecal.schemas import read_csv_text, validate_table  # lazy: pandera loads when a table is read
 
         df = read_csv_text(self.path)
         if df.empty or self.schema is None:
@@ -131,7 +131,7 @@ class TableFile(RunFile):
         return validate_table(df, self.schema, str(self.path))
 
     def save(self, df: pd.DataFrame) -> Path:
-        from fringecal.schemas import write_table
+        from fringecal.schemas import write_table  # lazy: pandera loads when a table is read
 
         if df.empty and self.schema is not None:
             cols = list(df.columns) or list(self.schema.to_schema().columns)
@@ -144,12 +144,12 @@ class ArtefactFile(RunFile):
     """An artefact definition (:class:`fringecal.artefact.Artefact`)."""
 
     def load(self):
-        from fringecal.artefact import load_artefact
+        from fringecal.artefact import load_artefact  # lazy: pandera loads when a table is read
 
         return load_artefact(self.path)
 
     def save(self, artefact) -> Path:
-        from fringecal.schemas import ArtefactTable, write_table
+        from fringecal.schemas import ArtefactTable, write_table  # lazy: pandera loads when a table is read
 
         return write_table(artefact.to_frame(), self.path, ArtefactTable)
 
@@ -159,12 +159,12 @@ class RodsFile(RunFile):
     """The artefact's rods (checked against the artefact's spheres on load)."""
 
     def load(self, artefact=None) -> pd.DataFrame:
-        from fringecal.artefact import load_rods
+        from fringecal.artefact import load_rods  # lazy: pandera loads when a table is read
 
         return load_rods(self.path, artefact)
 
     def save(self, rods: pd.DataFrame) -> Path:
-        from fringecal.schemas import RodsTable, write_table
+        from fringecal.schemas import RodsTable, write_table  # lazy: pandera loads when a table is read
 
         return write_table(rods, self.path, RodsTable)
 
@@ -174,12 +174,12 @@ class RigFile(RunFile):
     """A sensor-parameter table (:class:`fringecal.rig.Rig`)."""
 
     def load(self, reference: str | None = None):
-        from fringecal.rig import load_rig
+        from fringecal.rig import load_rig  # lazy: pandera loads when a table is read
 
         return load_rig(self.path, reference=reference)
 
     def save(self, rig) -> Path:
-        from fringecal.schemas import SensorParametersTable, write_table
+        from fringecal.schemas import SensorParametersTable, write_table  # lazy: pandera loads when a table is read
 
         return write_table(rig.to_frame(), self.path, SensorParametersTable)
 
@@ -239,22 +239,22 @@ class StoreFile(RunFile):
     """A zarr v3 measurement store (:mod:`fringecal.store`)."""
 
     def exists(self) -> bool:
-        from fringecal.store import is_complete
+        from fringecal.store import is_complete  # lazy: zarr and xarray load when a store is opened
 
         return is_complete(self.path)
 
     def open(self):
-        from fringecal.store import open_store
+        from fringecal.store import open_store  # lazy: zarr and xarray load when a store is opened
 
         return open_store(self.path)
 
     def attrs(self) -> dict:
-        from fringecal.store import store_attributes
+        from fringecal.store import store_attributes  # lazy: zarr and xarray load when a store is opened
 
         return store_attributes(self.path)
 
     def save(self, ds) -> Path:
-        from fringecal.store import write_store
+        from fringecal.store import write_store  # lazy: zarr and xarray load when a store is opened
 
         return write_store(self.path, ds)
 
@@ -268,12 +268,12 @@ class CalibrationFile(RunFile):
         return RunFile(self.root, str(Path(self.rel).with_suffix(".xml")))
 
     def load(self):
-        from fringecal.calibration.file import read_calibration_json
+        from fringecal.calibration.file import read_calibration_json  # lazy: numba loads when a calibration is read
 
         return read_calibration_json(self.path)
 
     def save(self, rig, metadata: dict | None = None) -> Path:
-        from fringecal.calibration.file import rig_to_dict, xml_text
+        from fringecal.calibration.file import rig_to_dict, xml_text  # lazy: numba loads when a calibration is read
 
         with atomic.atomic_paths([self.path, self.xml.path]) as (tmp_json, tmp_xml):
             tmp_json.write_text(json.dumps(rig_to_dict(rig, metadata), indent=2) + "\n", encoding="utf-8")
@@ -320,14 +320,14 @@ class TruthDir:
     @property
     def poses(self) -> TableFile:
         """The artefact pose each measurement was rendered at (``T_world_artefact``)."""
-        from fringecal.schemas import PosePlanTable
+        from fringecal.schemas import PosePlanTable  # lazy: pandera loads when a table is read
 
         return self._at(TableFile, "poses.csv", schema=PosePlanTable)
 
     @property
     def ballbar_positions(self) -> TableFile:
         """``T_world_ballbar`` of each verification position."""
-        from fringecal.schemas import PosePlanTable
+        from fringecal.schemas import PosePlanTable  # lazy: pandera loads when a table is read
 
         return self._at(TableFile, "ballbar_positions.csv", schema=PosePlanTable)
 
@@ -335,7 +335,7 @@ class TruthDir:
     def acceptance_positions(self) -> TableFile:
         """``T_world_<object>`` of each acceptance-test position (``measurement``: the
         position), with its ``test`` (sphere, dumbbell, flat) and ``scanner``."""
-        from fringecal.schemas import PosePlanTable
+        from fringecal.schemas import PosePlanTable  # lazy: pandera loads when a table is read
 
         return self._at(TableFile, "acceptance_positions.csv", schema=PosePlanTable)
 
@@ -385,7 +385,7 @@ class RunDir:
         return cls(self.root, rel, **kw)
 
     def _table(self, rel: str, schema_name: str | None, optional: bool = False) -> TableFile:
-        from fringecal import schemas
+        from fringecal import schemas  # lazy: pandera loads when a table is read
 
         return TableFile(self.root, rel, optional, getattr(schemas, schema_name) if schema_name else None)
 

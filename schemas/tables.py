@@ -44,6 +44,7 @@ _without_pandera_dask_types()
 import pandera.pandas as pa  # noqa: E402
 from pandera.typing import Series  # noqa: E402
 
+from fringecal.atomic import atomic_path  # noqa: E402
 from fringecal.sensor import PARAM_NAMES  # noqa: E402
 
 __all__ = [
@@ -864,7 +865,6 @@ def read_table(path, model) -> pd.DataFrame:
 
 def write_table(df: pd.DataFrame, path, model=None) -> Path:
     """Validate (when ``model`` is given) and write atomically (:mod:`fringecal.atomic`)."""
-    from fringecal.atomic import atomic_path
 
     path = Path(path)
     if model is not None:

@@ -37,6 +37,7 @@ import math
 import pandas as pd
 
 from fringecal.acceptance.standards import PARAMETERS, AcceptanceLimits
+from fringecal.verification.uncertainty import iso14253_verdict
 
 __all__ = ["VALUE_COLUMNS", "verdict", "parameters", "certificate", "form_u", "CELL"]
 
@@ -67,7 +68,6 @@ def verdict(value_mm: float, U_mm: float, mpe_mm: float | None) -> str:
     >>> verdict(0.06, 0.03, 0.1), verdict(0.14, 0.03, 0.1), verdict(-0.09, 0.03, 0.1)
     ('conformance', 'non-conformance', 'uncertainty zone')
     """
-    from fringecal.verification.uncertainty import iso14253_verdict
 
     return "not limited" if mpe_mm is None else iso14253_verdict(value_mm, U_mm, mpe_mm)
 

@@ -31,6 +31,7 @@ from typing import Optional
 import numpy as np
 from pydantic import Field
 
+from fringecal.artefact import Artefact
 from fringecal.config import StrictModel, load_yaml_model
 
 __all__ = ["SphereStandard", "DumbbellStandard", "FlatStandard", "AcceptanceStandards", "AcceptanceLimits",
@@ -70,7 +71,6 @@ class DumbbellStandard(StrictModel):
     def artefact(self):
         """The dumbbell as an :class:`~fringecal.artefact.Artefact` with spheres ``A`` and
         ``B`` on its x axis (what the ball-bar measurement code takes)."""
-        from fringecal.artefact import Artefact
 
         return Artefact(("A", "B"), np.array([[0.0, 0.0, 0.0], [self.length_mm, 0.0, 0.0]]),
                         np.array([self.diameter_mm, self.diameter_mm]))

@@ -33,6 +33,7 @@ from fringecal.frames import Frame, frames_from_rows
 from fringecal.hexapod import HexapodRig, TargetRejected, load_hexapod_config
 from fringecal.hexapod.kinematics import leg_jacobian
 from fringecal.rig import load_rig
+from fringecal.schemas import PosePlanTable, read_table
 
 __all__ = ["TOLERANCE_MARGIN", "LivePlan", "prepare", "check_reachable", "reach_tolerance"]
 
@@ -72,7 +73,6 @@ def prepare(dataset, hexapod_config=None, capture: Optional[str] = None) -> Live
     DataSetError, fringecal.schemas.TableError, FrameStackError, ConfigError, CaptureTemplateError
         All ``ValueError``; the message names the file or folder.
     """
-    from fringecal.schemas import PosePlanTable, read_table
 
     root = Path(dataset).expanduser().absolute()
     if not root.is_dir():

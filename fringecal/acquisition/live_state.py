@@ -30,6 +30,7 @@ from fringecal.dataset import HEXAPOD_MOVES_FILE, MEASUREMENTS_DIR, POSES_PLANNE
 from fringecal.frames import POSE_COLUMNS
 from fringecal.fringe.importer import read_stack_spec
 from fringecal.fringe.sequence import FringeSequence
+from fringecal.schemas import HexapodMovesTable, read_table, write_table
 
 __all__ = ["ACQUIRE_DIR", "MeasurementState", "Survey", "survey", "MovesLog", "move_row", "acquisition_lock"]
 
@@ -170,7 +171,6 @@ class MovesLog:
 
     def record(self, row: dict) -> None:
         """Append one move to the journal (atomic rewrite)."""
-        from fringecal.schemas import write_table
 
         write_table(pd.concat([self._journal(), pd.DataFrame([row])], ignore_index=True), self.journal)
 
@@ -179,7 +179,6 @@ class MovesLog:
         last journalled move with the number of moves; rows already published for a complete
         measurement that the journal does not hold are kept. Returns the path, or None when
         there is no row to write."""
-        from fringecal.schemas import HexapodMovesTable, read_table, write_table
 
         journal = self._journal()
         rows: dict[str, dict] = {}

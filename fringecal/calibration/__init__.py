@@ -1,17 +1,12 @@
-"""Calibration: DLT start values, control points and the object-space bundle adjustment
-(thesis sections 2.2.3, 2.3.2-2.3.7, 6.3-6.5, 6.9). See docs/calibration.md."""
+"""Calibration (thesis sections 2.2.3, 2.3.2-2.3.7, 6.3-6.5, 6.9; docs/calibration.md):
+start values (:mod:`.dlt`, :mod:`.initial`, :mod:`.start`), control points
+(:mod:`.controlpoints`), the object-space bundle adjustment (:mod:`.model`,
+:mod:`.kernels`, :mod:`.solver`, :mod:`.bundle`), whether it reached its noise floor
+(:mod:`.convergence`), degenerate set-ups (:mod:`.diagnostics`), its uncertainty
+(:mod:`.uncertainty`, :mod:`.propagation`, :mod:`.artefact_sensitivity`,
+:mod:`.bootstrap`, :mod:`.crossval`), its results (:mod:`.results`) and its file format
+(:mod:`.file`). Nothing here reads or writes a run directory or draws.
 
-from fringecal.calibration.bundle import BundleOptions, BundleResult, ResidualStatistics, StartValueError, bundle_adjust
-from fringecal.calibration.controlpoints import incidence_map, select_control_points
-from fringecal.calibration.diagnostics import DegenerateCalibrationError, Diagnosis
-from fringecal.calibration.dlt import DLTError, DLTEstimate, dlt
-from fringecal.calibration.initial import initial_rig_from_dlt
-from fringecal.calibration.model import BundleProblem
-from fringecal.calibration.results import residual_tables, summary
-
-__all__ = [
-    "BundleOptions", "BundleProblem", "BundleResult", "DLTError", "DLTEstimate",
-    "DegenerateCalibrationError", "Diagnosis", "ResidualStatistics", "StartValueError", "bundle_adjust",
-    "dlt", "incidence_map", "initial_rig_from_dlt", "residual_tables",
-    "select_control_points", "summary",
-]
+The package imports none of its modules, so reading a calibration file does not load
+the adjustment's compiled kernels.
+"""

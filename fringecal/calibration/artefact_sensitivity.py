@@ -36,6 +36,7 @@ import scipy.linalg
 
 from fringecal.calibration.model import Evaluator
 from fringecal.calibration.solver import irls_weights
+from fringecal.calibration.uncertainty import UNOBSERVABLE
 
 __all__ = ["ArtefactSensitivity", "artefact_sensitivity", "STEP_MM"]
 
@@ -73,7 +74,7 @@ def _weights(result) -> np.ndarray:
 
 
 def artefact_sensitivity(result) -> ArtefactSensitivity:
-    """:class:`ArtefactSensitivity` of a :class:`~fringecal.calibration.BundleResult`."""
+    """:class:`ArtefactSensitivity` of a :class:`~fringecal.calibration.bundle.BundleResult`."""
     pr = result.problem
     art = pr.artefact
     gamma = np.array([pr.gamma1, pr.gamma2])
@@ -118,7 +119,6 @@ def artefact_sensitivity(result) -> ArtefactSensitivity:
 
 def _solve(N: np.ndarray, B: np.ndarray) -> np.ndarray:
     """N^-1 B in scaled variables, unobservable directions dropped (as the covariance)."""
-    from fringecal.calibration.uncertainty import UNOBSERVABLE
 
     d = np.sqrt(np.diag(N))
     d[d == 0] = 1.0

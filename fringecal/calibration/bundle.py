@@ -42,6 +42,7 @@ from fringecal.calibration.convergence import SEPARATE_MINIMUM_RATIO, noise_floo
 from fringecal.calibration.diagnostics import DegenerateCalibrationError, Diagnosis, check_rank, check_structure
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
 from fringecal.calibration.solver import LMOptions, LMReport, irls_weights, levenberg_marquardt
+from fringecal.calibration.start import reinitialise
 from fringecal.calibration.uncertainty import Uncertainty, estimate_uncertainty
 from fringecal.config import StrictModel
 from fringecal.rig import Rig
@@ -317,8 +318,6 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions
         # normal matrix is singular there), and the error is raised if none does
         attempt("given", problem, must=options.start == "given")
     if options.start != "given":
-        from fringecal.calibration.start import reinitialise
-
         modes = {}
         for label, mode, basis in DATA_STARTS:
             if options.start in ("auto", "data") and _settled(runs, lowest):

@@ -60,6 +60,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fringecal.calibration.model import triangulated_points
+from fringecal.sensor import UndistortError
+
 __all__ = ["FLOOR_RATIO", "MIN_POINTS", "SCANNER_FLOOR_RATIO", "SEPARATE_MINIMUM_RATIO", "FloorCheck",
            "local_residuals", "noise_floor_check", "same_minimum"]
 
@@ -136,7 +139,6 @@ def local_residuals(problem, rig, eps1: np.ndarray):
     entered the fits (at least ``MIN_POINTS`` points with finite rays); plus the number
     of sphere images used. Raises :class:`fringecal.sensor.UndistortError` (or returns
     NaN rows) where rays cannot be formed."""
-    from fringecal.calibration.model import triangulated_points
 
     S = triangulated_points(problem, rig)
     n_sph, n_m = len(problem.artefact), len(problem.measurements)
@@ -188,7 +190,6 @@ def noise_floor_check(problem, rig, residuals: np.ndarray, dof: tuple | None = N
     """The noise-floor test of an adjusted ``rig`` with its ``residuals`` (n, 2) on
     ``problem``'s control points; ``dof`` = (nu_1, nu_2) of the adjustment (None: n
     each, i.e. no correction for the adjusted parameters)."""
-    from fringecal.sensor import UndistortError
 
     n = problem.n_points
     try:

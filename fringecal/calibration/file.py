@@ -46,7 +46,9 @@ from pathlib import Path
 
 import numpy as np
 
+from fringecal import __version__
 from fringecal.atomic import write_text
+from fringecal.calibration.propagation import ParameterCovariances
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import PARAM_NAMES, Sensor, SensorFormat
 
@@ -91,7 +93,6 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
     """The JSON document of ``rig``; ``covariances``
     (:class:`~fringecal.calibration.propagation.ParameterCovariances`) and ``provenance`` are
     added when given (see the module notes)."""
-    from fringecal import __version__
 
     out = {"software": "fringecal", "version": __version__, "reference_scanner": rig.reference,
            "scanners": [], "metadata": dict(metadata or {})}
@@ -177,8 +178,6 @@ class Calibration:
 
 
 def _covariances(doc: dict, rig: Rig, source: str):
-    from fringecal.calibration.propagation import ParameterCovariances
-
     names = parameter_names(rig)
     n = len(names)
     try:

@@ -17,8 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fringecal.frames import Frame
 from fringecal.pointcloud import triangulate_image_points
 from fringecal.rig import Rig, Scanner
+from fringecal.rotation import angles_from_matrix
 
 __all__ = ["ParameterCovariances", "parameter_covariances", "sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
            "point_variances", "point_uncertainty_map", "scanner_with", "STEP_FRACTION", "rigid_motion_basis", "frame_free_covariance",
@@ -145,8 +147,6 @@ def rigid_motion_basis(rig: Rig, eps: float = 1e-6) -> np.ndarray:
     """How every sensor parameter changes when the whole rig moves rigidly: shape
     (n_sensors * 14, 6), columns per unit translation along world x, y, z (mm) and
     rotation about them (rad, about the centroid of the projection centres)."""
-    from fringecal.frames import Frame
-    from fringecal.rotation import angles_from_matrix
 
     sensors = rig.sensors
     pivot = np.mean([s.pinhole for s in sensors], axis=0)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from fringecal.calibration.artefact_sensitivity import artefact_sensitivity
 from fringecal.calibration.bundle import BundleResult
 from fringecal.calibration.model import triangulated_points
 from fringecal.schemas import MeasurementResidualsTable, SphereResidualsTable, validate_table
@@ -122,7 +123,6 @@ def covariance_arrays(result: BundleResult) -> dict:
     n_spheres) and ``artefact_u`` (4 n_spheres,) and ``scale_sensitivity`` (p,) of
     :func:`fringecal.calibration.artefact_sensitivity.artefact_sensitivity`.
     """
-    from fringecal.calibration.artefact_sensitivity import artefact_sensitivity
 
     sens = artefact_sensitivity(result)
     return {"names": np.array(result.layout.names, dtype=str), "covariance": result.uncertainty.covariance,

@@ -19,7 +19,7 @@ from pydantic import Field, model_validator
 
 from fringecal.config import StrictModel, configs_dir, load_yaml_model
 from fringecal.frames import Frame
-from fringecal.hexapod.kinematics import PlatformGeometry
+from fringecal.hexapod.kinematics import PlatformGeometry, inverse_kinematics
 
 __all__ = [
     "GeometryConfig",
@@ -131,8 +131,6 @@ class HexapodConfig(StrictModel):
 
     @model_validator(mode="after")
     def _home_in_stroke(self):
-        from fringecal.hexapod.kinematics import inverse_kinematics
-
         lengths = inverse_kinematics(self.platform, self.home_pose.vector)
         stroke = lengths - self.actuator.retracted_length_mm
         if np.any(stroke < 0) or np.any(stroke > self.actuator.stroke_mm):

@@ -20,7 +20,13 @@ import pandas as pd
 
 from fringecal.frames import Frame
 from fringecal.hexapod.config import HexapodConfig
-from fringecal.hexapod.kinematics import forward_kinematics, inverse_kinematics, pose_from_frame, pose_to_frame
+from fringecal.hexapod.kinematics import (
+    forward_kinematics,
+    inverse_kinematics,
+    leg_jacobian,
+    pose_from_frame,
+    pose_to_frame,
+)
 from fringecal.hexapod.workspace import check_poses, describe_violations
 
 __all__ = [
@@ -208,7 +214,6 @@ def quantisation_bound(config: HexapodConfig, platform_pose) -> np.ndarray:
     Linearised: ``|d pose_k| <= q sum_j |(J^-1)_kj|`` with ``q = 0.5 / counts_per_mm``
     and J the leg Jacobian at ``platform_pose``.
     """
-    from fringecal.hexapod.kinematics import leg_jacobian
 
     J = leg_jacobian(config.platform, np.asarray(platform_pose, float))
     q = 0.5 / config.actuator.counts_per_mm

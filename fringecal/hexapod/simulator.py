@@ -34,6 +34,8 @@ from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
+from fringecal.hexapod.config import load_hexapod_config
+from fringecal.hexapod.kinematics import inverse_kinematics
 from fringecal.hexapod.protocol import ERROR_CODES, ProtocolError, frame, parse_command, unframe
 
 __all__ = ["SimulatedController", "get_controller", "controller_for_url", "forget_controllers", "FAULTS"]
@@ -224,9 +226,6 @@ def controller_for_url(url: str) -> SimulatedController:
 
 
 def _configure(name: str, opts: dict) -> SimulatedController:
-    from fringecal.hexapod.config import load_hexapod_config
-    from fringecal.hexapod.kinematics import inverse_kinematics
-
     box = _REGISTRY.get(name) if name else None
     fault = opts.get("fault")
     if fault is not None and fault not in FAULTS + ("", "none"):

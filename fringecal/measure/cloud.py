@@ -50,6 +50,7 @@ import numpy as np
 from fringecal.calibration.propagation import point_variances, scanner_block
 from fringecal.pointcloud import triangulate_maps
 from fringecal.rig import Rig, Scanner
+from fringecal.verification.measure import store_scanner
 
 __all__ = ["POINT_DTYPE", "Cloud", "MeasureSettings", "scanner_points", "measure_cloud", "point_uncertainty",
            "UNCERTAINTY_STEP", "SAME_SURFACE_MM"]
@@ -197,7 +198,6 @@ def measure_cloud(rig: Rig, stores: Mapping[str, object], settings: MeasureSetti
         rig order (``ParameterCovariances.total``), or None
     measurement : the value of the points' ``measurement`` field
     """
-    from fringecal.verification.measure import store_scanner
 
     names = tuple(s.name for s in rig.scanners)
     unknown = sorted(set(stores) - set(names))

@@ -19,6 +19,7 @@ import numpy as np
 
 from fringecal.atomic import atomic_paths
 from fringecal.measure.cloud import POINT_DTYPE, Cloud
+from fringecal.store import open_store, write_store
 
 __all__ = ["CLOUD_SUFFIXES", "write_cloud", "read_cloud", "write_ply", "read_ply"]
 
@@ -63,8 +64,6 @@ def read_ply(path) -> Cloud:
 def _write_zarr(cloud: Cloud, path: Path, comments: dict | None) -> Path:
     import xarray as xr
 
-    from fringecal.store import write_store
-
     ds = xr.Dataset({n: ("point", cloud.points[n]) for n in POINT_DTYPE.names},
                     attrs={"scanners": list(cloud.scanners), "measurements": list(cloud.measurements), "units": "mm",
                            **(comments or {})})
@@ -86,8 +85,6 @@ def read_cloud(path) -> Cloud:
     """A cloud of :func:`write_cloud`."""
     path = Path(path)
     if path.suffix.lower() == ".zarr":
-        from fringecal.store import open_store
-
         with open_store(path) as ds:
             pts = np.empty(ds.sizes["point"], POINT_DTYPE)
             for n in POINT_DTYPE.names:

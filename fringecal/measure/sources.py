@@ -12,8 +12,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fringecal.fringe.importer import SEQUENCE_FILE
+from fringecal.fringe.decode import decode
+from fringecal.fringe.importer import SEQUENCE_FILE, check_stack, read_frames
+from fringecal.fringe.measurement import check_decoded, measurement_dataset
 from fringecal.rig import Rig
+from fringecal.store import StoreError, is_complete, open_store
 
 __all__ = ["MeasurementSourceError", "measurement_entries", "open_entry"]
 
@@ -62,13 +65,9 @@ def measurement_entries(folder, rig: Rig, kind: str) -> dict[str, Path]:
 
 def _check_entry(entry: Path, camera, kind: str) -> None:
     if kind == "frames":
-        from fringecal.fringe.importer import check_stack
-
         spec, _, _ = check_stack(entry)  # every frame's header: empty, truncated, colour, size, depth
         w, h = spec.width_px, spec.height_px
     else:
-        from fringecal.store import StoreError, is_complete, open_store
-
         if not is_complete(entry):
             raise MeasurementSourceError(f"{entry}: not a complete store (interrupted write or not a fringecal store)")
         try:
@@ -88,12 +87,7 @@ def _check_entry(entry: Path, camera, kind: str) -> None:
 def open_entry(entry: Path, kind: str, decode_settings=None):
     """The maps of one entry (an opened store, or the frames decoded in memory)."""
     if kind == "stores":
-        from fringecal.store import open_store
-
         return open_store(entry)
-    from fringecal.fringe.decode import decode
-    from fringecal.fringe.importer import read_frames
-    from fringecal.fringe.measurement import check_decoded, measurement_dataset
 
     stack = read_frames(entry)
     result = decode(stack.frames, stack.sequence, decode_settings, stack.full_scale)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import jinja2
 
+from fringecal import __version__
 from fringecal.report.rundata import RunData, Shown, guard
 from fringecal.report.sections import (
     SECTIONS,
@@ -64,7 +65,6 @@ def render_report(run_dir, timings: dict | None = None, execution: dict | None =
     if not any(f.path.is_file() for f in markers):
         raise FileNotFoundError(f"{rd.root} is not a run directory: none of "
                                 f"{', '.join(f.rel for f in markers)} is there")
-    from fringecal import __version__
 
     run = RunData(rd)
     generated = generated or datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")

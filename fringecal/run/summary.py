@@ -10,8 +10,10 @@ writing it again for the same run changes nothing. What describes one execution
 
 from __future__ import annotations
 
+from fringecal.dataset import DataSet
 from fringecal.digests import code_digest, digest_path
 from fringecal.rundir import RunDir, package_versions
+from fringecal.simulate.source import input_files
 from fringecal.steps import current_record, pipeline, step_key
 
 __all__ = ["manifest", "run_summary", "pipeline_status", "source_files", "simulation_profile"]
@@ -20,10 +22,7 @@ __all__ = ["manifest", "run_summary", "pipeline_status", "source_files", "simula
 def source_files(cfg) -> list:
     """The files the run's data source is described by (not its image stacks)."""
     if cfg.source == "simulated":
-        from fringecal.simulate.source import input_files
-
         return input_files(cfg.simulate)
-    from fringecal.dataset import DataSet
 
     ds = DataSet.open(cfg.dataset)
     return [p for p in (ds.root / "dataset.yaml", ds.artefact, ds.rods, ds.sensors_prior, ds.poses_planned,

@@ -23,13 +23,15 @@ import os
 import subprocess
 import sys
 
+from fringecal import lifeline
+
 __all__ = ["cache_is_cold", "start", "warm_up"]
 
 
 def cache_is_cold() -> bool:
     """True when numba's cache holds no compiled decoder (a first run on this machine
     or in this checkout)."""
-    from fringecal.fringe.decode import _decode_rows
+    from fringecal.fringe.decode import _decode_rows  # lazy: numba loads only for this check
 
     try:  # numba's cache-index path is internal: if it moves, skip the warm-up rather than the run
         index = _decode_rows._cache._cache_file._index_path
@@ -47,8 +49,6 @@ def start() -> subprocess.Popen | None:
     """
     if not cache_is_cold():
         return None
-    from fringecal import lifeline
-
     proc = subprocess.Popen([sys.executable, "-m", "fringecal.run.warmup"], stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     lifeline.adopt(proc)
@@ -60,6 +60,7 @@ def warm_up() -> None:
     (the run needs it right after rendering the first store)."""
     import numpy as np
 
+    # lazy: only the warm-up process loads the kernels, not the run that starts it
     from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
     from fringecal.fringe.decode import DecodeSettings, decode
     from fringecal.fringe.sequence import FringeSequence

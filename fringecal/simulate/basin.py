@@ -28,7 +28,9 @@ import pandas as pd
 
 from fringecal.artefact import Artefact, load_artefact
 from fringecal.calibration.model import POSE_COLUMNS
+from fringecal.config import RigConfig, load_yaml_model
 from fringecal.rig import Rig, load_rig
+from fringecal.simulate.control_points import simulate_control_points
 
 __all__ = ["ERRORS_1X", "flat_poses", "independent_spheres", "load_rig_config", "rough_start"]
 
@@ -64,7 +66,6 @@ def rough_start(rig: Rig, poses: np.ndarray, rng, scale: float = 1.0, errors: di
 
 def load_rig_config(path) -> tuple[Rig, Artefact, pd.DataFrame]:
     """Truth rig, artefact and poses (``measurement`` + pose columns) of a rig YAML."""
-    from fringecal.config import RigConfig, load_yaml_model
 
     cfg = load_yaml_model(Path(path), RigConfig)
     if cfg.artefact_poses is None:
@@ -96,7 +97,6 @@ def independent_spheres(rig: Rig, artefact: Artefact, poses: pd.DataFrame, per_s
     """scanner -> the ``per_scanner`` spheres it images best (most control points over
     ``poses``), no sphere given to two scanners (scanners in rig order; at least three
     each, else ValueError): a rig whose volumes share no sphere."""
-    from fringecal.simulate.control_points import simulate_control_points
 
     cp = simulate_control_points(rig, artefact, poses, spacing_px=spacing_px, noise_eps1_mm=0.0).control_points
     counts = cp.groupby(["scanner", "sphere_id"]).size()

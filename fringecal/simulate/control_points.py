@@ -30,12 +30,14 @@ import numpy as np
 import pandas as pd
 
 from fringecal.artefact import Artefact, load_artefact
+from fringecal.calibration.initial import initial_rig_from_dlt
 from fringecal.calibration.model import POSE_COLUMNS
 from fringecal.config import thesis_dir
 from fringecal.frames import Frame
 from fringecal.rig import Rig, Scanner, load_rig
-from fringecal.rotation import rotation_matrix
+from fringecal.rotation import angles_from_matrix, rotation_matrix
 from fringecal.sensor import Sensor
+from fringecal.spheres.pose import estimate_poses
 from fringecal.triangulation import closest_approach
 
 __all__ = [
@@ -252,7 +254,6 @@ def _moved_sensor(sensor: Sensor, name: str, T: Frame) -> Sensor:
     """``sensor`` carried rigidly by T (world -> world), renamed."""
     X0 = T.to_world(sensor.pinhole[None])[0]
     R = sensor.R @ T.R  # x' = R_s (R_T (X_new - t)) ... sensor axes carried along
-    from fringecal.rotation import angles_from_matrix
 
     angles = angles_from_matrix(R, near=sensor.angles)
     params = np.array(sensor.params, copy=True)
@@ -387,8 +388,6 @@ def dlt_start(sim: SimulatedControlPoints, rng, centre_noise_mm: float = 0.05,
 
     Returns the start rig (free flags of the truth rig) and a PosePlanTable frame.
     """
-    from fringecal.calibration.initial import initial_rig_from_dlt
-    from fringecal.spheres.pose import estimate_poses
 
     rng = np.random.default_rng(rng)
     obs = sphere_centre_observations(sim)

@@ -35,12 +35,15 @@ import pandas as pd
 import yaml
 
 from fringecal import dataset as layout
+from fringecal.acceptance.plan import PLAN_COLUMNS
+from fringecal.acceptance.standards import load_standards
 from fringecal.artefact import load_rods
 from fringecal.atomic import temporary_sibling
 from fringecal.frames import frame_rows, frames_from_rows
 from fringecal.fringe.importer import write_frames
 from fringecal.rig import scaled_scanner
 from fringecal.rundir import TruthDir, measurement_id
+from fringecal.schemas import ArtefactTable, PosePlanTable, RodsTable, SensorParametersTable, read_table, write_table
 from fringecal.simulate.measurement import render_frames
 from fringecal.simulate.moves import move_hexapod, poses_table
 from fringecal.simulate.objects import object_truth
@@ -77,16 +80,6 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
     interrupted export leaves no half data set. ``on_stack(id)`` is called after each
     image stack is written. Refuses to overwrite an existing ``out`` or ``truth_out``.
     """
-    from fringecal.acceptance.plan import PLAN_COLUMNS
-    from fringecal.acceptance.standards import load_standards
-    from fringecal.schemas import (
-        ArtefactTable,
-        PosePlanTable,
-        RodsTable,
-        SensorParametersTable,
-        read_table,
-        write_table,
-    )
 
     out, truth_out = Path(out), Path(truth_out)
     for p in (out, truth_out):

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import pandas as pd
 
 from fringecal.frames import POSE_COLUMNS, Frame
+from fringecal.hexapod import HexapodFault, HexapodRig, PlatformMover, TargetRejected, load_hexapod_config
 
 __all__ = ["PoseMove", "move_hexapod", "poses_table", "POSE_COLUMNS"]
 
@@ -52,7 +53,6 @@ def move_hexapod(planned: dict[str, Frame], hexapod) -> list[PoseMove]:
     hx = hexapod
     if not hx.enabled:
         return [PoseMove(pose, T, T) for pose, T in planned.items()]
-    from fringecal.hexapod import HexapodFault, HexapodRig, PlatformMover, TargetRejected, load_hexapod_config
 
     rig = HexapodRig.from_config(load_hexapod_config(hx.config))
     out = []

@@ -34,10 +34,17 @@ from typing import Annotated, Literal, Optional, Union
 import numpy as np
 from pydantic import Field, TypeAdapter, field_validator
 
+from fringecal.atomic import write_json
 from fringecal.config import StrictModel
 from fringecal.frames import POSE_COLUMNS, Frame
-from fringecal.simulate.config import RenderConfig
+from fringecal.fringe.decode import DecodeSettings
+from fringecal.fringe.sequence import FringeSequence, SequenceConfig
+from fringecal.rig import Rig, scaled_rig
+from fringecal.simulate.config import AcquisitionConfig, RenderConfig
+from fringecal.simulate.measurement import simulate_measurement
 from fringecal.simulate.scene import Panel, Scene, SceneObject
+from fringecal.simulate.scenes import artefact_scene
+from fringecal.simulate.world import render_errors
 
 __all__ = ["ObjectPose", "PanelObject", "ArtefactObject", "SimulatedObject", "ObjectPlan", "parse_object",
            "object_pose", "panel_of", "object_scene", "view_fractions", "plan_object", "object_truth",
@@ -165,7 +172,6 @@ def object_scene(spec, artefact=None, rods=None, hardware=None) -> Scene:
         return Scene((SceneObject(f"panel:{spec.name}", "panel", spec.material, (panel_of(spec),)),))
     if artefact is None:
         raise ValueError(f"object {spec.name!r}: an artefact object needs the artefact definition")
-    from fringecal.simulate.scenes import artefact_scene
 
     return artefact_scene(artefact, rods, spec.pose.frame(), hardware)
 
@@ -334,13 +340,6 @@ def render_object_stores(rig_true, object_spec, out_dir, render_config: RenderCo
     dict
         scanner name -> store path, for the scanners that recorded the object.
     """
-    from fringecal.atomic import write_json
-    from fringecal.fringe.decode import DecodeSettings
-    from fringecal.fringe.sequence import FringeSequence, SequenceConfig
-    from fringecal.rig import Rig, scaled_rig
-    from fringecal.simulate.config import AcquisitionConfig
-    from fringecal.simulate.measurement import simulate_measurement
-    from fringecal.simulate.world import render_errors
 
     spec = parse_object(object_spec)
     rig: Rig = scaled_rig(rig_true, camera_width_px) if camera_width_px is not None else rig_true

@@ -25,6 +25,7 @@ from fringecal.config import StrictModel, thesis_dir
 from fringecal.frames import Frame
 from fringecal.rig import Scanner
 from fringecal.simulate.scene import Box, Cylinder, Plane, Scene, SceneObject, Sphere
+from fringecal.verification.ballbar import ballbar_rods
 
 __all__ = [
     "ArtefactHardware",
@@ -187,7 +188,6 @@ def dumbbell_scene(standard, T_world_dumbbell: Frame, hardware: ArtefactHardware
     ``A`` at ``T_world_dumbbell``'s origin and ``B`` at (length_mm, 0, 0), joined like
     the ball-bar (:func:`artefact_scene`) by a rod of the dumbbell's rod diameter with
     end caps of that diameter and ``hardware``'s end-cap length."""
-    from fringecal.verification.ballbar import ballbar_rods
 
     hw = (hardware or ArtefactHardware()).model_copy(update={"tube_diameter_mm": standard.rod_diameter_mm,
                                                              "end_cap_diameter_mm": standard.rod_diameter_mm})

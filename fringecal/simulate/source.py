@@ -35,16 +35,21 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from fringecal.acceptance.plan import TESTS, plan_acceptance
+from fringecal.acceptance.standards import load_standards
 from fringecal.artefact import Artefact, load_artefact, load_rods
 from fringecal.config import ConfigError
 from fringecal.frames import frames_from_rows
 from fringecal.rig import Rig, load_rig, scaled_rig
 from fringecal.rundir import measurement_id
+from fringecal.schemas import PosePlanTable, TableError, read_table
+from fringecal.simulate.objects import plan_object
 from fringecal.simulate.prior import simulate_prior_rig
 from fringecal.simulate.scenes import ArtefactHardware
 from fringecal.simulate.unmodelled import emitted_harmonics
 from fringecal.simulate.world import as_built_artefact, as_built_ballbar
 from fringecal.verification.ballbar import BallBarPosition, thesis_positions, vdi7_positions
+from fringecal.verification.plan import plan_positions, volumes_from_observations
 
 if TYPE_CHECKING:
     from fringecal.acceptance.standards import AcceptanceStandards
@@ -143,7 +148,6 @@ def sphere_sightings(rig: Rig, artefact: Artefact, poses: dict) -> pd.DataFrame:
 def true_volumes(truth: Rig, artefact: Artefact, planned: dict) -> dict:
     """Each scanner's measurement volume (:class:`~fringecal.verification.plan.MeasurementVolume`)
     from the true rig: the artefact spheres it sees in the planned poses."""
-    from fringecal.verification.plan import volumes_from_observations
 
     return volumes_from_observations(truth, sphere_sightings(truth, artefact, planned), planned, artefact)
 
@@ -151,7 +155,6 @@ def true_volumes(truth: Rig, artefact: Artefact, planned: dict) -> dict:
 def _planned_positions(sim, truth: Rig, artefact: Artefact, planned: dict, ballbar: Artefact):
     """Positions planned from the true rig's measurement volumes: the spheres each
     scanner sees in the planned poses."""
-    from fringecal.verification.plan import plan_positions
 
     volumes = true_volumes(truth, artefact, planned)
     v = sim.verification
@@ -184,8 +187,6 @@ def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict):
     """(standards, positions) of the simulated acceptance test; (None, None) when
     ``simulate.acceptance`` is disabled. Raises ConfigError, naming every position
     that does not fit, when the plan falls short of the counts asked for."""
-    from fringecal.acceptance.plan import TESTS, plan_acceptance
-    from fringecal.acceptance.standards import load_standards
 
     a = sim.acceptance
     if not a.enabled:
@@ -202,7 +203,6 @@ def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict):
 
 def load_simulated_rig(sim) -> SimulatedRig:
     """Build the :class:`SimulatedRig` of a simulation config; errors name the file."""
-    from fringecal.schemas import PosePlanTable, TableError, read_table
 
     rc = sim.rig_config()
     if rc.artefact_poses is None:
@@ -265,7 +265,6 @@ def object_plans(sim, truth: Rig, built: Artefact, rods: pd.DataFrame | None, ha
     entry in front of the true rig (the artefact as ``built``); raises ConfigError for an
     unknown material, and, naming the object and every scanner's view fraction, for an
     object no scanner sees."""
-    from fringecal.simulate.objects import plan_object
 
     materials = sim.acquisition.render.materials
     for o in sim.objects:

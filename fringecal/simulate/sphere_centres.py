@@ -19,7 +19,9 @@ import pandas as pd
 
 from fringecal.artefact import Artefact
 from fringecal.frames import POSE_COLUMNS, Frame
+from fringecal.registration import kabsch
 from fringecal.rotation import rotation_matrix
+from fringecal.simulate import control_points as syn
 
 __all__ = ["PriorErrors", "RigObservations", "observe_rig", "rig_views", "link_errors", "RIGS"]
 
@@ -80,7 +82,6 @@ def rig_views(name: str, seed: int = 0):
     a narrow field: a scanner sees the spheres within 450 mm of its optical axis (3-14
     spheres; views of fewer than three are dropped).
     """
-    from fringecal.simulate import control_points as syn
 
     spheres_of = None
     if name == "thesis":
@@ -171,7 +172,6 @@ def observe_rig(name: str, errors: PriorErrors | None = None, seed: int = 0, fal
                          "cap_angle_deg": 70.0, "coverage": 0.3, "n_rejected": 0, "truth": truth[i]})
         if truth.count("") == 0:
             Y = art.centres_of(truth)
-            from fringecal.registration import kabsch
 
             M, t = kabsch(Y, X)
             sq.append(np.mean(np.sum((Y @ M.T + t - X) ** 2, axis=1)))

@@ -36,6 +36,7 @@ from numpy.polynomial import legendre
 
 from fringecal.artefact import Artefact, load_artefact
 from fringecal.config import ConfigError
+from fringecal.engineering.corrections import ArtefactCorrections, SagSettings, ThermalSettings, apply_corrections
 from fringecal.rig import Scanner, load_rig
 from fringecal.rotation import angles_from_matrix
 from fringecal.simulate.errors import SimulationErrors, error_rng
@@ -50,11 +51,6 @@ FORM_DEGREES = (2, 2, 3, 3)
 
 def _true_corrections(sim, errors: SimulationErrors):
     """(corrections, temperature) of the artefact's true state."""
-    from fringecal.engineering.corrections import (
-        ArtefactCorrections,
-        SagSettings,
-        ThermalSettings,
-    )
 
     corr = sim.artefact_corrections or ArtefactCorrections()
     temperature = sim.temperature_c
@@ -80,7 +76,6 @@ def _true_corrections(sim, errors: SimulationErrors):
 def as_built_artefact(sim, errors: SimulationErrors) -> Artefact:
     """The artefact the renderer places (module notes); ``sim.artefact()`` itself
     when no artefact switch is on."""
-    from fringecal.engineering.corrections import apply_corrections
 
     if not (errors.cmm_deviation or errors.sphere_diameter_sd_mm or errors.artefact_temperature_c is not None
             or errors.artefact_use_gravity is not None or errors.artefact_use_supports is not None):

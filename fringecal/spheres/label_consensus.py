@@ -25,6 +25,7 @@ from fringecal.artefact import Artefact
 from fringecal.frames import Frame
 from fringecal.registration import kabsch
 from fringecal.spheres.labelling import Labelling, LabellingConfig, LabellingRefused
+from fringecal.spheres.linking import mean_frame
 
 __all__ = ["scanner_frame_from_plan", "frame_uncertainty", "alternatives"]
 
@@ -144,7 +145,6 @@ class _Consensus:
 
     def refine(self, i0: int):
         """Mean frame of the members of hypothesis ``i0``'s cluster, its misfit and members."""
-        from fringecal.spheres.linking import mean_frame
 
         points, sigma, frame = self.P[i0], self.sig[i0], self.hyps[i0].frame
         for _ in range(3):

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from fringecal.artefact import Artefact
+from fringecal.artefact import Artefact, load_artefact
 from fringecal.registration import DegenerateGeometryError, RigidRegistration
 from fringecal.schemas import PosesTable, SphereCentresTable, read_table, validate_table, write_table
 
@@ -78,7 +78,6 @@ def estimate_poses_file(artefact_path, centres_path, out_path) -> PoseResult:
 
     What ``fringecal pose`` runs, directly or as a Prefect task.
     """
-    from fringecal.artefact import load_artefact
 
     art = load_artefact(artefact_path)
     table = read_table(centres_path, SphereCentresTable)

@@ -17,8 +17,16 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
+from fringecal.acceptance.evaluate import VALUE_COLUMNS, certificate, form_u
+from fringecal.acceptance.measure import AcceptanceMeasurementError, measure_flat_store, measure_sphere_store
+from fringecal.acceptance.standards import AcceptanceStandards
 from fringecal.rundir import RunDir
+from fringecal.spheres.robust import RejectionConfig
 from fringecal.steps.base import Settings, Step, stores_of_kind
+from fringecal.steps.verify import measure_ballbar
+from fringecal.verification.lengths import ballbar_lengths
+from fringecal.verification.measure import measure_positions
+from fringecal.verification.uncertainty import ballbar_uncertainty
 
 __all__ = ["Acceptance", "acceptance_stores", "measure_acceptance", "length_values", "ACCEPTANCE_KINDS"]
 
@@ -53,9 +61,6 @@ def length_values(budget: dict | None, lengths: pd.DataFrame, parameter: str, te
 
 
 def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict], list[dict]]:
-    from fringecal.acceptance.evaluate import form_u
-    from fringecal.acceptance.measure import AcceptanceMeasurementError, measure_flat_store, measure_sphere_store
-
     position, scanner, store = job
     k = config.coverage_factor
     try:
@@ -98,10 +103,6 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
     values : DataFrame with :data:`fringecal.acceptance.evaluate.VALUE_COLUMNS`
     failures : list of dict (test, position, scanner, reason)
     """
-    from fringecal.acceptance.evaluate import VALUE_COLUMNS
-    from fringecal.spheres.robust import RejectionConfig
-    from fringecal.verification.lengths import ballbar_lengths
-    from fringecal.verification.measure import measure_positions
 
     rej = RejectionConfig(**rejection)
     rows, failures = [], []
@@ -120,8 +121,6 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
         lengths["error_mm"] = lengths["length_mm"] - bell.length_mm
         budget = None
         if covariance is not None and len(lengths):
-            from fringecal.verification.uncertainty import ballbar_uncertainty
-
             cfg = length_config.model_copy(update={"monte_carlo_draws": 0, "coverage_factor": config.coverage_factor})
             budget = ballbar_uncertainty(centres, pixels, stores["dumbbell"], rig, lengths, bell.length_mm,
                                          covariance, cfg, config.limits.SD, bell.length_u_mm, ("A", "B"), workers)
@@ -154,8 +153,6 @@ class Acceptance(Step):
         return [rd.acceptance, rd.acceptance_values]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.acceptance.standards import AcceptanceStandards
-
         stores = acceptance_stores(rd)
         standards = (AcceptanceStandards(**rd.acceptance_standards.load()) if rd.acceptance_standards.exists()
                      else AcceptanceStandards())
@@ -183,12 +180,9 @@ def acceptance_document(rd: RunDir, rig, standards, config, rejection: dict, len
     E comes from ``verification`` (the run's ``verification.json``) when given, else
     the ball-bar is measured with ``rig`` (``ballbar``: the verification settings;
     used to test a rig other than the run's calibration)."""
-    from fringecal.acceptance.evaluate import certificate
 
     values, failures = measure_acceptance(stores, rig, standards, config, rejection, length_config, covariance)
     if verification is None and ballbar is not None:
-        from fringecal.steps.verify import measure_ballbar
-
         diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
         _, fails, result, budget = measure_ballbar(rd, rig, rejection, ballbar, diagonal, covariance)
         verification = {"calibrated": result.to_dict(), "uncertainty": budget,
@@ -203,8 +197,6 @@ def acceptance_document(rd: RunDir, rig, standards, config, rejection: dict, len
 
 
 def _e_values(verification: dict, k: float) -> pd.DataFrame:
-    from fringecal.acceptance.evaluate import VALUE_COLUMNS
-
     positions = pd.DataFrame(verification["calibrated"]["positions"])
     lengths = pd.DataFrame({"measurement": positions["measurement"].astype(str), "error_mm": positions["error_mm"],
                             "scanner_a": "", "scanner_b": ""})

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Union
 
 from fringecal.rundir import RunDir, RunFile, TableFile
+from fringecal.schemas import read_csv_text
 
 __all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read", "store_row", "store_fields", "stores_of_kind",
            "save_or_remove"]
@@ -68,8 +69,6 @@ class Rows:
 
 @lru_cache(maxsize=64)
 def _raw_csv(path: str, size: int, mtime_ns: int):
-    from fringecal.schemas import read_csv_text
-
     return read_csv_text(path)
 
 

@@ -1,5 +1,5 @@
 """Bundle adjustment: every sensor and one artefact pose per measurement refined from
-the control points (thesis 2.3.7, 6.4-6.5, :func:`fringecal.calibration.bundle_adjust`),
+the control points (thesis 2.3.7, 6.4-6.5, :func:`fringecal.calibration.bundle.bundle_adjust`),
 with uncertainties, a diagnosis of degenerate set-ups and the wild-bootstrap replicas.
 Writes the calibration (JSON and XML), its tables, the residual histograms, the
 covariance arrays and ``bundle_summary.json``, all or nothing.
@@ -16,7 +16,8 @@ import numpy as np
 
 from fringecal import compile_clock
 from fringecal.atomic import atomic_paths
-from fringecal.calibration import BundleProblem, bundle_adjust
+from fringecal.calibration.bundle import bundle_adjust
+from fringecal.calibration.model import BundleProblem
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.file import rig_to_dict, xml_text
 from fringecal.calibration.propagation import parameter_covariances
@@ -34,7 +35,7 @@ log = logging.getLogger(__name__)
 
 
 def load_problem(rd: RunDir, reference: str | None, gamma1: float = 1.0, gamma2: float = 1.0):
-    """The :class:`~fringecal.calibration.BundleProblem` of a run directory's start
+    """The :class:`~fringecal.calibration.model.BundleProblem` of a run directory's start
     values and control points; one clear error naming the file, line and column."""
     files = [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial]
     missing = [str(f.path) for f in files if not f.exists()]
@@ -101,7 +102,7 @@ class Bundle(Step):
 
 
 def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict) -> list:
-    """Write the calibration of ``result`` (a :class:`~fringecal.calibration.BundleResult`)
+    """Write the calibration of ``result`` (a :class:`~fringecal.calibration.bundle.BundleResult`)
     into ``rd``, all or nothing: ``calibration.json`` (with ``covariances``, the
     :class:`~fringecal.calibration.propagation.ParameterCovariances`, and ``provenance``)
     and its XML twin, the parameter, pose and residual tables, the residual histograms,

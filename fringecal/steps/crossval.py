@@ -12,6 +12,8 @@ import logging
 
 import numpy as np
 
+from fringecal.calibration.crossval import cross_validate, split_measurements
+from fringecal.calibration.model import POSE_COLUMNS
 from fringecal.rundir import RunDir
 from fringecal.steps.base import Settings, Step
 from fringecal.steps.bundle import load_problem
@@ -35,9 +37,6 @@ class CrossValidate(Step):
         return [rd.crossval, rd.crossval_halves]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.calibration.crossval import cross_validate, split_measurements
-        from fringecal.calibration.model import POSE_COLUMNS
-
         b = cfg.bundle
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         try:

@@ -16,8 +16,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from fringecal.fringe.measurement import decode_folder
 from fringecal.rundir import RunDir
 from fringecal.steps.base import Settings, Step, store_fields, store_row, stores_of_kind
+from fringecal.store import copy_store
 
 __all__ = ["Decode"]
 
@@ -49,9 +51,6 @@ class Decode(Step):
         return [rd.store(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.fringe.measurement import decode_folder
-        from fringecal.store import copy_store
-
         row = store_fields(rd, item)
         source = self._source(rd, cfg, item)
         if source.suffix == ".zarr":

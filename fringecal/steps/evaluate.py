@@ -14,7 +14,12 @@ from dataclasses import replace
 
 import numpy as np
 
+from fringecal.calibration.bundle import BundleOptions, bundle_adjust
+from fringecal.calibration.model import BundleProblem
+from fringecal.frames import frame_rows, frames_from_rows
+from fringecal.rig import Scanner
 from fringecal.rundir import RunDir
+from fringecal.sensor import sensor_in_frame
 from fringecal.steps.base import Settings, Step, stores_of_kind
 from fringecal.steps.verify import measure_ballbar
 
@@ -30,8 +35,6 @@ def truth_in_reference_frame(truth, T_world_reference, near):
     ``near`` (a rig with the same sensors) picks the branch of every sensor's angles,
     so that angle differences are small numbers, not multiples of pi.
     """
-    from fringecal.rig import Scanner
-    from fringecal.sensor import sensor_in_frame
 
     T_reference_world = T_world_reference.inverse()
     angles = {s.name: s.angles for s in near.sensors}
@@ -42,7 +45,6 @@ def truth_in_reference_frame(truth, T_world_reference, near):
 
 def poses_in_reference_frame(poses, T_world_reference):
     """A pose table (``T_world_artefact`` rows) as ``T_reference_artefact`` rows."""
-    from fringecal.frames import frame_rows, frames_from_rows
 
     T_reference_world = T_world_reference.inverse()
     return frame_rows({m: T_reference_world.compose(T) for m, T in frames_from_rows(poses).items()})
@@ -78,9 +80,6 @@ class Evaluate(Step):
         return [rd.evaluation, rd.ballbar_centres_true]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.calibration import BundleOptions, BundleProblem, bundle_adjust
-        from fringecal.frames import frames_from_rows
-
         calibrated = rd.calibration.load()
         T_world_reference = frames_from_rows(rd.truth.scanner_frames.load(), key="scanner")[cfg.reference_scanner]
         truth = truth_in_reference_frame(rd.truth.sensors.load(cfg.reference_scanner), T_world_reference, calibrated)

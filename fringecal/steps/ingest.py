@@ -23,6 +23,7 @@ import pandas as pd
 from fringecal.acceptance.standards import load_standards
 from fringecal.artefact import load_artefact, load_rods
 from fringecal.dataset import DataSet
+from fringecal.engineering.corrections import apply_corrections
 from fringecal.rig import load_rig
 from fringecal.rundir import RunDir
 from fringecal.schemas import PosePlanTable, read_table
@@ -58,8 +59,6 @@ class Ingest(Step):
                 rd.acquisition]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.engineering.corrections import apply_corrections
-
         ds = DataSet.open(cfg.dataset)
         artefact = apply_corrections(load_artefact(ds.artefact), ds.config.artefact_corrections,
                                      ds.config.temperature_c)

@@ -19,6 +19,8 @@ import pandas as pd
 
 from fringecal.frames import frames_from_rows
 from fringecal.rundir import RunDir
+from fringecal.spheres.labelling import LabellingConfig
+from fringecal.spheres.poses_and_links import label_pose_link
 from fringecal.steps.base import Settings, Step
 from fringecal.steps.spheres_first import artefact_items
 
@@ -42,9 +44,6 @@ class Label(Step):
                 rd.scanner_links]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.spheres.labelling import LabellingConfig
-        from fringecal.spheres.poses_and_links import label_pose_link
-
         fits = [rd.fits_first(m).load() for m in artefact_items(rd)]
         table = pd.concat([f for f in fits if len(f)], ignore_index=True)
         planned = None

@@ -8,6 +8,7 @@ shown on the page but does not decide whether the page is current.
 
 from __future__ import annotations
 
+from fringecal.report import write_report
 from fringecal.rundir import RunDir
 from fringecal.steps.base import Settings, Step
 
@@ -36,6 +37,4 @@ class Report(Step):
 
     def run(self, rd: RunDir, cfg: Settings, item: str, timings: dict | None = None, execution: dict | None = None,
             compile_seconds: dict | None = None, **context) -> None:
-        from fringecal.report import write_report
-
         write_report(rd, timings, execution, compile_seconds)

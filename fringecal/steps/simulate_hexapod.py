@@ -11,7 +11,9 @@ from __future__ import annotations
 import logging
 
 from fringecal.frames import frame_rows, frames_from_rows
+from fringecal.hexapod.config import default_hexapod_config_path
 from fringecal.rundir import RunDir
+from fringecal.simulate.config import HexapodStepConfig
 from fringecal.simulate.moves import move_hexapod, poses_table
 from fringecal.steps.base import Settings, Step
 
@@ -21,8 +23,6 @@ log = logging.getLogger(__name__)
 
 
 def _hexapod_config_file(hexapod):
-    from fringecal.hexapod.config import default_hexapod_config_path
-
     return hexapod.config or default_hexapod_config_path()
 
 
@@ -41,8 +41,6 @@ class SimulateHexapod(Step):
         return [rd.hexapod_moves, rd.truth.poses]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.simulate.config import HexapodStepConfig
-
         hx = cfg.simulate.acquisition.hexapod
         moves = move_hexapod(frames_from_rows(rd.poses_planned.load()),
                              HexapodStepConfig(enabled=hx.enabled, url=hx.url, config=hx.config))

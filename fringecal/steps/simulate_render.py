@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 
+from fringecal.config import RigConfig, load_yaml_model, thesis_dir
 from fringecal.frames import frames_from_rows
 from fringecal.rundir import RunDir, TableFile
 from fringecal.simulate.config import AcquisitionConfig
@@ -38,14 +39,12 @@ ACQUISITION_SETTINGS = ("simulate.acquisition.render", "simulate.acquisition.seq
 
 def hardware_file(cfg: Settings):
     """The materials file of the rig (tube and end-cap sizes; the thesis's by default)."""
-    from fringecal.config import RigConfig, load_yaml_model, thesis_dir
 
     return load_yaml_model(cfg.simulate.rig, RigConfig).materials or thesis_dir() / "materials.yaml"
 
 
 def sensors_file(cfg: Settings):
     """The rig's sensors file (its native formats size the thin-prism error)."""
-    from fringecal.config import RigConfig, load_yaml_model
 
     return load_yaml_model(cfg.simulate.rig, RigConfig).sensors
 

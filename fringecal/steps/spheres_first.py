@@ -13,7 +13,9 @@ import logging
 import numpy as np
 
 from fringecal.rundir import RunDir
+from fringecal.spheres.candidates import CandidateConfig
 from fringecal.spheres.passes import first_pass
+from fringecal.spheres.robust import RejectionConfig
 from fringecal.steps.base import Settings, Step, store_fields, store_row, stores_of_kind
 
 __all__ = ["SpheresFirst", "artefact_items"]
@@ -42,9 +44,6 @@ class SpheresFirst(Step):
         return [rd.maps(item), rd.fits_first(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.spheres.candidates import CandidateConfig
-        from fringecal.spheres.robust import RejectionConfig
-
         row = store_fields(rd, item)
         scanner = rd.sensors_prior.load().scanner(row["scanner"])
         radius = float(np.median(rd.artefact.load().radii))

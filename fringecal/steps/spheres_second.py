@@ -12,6 +12,7 @@ from __future__ import annotations
 from fringecal.calibration.initial import poses_from_table
 from fringecal.rundir import RunDir
 from fringecal.spheres.passes import second_pass
+from fringecal.spheres.robust import RejectionConfig
 from fringecal.steps.base import Rows, Settings, Step, store_fields, store_row
 from fringecal.steps.spheres_first import artefact_items
 
@@ -40,8 +41,6 @@ class SpheresSecond(Step):
         return [rd.fits_final(item), rd.control_points_of(item), rd.sphere_labels(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        from fringecal.spheres.robust import RejectionConfig
-
         own = self._own(rd, item)
         artefact = rd.artefact.load()
         rods = rd.rods.load(artefact) if rd.rods.exists() else None

@@ -12,7 +12,11 @@ from __future__ import annotations
 import logging
 
 from fringecal.rundir import RunDir
+from fringecal.spheres.robust import RejectionConfig
 from fringecal.steps.base import Settings, Step, stores_of_kind
+from fringecal.verification.lengths import ballbar_lengths, evaluate_ballbar
+from fringecal.verification.measure import measure_positions
+from fringecal.verification.uncertainty import ballbar_uncertainty
 
 __all__ = ["Verify", "ballbar_stores", "measure_ballbar"]
 
@@ -34,9 +38,6 @@ def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm:
     with ``covariance`` (the run's ``calibration_covariance.npz`` arrays) also every
     length's uncertainty budget (:func:`fringecal.verification.uncertainty.ballbar_uncertainty`),
     else None in its place."""
-    from fringecal.spheres.robust import RejectionConfig
-    from fringecal.verification.lengths import ballbar_lengths, evaluate_ballbar
-    from fringecal.verification.measure import measure_positions
 
     bar = rd.ballbar.load()
     stores = ballbar_stores(rd)
@@ -45,8 +46,6 @@ def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm:
     reference_length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
     budget = None
     if covariance is not None and len(lengths):
-        from fringecal.verification.uncertainty import ballbar_uncertainty
-
         budget = ballbar_uncertainty(centres, pixels, stores, rig, lengths, reference_length, covariance,
                                      verification.uncertainty, verification.mpe_mm,
                                      verification.certificate_u_mm / verification.certificate_k, bar.ids[:2],

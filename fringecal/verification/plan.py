@@ -45,7 +45,7 @@ from itertools import combinations
 import numpy as np
 import pandas as pd
 
-from fringecal.frames import Frame
+from fringecal.frames import Frame, frames_from_rows
 from fringecal.rig import Rig
 from fringecal.verification.ballbar import BallBarPosition, frame_along
 
@@ -133,7 +133,6 @@ def volumes_from_observations(rig: Rig, observations: pd.DataFrame, poses: dict[
 def volumes_from_run(rd, margin: float = 1.5) -> dict[str, MeasurementVolume]:
     """The measurement volumes of a calibrated run directory: calibrated sensors and
     poses, and the spheres that gave control points."""
-    from fringecal.frames import frames_from_rows
 
     cps = rd.control_points.load()
     observations = cps[["measurement", "scanner", "sphere_id"]].drop_duplicates()
