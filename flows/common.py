@@ -32,6 +32,7 @@ def fail(message: str, code: int = 2):
 
 def user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that mean "the input is wrong": tables, configs, data sets, files, stores, frames."""
+    # lazy: every command imports this module; each loads the readers only when it fails
     from fringecal.calibration.file import CalibrationFileError
     from fringecal.config import ConfigError
     from fringecal.dataset import DataSetError

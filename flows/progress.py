@@ -61,7 +61,7 @@ class RichProgress:
 
     @contextmanager
     def running(self):
-        from fringecal import compile_clock
+        from fringecal import compile_clock  # lazy: numba loads when a run shows its progress
 
         clock = compile_clock.install()
         install(self)

@@ -1,4 +1,4 @@
-"""Rigid frames: an origin and thesis Euler angles (DESIGN.md convention).
+"""Rigid frames: an origin and thesis Euler angles (docs/conventions.md).
 
 A :class:`Frame` is named after what it maps: ``T_world_artefact`` takes points
 from the artefact (CMM) frame into the world, with

@@ -91,7 +91,7 @@ class RigidRegistration:
     """A fitted rigid transform ``T_world_local`` from corresponding points.
 
     ``frame`` maps local points (for a pose: CMM artefact coordinates) into the
-    world, ``x_world = R^T x_local + t`` (DESIGN.md), so ``frame.angles`` are the
+    world, ``x_world = R^T x_local + t`` (docs/conventions.md), so ``frame.angles`` are the
     pose's Euler angles and ``frame.t`` its translation.
 
     Examples

@@ -2,7 +2,7 @@
 
 A :class:`Rig` holds the sensors with their parameters and, per parameter, whether
 the bundle adjustment may change it (``free``, shape (n_sensors, 14)). It converts
-to and from the sensor-parameter table of DESIGN.md.
+to and from the sensor-parameter table (docs/contracts.md).
 """
 
 from __future__ import annotations

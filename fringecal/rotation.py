@@ -6,7 +6,7 @@ origin ``t`` (world coordinates) and angles (omega, phi, kappa) maps
     x_local = R (x_world - t)        x_world = R^T x_local + t
 
 This one rule serves sensors (local = sensor frame, eq. 2-5) and artefact poses
-(local = the CMM frame of the artefact definition), see DESIGN.md.
+(local = the CMM frame of the artefact definition), see docs/conventions.md.
 
 All functions broadcast over leading axes: angles of shape (...,) give matrices of
 shape (..., 3, 3).

@@ -1,4 +1,4 @@
-"""The run directory: one object that owns every file of a run (DESIGN.md, storage).
+"""The run directory: one object that owns every file of a run (docs/architecture.md).
 
 No other module spells a file name of the run directory: steps, the report, the
 flow and the command line reach every file through :class:`RunDir`, whose

@@ -56,7 +56,7 @@ PARAM_NAMES = (
     "x0", "y0", "z0", "omega", "phi", "kappa",
     "xi_h", "eta_h", "c", "k1", "k2", "k3", "p1", "p2",
 )
-#: Table column for each parameter, with its unit (DESIGN.md: units in column names).
+#: Table column for each parameter, with its unit (docs/conventions.md: units in column names).
 PARAM_COLUMNS = (
     "x0_mm", "y0_mm", "z0_mm", "omega_rad", "phi_rad", "kappa_rad",
     "xi_h_mm", "eta_h_mm", "c_mm", "k1_per_mm2", "k2_per_mm4", "k3_per_mm6",

@@ -1,4 +1,4 @@
-"""Pandera models for every table that crosses a boundary (DESIGN.md, table contracts).
+"""Pandera models for every table that crosses a boundary (docs/contracts.md).
 
 Extra columns are allowed; the listed ones are required. Identifiers (sphere,
 rod, measurement, scanner, sensor) are strings, so a ball-bar's ``A``/``B`` and the

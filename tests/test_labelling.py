@@ -6,13 +6,8 @@ import pytest
 
 from fringecal.frames import Frame
 from fringecal.schemas import PosePlanTable, SphereCentresTable, read_table
-from fringecal.spheres.labelling import (
-    LabellingConfig,
-    LabellingRefused,
-    ambiguous_subsets,
-    label_sphere_fits,
-    label_spheres,
-)
+from fringecal.spheres.label_scanners import label_sphere_fits
+from fringecal.spheres.labelling import LabellingConfig, LabellingRefused, ambiguous_subsets, label_spheres
 
 SCANNER_ONE = [str(i) for i in range(4, 10)]
 SCANNER_TWO = [str(i) for i in range(10, 16)]

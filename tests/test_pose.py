@@ -34,7 +34,7 @@ def test_reproduces_printed_poses_with_cmm_measurement_2(thesis_dir, scanner):
     # Translations are printed to 0.001 mm; the centres they come from are rounded to
     # 0.001 mm too, which moves the fitted translation by up to ~0.002 mm.
     assert diff[["tx_mm", "ty_mm", "tz_mm"]].to_numpy().max() <= 0.002
-    # table 6-2 prints R^T of pose 1 for scanner one (DESIGN.md)
+    # table 6-2 prints R^T of pose 1 for scanner one (docs/conventions.md)
     if scanner == 1:
         from fringecal.rotation import rotation_matrix
 

@@ -74,6 +74,6 @@ def test_frame_convention_and_composition(rng):
     x_c = rng.normal(size=(10, 3)) * 100
     np.testing.assert_allclose(T_ab.compose(T_bc).to_world(x_c), T_ab.to_world(T_bc.to_world(x_c)), atol=1e-10)
     np.testing.assert_allclose(T_ab.inverse().to_world(T_ab.to_world(x_c)), x_c, atol=1e-10)
-    # DESIGN.md: x_local = R (x_world - t)
+    # docs/conventions.md: x_local = R (x_world - t)
     x_w = rng.normal(size=(4, 3))
     np.testing.assert_allclose(T_ab.to_local(x_w), (x_w - T_ab.t) @ T_ab.R.T, atol=1e-14)

@@ -287,7 +287,7 @@ def forward_kinematics(geometry: PlatformGeometry, lengths, start, tol_mm: float
 
 
 def pose_to_frame(pose) -> Frame:
-    """T_base_top as a project :class:`~fringecal.frames.Frame` (DESIGN.md convention).
+    """T_base_top as a project :class:`~fringecal.frames.Frame` (docs/conventions.md).
 
     With ``X_base = R43 x_top + p`` and ``x_world = R^T x_local + t`` the frame has
     ``t = p`` and ``R = R43^T``.

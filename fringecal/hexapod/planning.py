@@ -1,6 +1,6 @@
 """Artefact poses <-> platform poses <-> leg lengths <-> encoder counts.
 
-The chain of frames (named after what they map, DESIGN.md convention)::
+The chain of frames (named after what they map, docs/conventions.md)::
 
     T_world_artefact = T_world_base o T_base_top(platform pose) o T_top_artefact
 

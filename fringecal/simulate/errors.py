@@ -13,29 +13,29 @@ sets every switch not given explicitly to its documented realistic value
         profile: realistic
         projector_gamma: 1.0      # explicit keys override the profile
 
-Switches, realistic values and where the values come from (thesis =
-``../shared/seed/000_428cfd268c10da70.txt``, by line):
+Switches, realistic values and where the values come from (thesis = T. R. Tarvaz's
+thesis, by section):
 
 =========================  ================  ==============================================
 switch                     realistic         source
 =========================  ================  ==============================================
 cmm_deviation, cmm_u_scale on, 1             the CMM table's own ``u_mm`` (0.010 mm); the
-                                             thesis's CMM: 1 part in 500 000 (line 819)
+                                             thesis's CMM: 1 part in 500 000 (section 3.6.2)
 sphere_diameter_sd_mm      0.003             assumed (touch-probe diameter uncertainty)
 sphere_form_rms_mm         0.002             assumed: ISO 3290-1 G20-G40 balls are round to
                                              0.5-1 um, the matting dust adds more
-artefact_temperature_c     20.5              thesis line 749: "temperature controlled to
+artefact_temperature_c     20.5              thesis section 3.6.1: "temperature controlled to
                                              ~0.5 C"; CTE 1.9e-6 /K (same line)
 artefact_use_gravity       pose-1 tilt       table 6-1 pose 1 with world +y up (the hexapod
                                              config): the platform is level to 1.5 mrad
-ballbar_deviation          on                ball-bar certificate u 0.4 um (thesis line 1903)
+ballbar_deviation          on                ball-bar certificate u 0.4 um (thesis 6.9.3)
 projector_gamma            2.2               assumed: a projector without linearisation
 camera_linearity_error     0.003             assumed, within EMVA 1288 datasheet values
                                              (~0.1-1 %)
 phase_field_rms_rad        1e-4              assumed (air, projector: ~15 um at 2.5 m)
 scan_drift_rad             5e-5              assumed (0.01 projector pixel in ~15 s,
-                                             thesis line 1435's acquisition time)
-session_drift_mm / _mrad   0.003 / 0.001     assumed per pose; thesis line 1435 sizes the
+                                             thesis 4.5.2's acquisition time)
+session_drift_mm / _mrad   0.003 / 0.001     assumed per pose; thesis 4.5.2 sizes the
                                              hexapod's drift at ~7 um per acquisition
 thin_prism_corner_px       0.2               assumed within the 0.1-0.3 px of systematic
                                              residual parametric models leave (mrcal docs;

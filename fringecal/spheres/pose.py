@@ -25,7 +25,7 @@ POSE_COLUMNS = ["measurement", "scanner", "tx_mm", "ty_mm", "tz_mm",
 
 @dataclass(frozen=True)
 class PoseResult:
-    """Poses table (DESIGN.md contract) and the groups that were skipped.
+    """Poses table (docs/contracts.md) and the groups that were skipped.
 
     ``skipped`` has columns ``measurement, scanner, reason``.
     """
