@@ -16,13 +16,16 @@ import numpy as np
 import pytest
 import yaml
 
+from fringecal.acceptance.document import acceptance_document
 from fringecal.acceptance.standards import AcceptanceStandards
 from fringecal.run.config import load_run_config
 from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.steps import run_pipeline
-from fringecal.steps.acceptance import acceptance_document, acceptance_stores
+from fringecal.steps.acceptance import acceptance_stores
+from fringecal.steps.verify import ballbar_stores
+from fringecal.verification.verify import verify_ballbar
 
 
 @pytest.fixture(scope="module")
@@ -41,9 +44,15 @@ def calibrated(tmp_path_factory):
 
 
 def parameters(rd, cfg, rig) -> dict:
-    doc, _ = acceptance_document(rd, rig, AcceptanceStandards(**rd.acceptance_standards.load()), cfg.acceptance,
-                                 cfg.extraction.rejection, cfg.verification.uncertainty, rd.covariance.load(),
-                                 acceptance_stores(rd), ballbar=cfg.verification)
+    """The acceptance test of ``rig``, its ball-bar (E) measured with ``rig`` too."""
+    covariance = rd.covariance.load()
+    _, fails, result, budget = verify_ballbar(ballbar_stores(rd), rig, rd.ballbar.load(), cfg.extraction.rejection,
+                                              cfg.verification, rd.bundle_summary.load()["volume_diagonal_mm"],
+                                              covariance)
+    verification = {"calibrated": result.to_dict(), "uncertainty": budget}
+    doc, _ = acceptance_document(rig, AcceptanceStandards(**rd.acceptance_standards.load()), cfg.acceptance,
+                                 cfg.extraction.rejection, cfg.verification.uncertainty, covariance,
+                                 acceptance_stores(rd), verification)
     return {(p["name"], p["scanner"]): p for p in doc["parameters"]}
 
 

@@ -16,10 +16,10 @@ import numpy as np
 
 from fringecal import compile_clock
 from fringecal.atomic import atomic_paths
-from fringecal.calibration.bundle import bundle_adjust
-from fringecal.calibration.model import BundleProblem
 from fringecal.calibration.bootstrap import bootstrap_calibrations
+from fringecal.calibration.bundle import bundle_adjust
 from fringecal.calibration.file import rig_to_dict, xml_text
+from fringecal.calibration.model import BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
 from fringecal.calibration.results import covariance_arrays, residual_tables, summary
 from fringecal.config import ConfigError

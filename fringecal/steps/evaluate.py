@@ -21,7 +21,8 @@ from fringecal.rig import Scanner
 from fringecal.rundir import RunDir
 from fringecal.sensor import sensor_in_frame
 from fringecal.steps.base import Settings, Step, stores_of_kind
-from fringecal.steps.verify import measure_ballbar
+from fringecal.steps.verify import ballbar_stores
+from fringecal.verification.verify import verify_ballbar
 
 __all__ = ["Evaluate", "parameter_errors"]
 
@@ -95,8 +96,8 @@ class Evaluate(Step):
                "rms_eps2_mm_true_params": floor.rms_eps2_mm}
         if stores_of_kind(rd, "ballbar") and rd.ballbar.exists():
             diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
-            centres, failures, result, _ = measure_ballbar(rd, truth, cfg.extraction.rejection, cfg.verification,
-                                                           diagonal)
+            centres, failures, result, _ = verify_ballbar(ballbar_stores(rd), truth, rd.ballbar.load(),
+                                                          cfg.extraction.rejection, cfg.verification, diagonal)
             rd.ballbar_centres_true.save(centres)
             doc["verification_true_params"] = {**result.to_dict(), "failures": failures.to_dict("records")}
         else:

@@ -1,4 +1,5 @@
-"""Ball-bar verification (thesis 6.9.3, VDI/VDE 2634): measure the bar in every
+"""Ball-bar verification (thesis 6.9.3, VDI/VDE 2634;
+:func:`fringecal.verification.verify.verify_ballbar`): measure the bar in every
 position's stores with the calibrated sensors, which sphere each scanner sees found
 from the data alone, and compare every measured length with the certified one.
 
@@ -12,13 +13,10 @@ from __future__ import annotations
 import logging
 
 from fringecal.rundir import RunDir
-from fringecal.spheres.robust import RejectionConfig
 from fringecal.steps.base import Settings, Step, stores_of_kind
-from fringecal.verification.lengths import ballbar_lengths, evaluate_ballbar
-from fringecal.verification.measure import measure_positions
-from fringecal.verification.uncertainty import ballbar_uncertainty
+from fringecal.verification.verify import verify_ballbar
 
-__all__ = ["Verify", "ballbar_stores", "measure_ballbar"]
+__all__ = ["Verify", "ballbar_stores"]
 
 log = logging.getLogger(__name__)
 
@@ -32,37 +30,10 @@ def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
     return out
 
 
-def measure_ballbar(rd: RunDir, rig, rejection: dict, verification, diagonal_mm: float, covariance=None,
-                    halves=None, points_verdict=None):
-    """Centres, failures and the evaluated lengths of the run's ball-bar with ``rig``;
-    with ``covariance`` (the run's ``calibration_covariance.npz`` arrays) also every
-    length's uncertainty budget (:func:`fringecal.verification.uncertainty.ballbar_uncertainty`),
-    else None in its place."""
-
-    bar = rd.ballbar.load()
-    stores = ballbar_stores(rd)
-    centres, failures, pixels = measure_positions(stores, rig, bar, RejectionConfig(**rejection), pixels=True)
-    lengths = ballbar_lengths(centres, "ball-bar centres")
-    reference_length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
-    budget = None
-    if covariance is not None and len(lengths):
-        budget = ballbar_uncertainty(centres, pixels, stores, rig, lengths, reference_length, covariance,
-                                     verification.uncertainty, verification.mpe_mm,
-                                     verification.certificate_u_mm / verification.certificate_k, bar.ids[:2],
-                                     halves=halves, points_verdict=points_verdict)
-        # the lengths corrected for the calibration's bias (bootstrap), when it was estimated
-        lengths = lengths.assign(length_mm=[e["length_mm"] for e in budget["lengths"]])
-    result = evaluate_ballbar(lengths.length_mm, reference_length, lengths.measurement, verification.mpe_mm,
-                              diagonal_mm, verification.certificate_u_mm, verification.certificate_k,
-                              verification.coverage_factor)
-    return centres, failures, result, budget
-
-
 class Verify(Step):
     name = "verify"
     title = "verification"
     settings = ("verification", "extraction.rejection")
-    modules = ("fringecal.verification.measure", "fringecal.verification.lengths")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
@@ -81,9 +52,9 @@ class Verify(Step):
         diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
         halves = rd.crossval_halves.load() if rd.crossval_halves.exists() else None
         points_verdict = rd.crossval.load().get("verdict") if rd.crossval.exists() else None
-        centres, failures, result, budget = measure_ballbar(rd, rd.calibration.load(), cfg.extraction.rejection,
-                                                            cfg.verification, diagonal, rd.covariance.load(),
-                                                            halves, points_verdict)
+        centres, failures, result, budget = verify_ballbar(ballbar_stores(rd), rd.calibration.load(), rd.ballbar.load(),
+                                                           cfg.extraction.rejection, cfg.verification, diagonal,
+                                                           rd.covariance.load(), halves, points_verdict)
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner, f.reason)
         rd.ballbar_centres.save(centres)
