@@ -174,7 +174,7 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
             if server is not None:  # local Dask workers report to it instead of each starting
                 os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
             with RichProgress(out).running():
-                summary = flow(cfg.model_dump(mode="json"), str(run_dir), None, command, until)
+                summary = flow(cfg, str(run_dir), None, command, until)
     finally:
         if server is not None:
             os.environ.pop("PREFECT_API_URL", None)

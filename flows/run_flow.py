@@ -45,7 +45,6 @@ class StepRunner:
     def __init__(self, rd: RunDir, config: RunConfig):
         self.rd = rd
         self.config = config
-        self.doc = config.model_dump(mode="json")
         self.ran: list[str] = []
         self.cached: list[str] = []
         self.timings: dict[str, float] = {}
@@ -69,7 +68,7 @@ class StepRunner:
             stale = current_record(step, self.rd, view, item, key) is None
             task = step_task.with_options(name=step.name, task_run_name=f"{step.name}:{item}" if item else step.name,
                                           result_storage=self.rd.prefect_storage, refresh_cache=stale or None)
-            futures[item] = task.submit(step.name, str(self.rd.root), self.doc, item, key, context)
+            futures[item] = task.submit(step.name, str(self.rd.root), self.config, item, key, context)
             futures[item].add_done_callback(self._count)
         for item, future in futures.items():
             record = future.result()
@@ -83,17 +82,19 @@ class StepRunner:
 
 
 @flow(name="fringecal-run")
-def run_flow(config: str | dict | None = None, run_dir: str = "runs/latest", overrides: dict | None = None,
+def run_flow(config: RunConfig | str | None = None, run_dir: str = "runs/latest", overrides: dict | None = None,
              command: str = "fringecal run", until: str | None = None) -> dict:
     """Run the pipeline into ``run_dir``; returns the summary (also ``summary.json``).
 
-    ``config`` is a run-config YAML path (default ``configs/run_thesis.yaml``) or an
-    already resolved config (a manifest's ``config``). ``until`` stops after the named
-    step (the summary then lists only what ran).
+    ``config`` is the run's :class:`~fringecal.run.config.RunConfig` (a deployment's
+    JSON parameter, a manifest's ``config``, is validated into one by Prefect) or a
+    run-config YAML path (default ``configs/run_thesis.yaml``). The same object goes to
+    every step's task. ``until`` stops after the named step (the summary then lists only
+    what ran).
     """
     interrupt.reassert()  # the command's Ctrl-C / SIGTERM handling instead of Prefect's (when armed)
     t_start = time.perf_counter()
-    cfg = RunConfig.model_validate(config) if isinstance(config, dict) else load_run_config(config, overrides)
+    cfg = config if isinstance(config, RunConfig) else load_run_config(config, overrides)
     rd = RunDir(run_dir).create()
     interrupted = resume.begin(rd, command)  # before any step is submitted: no writer of this run is disturbed
     try:
