@@ -5,7 +5,11 @@ already up to date with a configuration.
 The manifest is deterministic -- resolved configuration, its digest, the digest of
 fringecal's source, package versions, the digests of the source's input files -- so
 writing it again for the same run changes nothing. What describes one execution
-(when, which command, step timings, which steps ran) goes to the summary.
+(when, which command, step timings, which steps ran) goes to the summary, with the
+run's verdict over its ball-bar verification and acceptance test
+(:func:`fringecal.acceptance.verdict.run_verdict`: ``verdict``), the acceptance test's
+result (``acceptance``) and the ball-bar's lengths, each with the one U of its budget
+(``verification.lengths``; the GUM U of the mean length is ``verification.mean_length``).
 """
 
 from __future__ import annotations
