@@ -40,10 +40,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _sh(cmd: list[str], cwd: Path, env: dict | None = None) -> float:
+def _sh(cmd: list[str], cwd: Path, env: dict | None = None, ok=(0,)) -> float:
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
-    if proc.returncode != 0:
+    if proc.returncode not in ok:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
     return time.perf_counter() - t0
 
@@ -63,7 +63,8 @@ def _run(clone: Path, run_dir: str, prefect_home: Path) -> dict:
     env = {k: v for k, v in env.items() if k not in ("PREFECT_API_URL", "PREFECT_PROFILE", "NUMBA_CACHE_DIR",
                                                      "PYTHONPATH")}
     load0 = os.getloadavg()[0]
-    wall = _sh([str(clone / ".venv" / "bin" / "fringecal"), "run", "--out", run_dir], clone, env)
+    # 3: the run finished and its verdict is NOT ACCEPTED (the demo's limits are nobody's specification)
+    wall = _sh([str(clone / ".venv" / "bin" / "fringecal"), "run", "--out", run_dir], clone, env, ok=(0, 3))
     summary = json.loads((clone / run_dir / "summary.json").read_text())
     return {"wall_s": round(wall, 1), "flow_s": round(summary["total_seconds"], 1),
             "compile_s": round(sum((summary.get("compile_seconds") or {}).values()), 1),
@@ -71,6 +72,7 @@ def _run(clone: Path, run_dir: str, prefect_home: Path) -> dict:
             "bundle_s": round(summary["bundle_seconds"], 2),
             "bundle_compile_s": round(summary.get("bundle_compile_seconds", 0.0), 2),
             "ball_bar_max_error_um": round(1000 * summary["verification"]["max_abs_error_mm"], 1),
+            "verdict": summary["verdict"]["word"],
             "load_before": round(load0, 2), "load_after": round(os.getloadavg()[0], 2)}
 
 

@@ -113,17 +113,17 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
         ("one part in (1.96 sigma eps2)", f"{summary['one_part_in']:,.0f}"),
     ]
     if v:
-        rows += [("ball-bar max |error|", f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "
-                                          f"{v['volume_diagonal_mm']:.0f} mm"),
-                 ("verification (MPE %.0f um)" % (1000 * v["mpe_mm"]), "[green]PASS[/]" if v["pass"] else "[red]FAIL[/]")]
-        if v.get("lengths"):
-            worst = max(v["lengths"], key=lambda e: abs(e["error_mm"]))
+        rows.append((f"ball-bar max |error| (MPE {1000 * v['mpe_mm']:.0f} um)",
+                     f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "
+                     f"{v['volume_diagonal_mm']:.0f} mm"))
+        measured = [e for e in v.get("lengths") or [] if e.get("U_mm") is not None]
+        if measured:
+            worst = max(measured, key=lambda e: abs(e["error_mm"]))
             rows.append((f"  its U (k = {v['length_coverage_factor']:g}), ISO 14253-1",
                          f"{1000 * worst['U_mm']:.1f} um, {worst['iso14253']}"))
-            if v.get("not_covered"):
-                rows.append(("  [red]not covered by the budget[/]", ", ".join(v["not_covered"])))
-    else:
-        rows.append(("verification", "[yellow]not verified[/] (no ball-bar measurements)"))
+        if v.get("not_covered"):
+            rows.append(("  [red]not covered by the budget[/]", ", ".join(v["not_covered"])))
+    rows.append(verdict_row(summary.get("verdict")))
     if tr:
         rows += [("truth: eps1 / eps2 floor", f"{1000 * tr['rms_eps1_mm_true_params']:.1f} / "
                                               f"{1000 * tr['rms_eps2_mm_true_params']:.1f} um")]
@@ -141,6 +141,17 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
         t.add_row(k, val)
     console.print(t)
     console.print(f"report: {run_dir / 'report.html'}")
+
+
+def verdict_row(verdict: dict | None) -> tuple[str, str]:
+    """The table's one verdict line: ACCEPTED, NOT ACCEPTED with the failing components
+    in brief (per test and parameter: failing / judged), or NOT VERIFIED."""
+    if not verdict or verdict.get("accepted") is None:
+        return ("verdict", "[yellow]NOT VERIFIED[/] (no ball-bar and no acceptance measurements)")
+    label = "verdict (ISO 14253-1)"
+    if verdict["accepted"]:
+        return (label, f"[green]{verdict['word']}[/]")
+    return (label, f"[red]{verdict['word']}[/]: {verdict['failing']}")
 
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
@@ -164,7 +175,7 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
             warmup = kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
             _quiet_prefect(verbose)
             from fringecal.flows.progress import RichProgress
-            from fringecal.flows.run_flow import run_flow
+            from fringecal.flows.run_flow import NotAccepted, run_flow
 
             kind = runner or cfg.runner.kind
             task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
@@ -174,7 +185,10 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
             if server is not None:  # local Dask workers report to it instead of each starting
                 os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
             with RichProgress(out).running():
-                summary = flow(cfg, str(run_dir), None, command, until)
+                try:
+                    summary = flow(cfg, str(run_dir), None, command, until)
+                except NotAccepted as verdict:  # the flow run ended Failed; its outputs are written
+                    summary = verdict.summary
     finally:
         if server is not None:
             os.environ.pop("PREFECT_API_URL", None)
@@ -240,7 +254,8 @@ def run_command(
 ):
     """Calibrate: decode or simulate the measurements, extract and label spheres, adjust, verify and report.
 
-    Exit status 0, 3 when the ball-bar verification FAILs (the summary is printed
+    Exit status 0 (ACCEPTED, or NOT VERIFIED: no ball-bar and no acceptance
+    measurements), 3 when the run's verdict is NOT ACCEPTED (the summary is printed
     first), 2 on bad input, 1 on a hexapod fault.
     """
     from fringecal.steps import pipeline
@@ -267,16 +282,16 @@ def run_command(
     else:
         console.print(f"stopped after {until}: {len(summary['tasks']['ran'])} step instances ran, "
                       f"{len(summary['tasks']['cached'])} from the cache -> {out}")
-    verification_failed(summary)
+    not_accepted(summary)
 
 
-def verification_failed(summary: dict) -> None:
-    """Exit with status 3 when the run's ball-bar verification FAILed (after the summary
-    is printed), so that a script can tell it from a pass (0) and from bad input (2)."""
-    v = summary.get("verification")
-    if v and v.get("pass") is not True:
-        err_console.print(f"[red]verification FAILED[/]: ball-bar max |error| {1000 * v['max_abs_error_mm']:.1f} um "
-                          f"against the MPE of {1000 * v['mpe_mm']:.0f} um (exit status 3)", highlight=False,
+def not_accepted(summary: dict) -> None:
+    """Exit with status 3 when the run's verdict is NOT ACCEPTED (after the summary is
+    printed), so that a script can tell it from an accepted or unverified run (0) and
+    from bad input (2). A summary without a verdict (``--until``) judges nothing."""
+    verdict = summary.get("verdict") or {}
+    if verdict.get("accepted") is False:
+        err_console.print(f"[red]{verdict['word']}[/]: {verdict['failing']} (exit status 3)", highlight=False,
                           soft_wrap=True)
         raise typer.Exit(3)
 
@@ -289,8 +304,8 @@ def reproduce_command(
 ):
     """Rerun a run from its manifest and compare the summary numbers.
 
-    Exit status 0, 1 when the numbers differ, 3 when they agree but the ball-bar
-    verification FAILs, 2 on bad input.
+    Exit status 0, 1 when the numbers (or the verdict) differ, 3 when they agree but
+    the run's verdict is NOT ACCEPTED, 2 on bad input.
     """
     from fringecal.flows.validate import input_folder, output_folder
     from fringecal.rundir import RunDir
@@ -309,7 +324,7 @@ def reproduce_command(
         if diffs:
             fail("reproduction differs: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in diffs), code=1)
         console.print("[green]reproduced:[/] the summary numbers are identical")
-    verification_failed(summary)
+    not_accepted(summary)
 
 
 def _differences(old: dict, new: dict) -> list[tuple]:
@@ -320,6 +335,9 @@ def _differences(old: dict, new: dict) -> list[tuple]:
     a, b = (old.get("verification") or {}).get("max_abs_error_mm"), (new.get("verification") or {}).get("max_abs_error_mm")
     if (a is None) != (b is None) or (a is not None and abs(a - b) > 1e-9):
         diffs.append(("verification.max_abs_error_mm", a, b))
+    a, b = (old.get("verdict") or {}).get("word"), (new.get("verdict") or {}).get("word")
+    if a is not None and b is not None and a != b:  # a summary from before the verdict existed has none
+        diffs.append(("verdict", a, b))
     return diffs
 
 
@@ -385,7 +403,9 @@ def serve_command(
     """Serve the run flow as a scheduled deployment (e.g. a nightly re-verification) on a
     Prefect server: PREFECT_API_URL (or the active profile) must name one, started with
     `prefect server start --host 127.0.0.1` (Prefect's temporary server cannot schedule).
-    One run at a time; each run's verdict is in OUT/summary.json. Ctrl-C stops serving.
+    One run at a time; each run's verdict is in OUT/summary.json, and a run that is NOT
+    ACCEPTED ends in Prefect's Failed state with the verdict as its message. Ctrl-C
+    stops serving.
     """
     from fringecal.flows.common import configured_prefect_api
 

@@ -59,7 +59,8 @@ def step_command(
 ):
     """Run one pipeline step over a run directory (every measurement of a per-measurement step).
 
-    Exit status 0; 3 when ``verify`` FAILs or ``acceptance`` does not accept; 2 on bad input.
+    Exit status 0; 3 when the ball-bar (``verify``) or the acceptance test
+    (``acceptance``) is NOT ACCEPTED under ISO 14253-1; 2 on bad input.
     """
     records = _run(name, run, config, force)
     if as_json:
@@ -72,23 +73,23 @@ def step_command(
 
 
 def _verdict(name: str, run: Path) -> None:
-    """``step verify`` and ``step acceptance`` exit with status 3 when the ball-bar
-    verification FAILed or the cell is not accepted, as ``fringecal run`` and
-    ``fringecal verify acceptance`` do."""
+    """``step verify`` and ``step acceptance`` exit with status 3 when their part of the
+    run's verdict (:func:`fringecal.acceptance.verdict.run_verdict`: the ball-bar's
+    lengths, or the acceptance test's parameters) is NOT ACCEPTED, as ``fringecal run``
+    and ``fringecal verify acceptance`` do."""
+    from fringecal.acceptance.verdict import run_verdict
     from fringecal.rundir import RunDir
 
     rd = RunDir(run)
     if name == "verify" and rd.verification.exists():
-        cal = rd.verification.load()["calibrated"]
-        if cal.get("pass") is not True:
-            err_console.print(f"[red]verification FAILED[/]: ball-bar max |error| "
-                              f"{1000 * cal['max_abs_error_mm']:.1f} um against the MPE of "
-                              f"{1000 * cal['mpe_mm']:.0f} um (exit status 3)", highlight=False,
-                              soft_wrap=True)
-            raise typer.Exit(3)
-    if name == "acceptance" and rd.acceptance.exists() and not rd.acceptance.load()["accepted"]:
-        err_console.print("[red]NOT ACCEPTED[/]: see acceptance.json or `fringecal verify acceptance` "
-                          "(exit status 3)", highlight=False, soft_wrap=True)
+        verdict, what = run_verdict(rd.verification.load(), None), "ball-bar"
+    elif name == "acceptance" and rd.acceptance.exists():
+        verdict, what = run_verdict(None, rd.acceptance.load()), "acceptance test"
+    else:
+        return
+    if verdict["accepted"] is False:
+        err_console.print(f"[red]{what} {verdict['word']}[/]: {verdict['failing']} (exit status 3)",
+                          highlight=False, soft_wrap=True)
         raise typer.Exit(3)
 
 

@@ -11,6 +11,14 @@ changed output is recomputed; a run killed midway resumes from what had finished
 the flow first removes the hidden temporaries of the writes the interruption cut
 short and reports, in ``summary.json``'s ``resumed``, how many step instances it
 reused (:mod:`fringecal.run.resume`).
+
+The run's verdict (``summary.json``'s ``verdict``,
+:func:`fringecal.acceptance.verdict.run_verdict`) decides the flow run's final state:
+Completed when the run is ACCEPTED or NOT VERIFIED, Failed with the message ``NOT
+ACCEPTED: <failing components>`` when it is not accepted -- after every output and
+``summary.json`` are written, so that a served or scheduled run shows its verdict in
+the Prefect UI. Called directly, the flow then raises :class:`NotAccepted`, which
+carries the summary.
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "fringecal")
 os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
 
 from prefect import flow  # noqa: E402
+from prefect.states import Failed, State  # noqa: E402
 
 from fringecal.run import resume  # noqa: E402
 from fringecal.flows import interrupt, progress  # noqa: E402
@@ -35,7 +44,20 @@ from fringecal.rundir import RunDir  # noqa: E402
 from fringecal.steps import Step, current_record, pipeline, step_key  # noqa: E402
 from fringecal.tasks.step import step_task  # noqa: E402
 
-__all__ = ["run_flow", "StepRunner"]
+__all__ = ["run_flow", "StepRunner", "NotAccepted"]
+
+
+class NotAccepted(Exception):
+    """A finished run whose verdict is NOT ACCEPTED: the data of the flow run's Failed
+    state, raised by a direct call of :func:`run_flow`; ``summary`` is the run's summary
+    (also in ``summary.json``)."""
+
+    def __init__(self, message: str, summary: dict):
+        super().__init__(message, summary)  # both in args: the exception pickles as Prefect stores it
+        self.summary = summary
+
+    def __str__(self) -> str:
+        return self.args[0]
 
 
 class StepRunner:
@@ -83,7 +105,7 @@ class StepRunner:
 
 @flow(name="fringecal-run")
 def run_flow(config: RunConfig | str | None = None, run_dir: str = "runs/latest", overrides: dict | None = None,
-             command: str = "fringecal run", until: str | None = None) -> dict:
+             command: str = "fringecal run", until: str | None = None) -> dict | State:
     """Run the pipeline into ``run_dir``; returns the summary (also ``summary.json``).
 
     ``config`` is the run's :class:`~fringecal.run.config.RunConfig` (a deployment's
@@ -103,6 +125,10 @@ def run_flow(config: RunConfig | str | None = None, run_dir: str = "runs/latest"
         resume.finish(rd)  # an error, not an interruption
         raise
     resume.finish(rd)
+    verdict = summary.get("verdict") or {}
+    if verdict.get("accepted") is False:
+        message = f"{verdict['word']}: {verdict['failing']} (outputs and summary.json written to {rd.root})"
+        return Failed(message=message, data=NotAccepted(message, summary))
     return summary
 
 

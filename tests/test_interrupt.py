@@ -94,8 +94,10 @@ class Run:
             time.sleep(0.02)
 
     def finish(self, timeout: float = 300.0) -> dict:
+        """The finished run's summary; the small rig's verdict is NOT ACCEPTED (exit status 3:
+        its 320 px lengths' U cannot prove conformance, tests/test_run_flow.py)."""
         self.proc.wait(timeout)
-        assert self.proc.returncode == 0, self.errors()
+        assert self.proc.returncode == 3, self.errors()
         return json.loads(self.stdout.read_text())
 
     def errors(self) -> str:
@@ -151,7 +153,8 @@ def test_kill_9_at_three_points_then_the_same_command_resumes_to_the_same_number
     for key in NUMBERS:
         assert summary[key] == reference[key], key
     assert summary["verification"]["max_abs_error_mm"] == reference["verification"]["max_abs_error_mm"]
-    assert summary["verification"]["pass"] == reference["verification"]["pass"]
+    assert summary["verification"]["within_mpe"] == reference["verification"]["within_mpe"]
+    assert summary["verdict"] == reference["verdict"]
     assert summary["truth"] == reference["truth"]
     assert leftovers(out) == [] and not RunDir(out).in_progress.exists()
     reused = summary["resumed"]["reused"]

@@ -28,6 +28,7 @@ from fringecal.rundir import RunDir, package_versions
 from fringecal.simulate.control_points import dlt_start, simulate_control_points, thesis_truth, write_run_inputs
 from fringecal.steps import get_step, run_step
 from fringecal.verification.lengths import evaluate_ballbar
+from fringecal.verification.uncertainty import iso14253_verdict
 
 POSE_COLUMNS = ["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]
 REFERENCE_MM = 1015.650
@@ -36,6 +37,7 @@ TRUE_ERRORS_MM = [0.018, -0.029, 0.044, -0.010, 0.011, -0.037, 0.025, -0.006, 0.
 POSITIONS = [f"bb{i + 1:02d}" for i in range(len(CAL_ERRORS_MM))]
 SCANNERS = ("scanner1", "scanner2")
 DIAGONAL_MM = 2872.3
+LENGTH_U_MM = 0.050  # every length's U: |error| + U <= 100 um for CAL_ERRORS_MM (conformance)
 CREATED = "2026-01-02T03:04:05Z"
 COMMAND = "fringecal run --out runs/report-test"
 SUMMARY_TIMINGS = {"simulate-render": 120.5, "spheres-first": 31.2, "bundle": 0.4, "verify": 25.0}
@@ -49,6 +51,14 @@ SECTIONS = [("rig", "Rig and artefact"), ("timing", "Timing"), ("results", "Cali
 def _ballbar(errors, mpe=0.1):
     return evaluate_ballbar(REFERENCE_MM + np.array(errors), REFERENCE_MM, POSITIONS[:len(errors)], mpe, DIAGONAL_MM,
                             0.0004, 2.0, 1.96)
+
+
+def _budget(errors, U=LENGTH_U_MM, mpe=0.1) -> dict:
+    """Each length's own U (the same for all) and its ISO 14253-1 verdict, as verification.json holds them."""
+    lengths = [{"measurement": p, "error_mm": e, "u_mm": U / 2, "U_mm": U, "budget_mm": {}, "covered": abs(e) <= U,
+                "iso14253": iso14253_verdict(e, U, mpe)} for p, e in zip(POSITIONS, errors)]
+    return {"coverage_factor": 2.0, "lengths": lengths, "budget": {}, "monte_carlo": None,
+            "not_covered": [e["measurement"] for e in lengths if not e["covered"]]}
 
 
 def _config(**kw) -> dict:
@@ -79,7 +89,7 @@ def base_run(tmp_path_factory):
     config = _config(simulate={"acquisition": {"camera_width_px": 512}, "verification": {"scheme": "thesis9"}})
     rd.manifest.save(_manifest(config, "simulated", {"configs/thesis/artefact_cmm2.csv": "ab" * 32}))
     cal, true = _ballbar(CAL_ERRORS_MM), _ballbar(TRUE_ERRORS_MM)
-    rd.verification.save({"calibrated": cal.to_dict(), "failures": [],
+    rd.verification.save({"calibrated": cal.to_dict(), "uncertainty": _budget(CAL_ERRORS_MM), "failures": [],
                           "recorded_by": {p: list(SCANNERS) for p in POSITIONS}})
     rd.evaluation.save({
         "max_position_error_mm": 0.61, "max_angle_error_rad": 2.1e-4, "rms_f_mm_true_params": 0.168,
@@ -157,13 +167,13 @@ def _well_formed(page: str) -> None:
 
 
 def _verification_rows(page: str) -> dict[str, list[str]]:
-    """Position -> the text of its cells in the verification table."""
+    """Position -> the text of its cells in the verification table (the first; the lengths' budget follows)."""
     table = _section(page, "verification")
     rows = re.findall(r"<tr>(<td.*?)</tr>", table, re.S)
     out = {}
     for r in rows:
         cells = [re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", r, re.S)]
-        if cells and cells[0] in POSITIONS:
+        if cells and cells[0] in POSITIONS and cells[0] not in out:
             out[cells[0]] = cells
     return out
 
@@ -335,16 +345,39 @@ def test_true_column_is_matched_by_position_name(rd):
         assert rows[p][5] == expected, p
 
 
-def test_failing_verification_is_reported_as_fail(rd):
+def test_a_length_outside_its_mpe_makes_the_run_not_accepted(rd):
+    errors = CAL_ERRORS_MM[:8] + [0.130]
     ver = rd.verification.load()
-    ver["calibrated"] = _ballbar(CAL_ERRORS_MM[:8] + [0.130]).to_dict()
+    ver["calibrated"] = _ballbar(errors).to_dict()
+    ver["uncertainty"] = _budget(errors, U=0.020)
     ver["failures"] = [{"position": "bb09", "scanner": "scanner2", "sphere_id": "B", "reason": "too few points"}]
     rd.verification.save(ver)
     page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
-    assert '<span class="badge fail">FAIL</span>' in page.split("<nav>")[0]
+    head = page.split("<nav>")[0]
+    assert '<span class="badge fail">NOT ACCEPTED</span></h1>' in head and "PASS" not in head
+    # 130 um - U 20 um > 100 um: non-conformance proven; the others conform (47 + 20 um <= 100 um)
+    assert ("not accepted (ball-bar: E 1/9): ball-bar E bb09: non-conformance (value 130.0 µm, U 20.0 µm, "
+            "limit 100.0 µm).") in head
     section = _section(page, "verification")
     assert section.count('class="fail">FAIL') == 1 and "130.0 µm" in section
+    assert '<span class="badge fail">NOT ACCEPTED</span> (conformance not proven: ball-bar: E 1/9)' in section
     assert "too few points" in section and "1 problem(s)" in section
+
+
+def test_the_badge_is_pass_only_when_every_length_conformance_is_proven(rd):
+    """Every length within its MPE, but one with a U too large to prove it (45 + 60 um > 100 um):
+    the run is not accepted, and the page says which length and why."""
+    ver = rd.verification.load()
+    ver["uncertainty"] = _budget(CAL_ERRORS_MM, U=0.060)
+    rd.verification.save(ver)
+    head = write_report(rd, TIMINGS).read_text(encoding="utf-8").split("<nav>")[0]
+    assert '<span class="badge fail">NOT ACCEPTED</span>' in head and "PASS" not in head
+    assert "ball-bar E bb03: uncertainty zone (value 47.0 µm, U 60.0 µm, limit 100.0 µm)" in head
+    assert "bb02" not in head  # 34 + 60 um <= 100 um: conformance
+    ver["uncertainty"] = None  # no budget: no length's U is known, none is proven
+    rd.verification.save(ver)
+    head = write_report(rd, TIMINGS).read_text(encoding="utf-8").split("<nav>")[0]
+    assert "not accepted (ball-bar: E 9/9)" in head and "U n/a" in head
 
 
 def test_missing_optional_files_give_notes(rd):

@@ -21,12 +21,23 @@ from fringecal.rundir import RunDir
 runner = CliRunner()
 
 
+def _flow(*args, flow=None, **kwargs) -> dict:
+    """The summary of a run of the small rig, whose verdict is NOT ACCEPTED: at 320 px
+    each ball-bar length's U (150-310 um) is too large to prove conformance with the
+    100 um MPE, so the flow run ends Failed and the direct call raises the verdict,
+    which carries the summary (also in summary.json)."""
+    from fringecal.flows.run_flow import NotAccepted, run_flow
+
+    with pytest.raises(NotAccepted) as verdict:
+        (flow or run_flow)(*args, **kwargs)
+    assert str(verdict.value).startswith("NOT ACCEPTED: ball-bar: E 3/3; acceptance: E 1/1 (")
+    return verdict.value.summary
+
+
 @pytest.fixture(scope="module")
 def first_run(prefect_harness, small_config, tmp_path_factory):
-    from fringecal.flows.run_flow import run_flow
-
     run_dir = tmp_path_factory.mktemp("run") / "small"
-    summary = run_flow(str(small_config), str(run_dir))
+    summary = _flow(str(small_config), str(run_dir))
     return run_dir, summary
 
 
@@ -56,7 +67,16 @@ def test_run_writes_the_run_directory_and_meets_the_noise_floor(first_run):
     assert t["max_position_error_mm"] < 15 and t["max_angle_error_rad"] < 0.015
     v = s["verification"]
     assert v["reference_length_mm"] == pytest.approx(1015.65) and v["n_lengths"] == 3 and v["n_failures"] == 0
-    assert v["max_abs_error_mm"] < 0.2 and v["pass"]
+    assert v["max_abs_error_mm"] < 0.2 and v["within_mpe"]
+    # one U per length, its budget's; the GUM U is the mean length's, under its own name
+    budget = {e["measurement"]: e for e in rd.verification.load()["uncertainty"]["lengths"]}
+    assert [e["U_mm"] for e in v["lengths"]] == [budget[e["measurement"]]["U_mm"] for e in v["lengths"]]
+    assert "expanded_uncertainty_mm" not in v and v["mean_length"]["U_mm"] < min(e["U_mm"] for e in v["lengths"])
+    verdict = s["verdict"]
+    assert verdict == json.loads(rd.summary.path.read_text())["verdict"] and verdict["accepted"] is False
+    assert [(c["test"], c["verdict"]) for c in verdict["components"]] == [("ball-bar", "uncertainty zone")] * 3 + [
+        ("acceptance", "uncertainty zone")]
+    assert s["acceptance"]["accepted"] is False and rd.acceptance.load()["accepted"] is False
     assert t["verification_max_abs_error_true_params_mm"] < 0.2
     manifest = rd.read_manifest()
     assert manifest["config"]["name"] == "small" and len(manifest["config_digest"]) == 64
@@ -66,32 +86,28 @@ def test_run_writes_the_run_directory_and_meets_the_noise_floor(first_run):
 
 @pytest.mark.flow
 def test_rerun_is_all_cache_hits_and_bundle_weights_rerun_only_what_depends_on_them(first_run, small_config):
-    from fringecal.flows.run_flow import run_flow
-
     run_dir, first = first_run
-    again = run_flow(str(small_config), str(run_dir))
+    again = _flow(str(small_config), str(run_dir))
     assert again["tasks"]["ran"] == []
     assert again["rms_F_mm_after"] == first["rms_F_mm_after"]
-    changed = run_flow(str(small_config), str(run_dir), overrides={"bundle": {"gamma2": 0.5}})
+    changed = _flow(str(small_config), str(run_dir), overrides={"bundle": {"gamma2": 0.5}})
     ran = {name.split(":")[0] for name in changed["tasks"]["ran"]}
     assert ran == {"bundle", "cross-validate", "verify", "acceptance", "evaluate", "report"}
     assert changed["rms_F_mm_after"] != first["rms_F_mm_after"]
     # back to the first settings: the files on disk are the other weights', so those steps
     # are recomputed (to the same numbers), and nothing else
-    back = run_flow(str(small_config), str(run_dir))
+    back = _flow(str(small_config), str(run_dir))
     assert {name.split(":")[0] for name in back["tasks"]["ran"]} == ran
     assert back["rms_F_mm_after"] == first["rms_F_mm_after"]
 
 
 @pytest.mark.flow
 def test_deleted_output_is_recomputed(first_run, small_config):
-    from fringecal.flows.run_flow import run_flow
-
     run_dir, first = first_run
     rd = RunDir(run_dir)
     shutil.rmtree(rd.store("5-scanner2").path)
     rd.control_points_of("9-scanner1").path.unlink()
-    s = run_flow(str(small_config), str(run_dir))
+    s = _flow(str(small_config), str(run_dir))
     ran = s["tasks"]["ran"]
     assert "simulate-render:5-scanner2" in ran and "spheres-second:9-scanner1" in ran
     assert "simulate-render:1-scanner1" not in ran and "bundle" not in ran  # same content, same key
@@ -122,7 +138,7 @@ def test_up_to_date_shortcut_redigests_the_inputs(first_run, small_config, tmp_p
 def test_reproduce_gives_the_same_summary(first_run):
     run_dir, _ = first_run
     res = runner.invoke(app, ["reproduce", str(run_dir)])
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 3, res.output  # the same numbers, and the same verdict: NOT ACCEPTED
     assert "reproduced" in res.output
 
 
@@ -189,9 +205,10 @@ def test_data_set_run_agrees_with_the_simulated_run_and_never_reads_the_truth(fi
         res = runner.invoke(app, ["run", "--dataset", str(data), "--out", str(out), "--json"])
     finally:
         _Unreadable.release(truth)
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 3, res.output  # NOT ACCEPTED, as the simulated run
     s = json.loads(res.stdout[res.stdout.index("{"):])
     assert s["source"] == "dataset" and s["truth"] is None
+    assert s["verdict"]["failing"] == sim["verdict"]["failing"]
     assert s["n_control_points"] == sim["n_control_points"]
     assert abs(s["verification"]["max_abs_error_mm"] - sim["verification"]["max_abs_error_mm"]) < 1e-3
     assert s["rms_eps2_mm_after"] == pytest.approx(sim["rms_eps2_mm_after"], rel=1e-6)
@@ -265,7 +282,7 @@ def test_dask_runner_two_workers(prefect_harness, small_config, tmp_path):
     from fringecal.flows.run_flow import run_flow
 
     flow = run_flow.with_options(task_runner=make_task_runner("dask", 2, dask_workers=2))
-    s = flow(str(small_config), str(tmp_path / "dask"))
+    s = _flow(str(small_config), str(tmp_path / "dask"), flow=flow)
     assert s["tasks"]["cached"] == []
     assert s["n_control_points"] > 2000 and s["verification"]["max_abs_error_mm"] < 0.2
 

@@ -160,7 +160,7 @@ def test_a_scheduled_run_starts_and_finishes(server, tmp_path):
                                 env=_client_env(tmp_path / "home", server), stdout=f, stderr=subprocess.STDOUT,
                                 start_new_session=True)
     try:
-        run = _wait_for_a_completed_scheduled_run(server, proc, log)
+        run = _wait_for_a_finished_scheduled_run(server, proc, log)
     finally:
         _stop(proc)
     auth = (USER, PASSWORD)
@@ -169,10 +169,17 @@ def test_a_scheduled_run_starts_and_finishes(server, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["command"] == "scheduled test-serve" and summary["name"] == "tiny"
     assert summary["verification"]["n_lengths"] >= 1 and summary["n_measurements"] == 8
+    # the tiny rig's length cannot prove conformance (its U is larger than the MPE): the run
+    # wrote everything, and its state says NOT ACCEPTED, as summary.json does
+    assert summary["verdict"]["accepted"] is False and (out / "report.html").exists()
+    assert run["state_type"] == "FAILED"
+    assert run["state"]["message"].startswith(f"NOT ACCEPTED: {summary['verdict']['failing']} (")
 
 
-def _wait_for_a_completed_scheduled_run(url: str, proc: subprocess.Popen, log: Path) -> dict:
-    """Poll the server until a run of a deployment created by its scheduler completes."""
+def _wait_for_a_finished_scheduled_run(url: str, proc: subprocess.Popen, log: Path) -> dict:
+    """Poll the server until a run of a deployment created by its scheduler ends:
+    Completed, or Failed with the run's verdict (NOT ACCEPTED) as its message; a run
+    that crashed or failed with an error fails the test."""
     deadline = time.monotonic() + RUN_DEADLINE_S
     seen = {}
     while time.monotonic() < deadline:
@@ -183,9 +190,11 @@ def _wait_for_a_completed_scheduled_run(url: str, proc: subprocess.Popen, log: P
         res.raise_for_status()
         for run in res.json():
             seen[run["id"]] = run["state_type"]
-            if run["deployment_id"] and run["state_type"] == "COMPLETED":
+            verdict = run["state_type"] == "FAILED" and (run.get("state") or {}).get("message", "").startswith(
+                "NOT ACCEPTED")
+            if run["deployment_id"] and (run["state_type"] == "COMPLETED" or verdict):
                 return run
             if run["state_type"] in ("FAILED", "CRASHED"):
                 pytest.fail(f"scheduled run {run['name']} {run['state_type']}:\n{_tail(log, 80)}")
         time.sleep(2)
-    pytest.fail(f"no scheduled run completed within {RUN_DEADLINE_S} s (runs: {seen}):\n{_tail(log, 80)}")
+    pytest.fail(f"no scheduled run finished within {RUN_DEADLINE_S} s (runs: {seen}):\n{_tail(log, 80)}")

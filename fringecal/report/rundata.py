@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from fringecal.report.formatting import truthy
+from fringecal.acceptance.verdict import run_verdict, unreadable
 from fringecal.rundir import RunDir, RunFile
 
 __all__ = ["NO_TRUTH", "SOURCES", "Missing", "RunData", "Shown", "failure", "guard", "numeric"]
@@ -143,13 +143,21 @@ class RunData:
             return f"could not be read (see the {f.rel} note under Simulation truth)"
         return NO_TRUTH if self.source() != "simulated" else f"not available ({f.rel} is not in the run directory)"
 
-    def verified(self) -> bool | None:
-        """PASS/FAIL of the ball-bar verification, None when the run is not verified.
-        Only the verification file decides (the summary may be of an earlier execution)."""
-        ver = self.maybe_json(self.rd.verification)
-        if ver and isinstance(ver.get("calibrated"), dict) and "pass" in ver["calibrated"]:
-            return truthy(ver["calibrated"]["pass"])
-        return None
+    def verdict(self) -> dict:
+        """The run's verdict (:func:`fringecal.acceptance.verdict.run_verdict`) from
+        ``verification.json`` and ``acceptance.json``, as the summary records it. Only
+        these files decide (the summary may be of an earlier execution); one that
+        exists but cannot be read proves nothing, so the run is then not accepted."""
+        docs = []
+        for f in (self.rd.verification, self.rd.acceptance):
+            doc = self.maybe_json(f) if f.exists() else None
+            if f.exists() and doc is None:
+                return unreadable(f.rel)
+            docs.append(doc)
+        try:
+            return run_verdict(*docs)
+        except (KeyError, TypeError, ValueError) as err:
+            return unreadable(f"{self.rd.verification.rel} or {self.rd.acceptance.rel} ({type(err).__name__}: {err})")
 
     def execution(self, execution: dict | None) -> dict:
         """When and by which command the run executed: passed in, else from the summary."""

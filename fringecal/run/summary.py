@@ -5,18 +5,23 @@ already up to date with a configuration.
 The manifest is deterministic -- resolved configuration, its digest, the digest of
 fringecal's source, package versions, the digests of the source's input files -- so
 writing it again for the same run changes nothing. What describes one execution
-(when, which command, step timings, which steps ran) goes to the summary.
+(when, which command, step timings, which steps ran) goes to the summary, with the
+run's verdict over its ball-bar verification and acceptance test
+(:func:`fringecal.acceptance.verdict.run_verdict`: ``verdict``), the acceptance test's
+result (``acceptance``) and the ball-bar's lengths, each with the one U of its budget
+(``verification.lengths``; the GUM U of the mean length is ``verification.mean_length``).
 """
 
 from __future__ import annotations
 
+from fringecal.acceptance.verdict import run_verdict
 from fringecal.dataset import DataSet
 from fringecal.digests import code_digest, digest_path
 from fringecal.rundir import RunDir, package_versions
 from fringecal.simulate.source import input_files
 from fringecal.steps import current_record, pipeline, step_key
 
-__all__ = ["manifest", "run_summary", "pipeline_status", "source_files", "simulation_profile"]
+__all__ = ["manifest", "run_summary", "ballbar_summary", "pipeline_status", "source_files", "simulation_profile"]
 
 
 def source_files(cfg) -> list:
@@ -66,10 +71,41 @@ def simulation_profile(cfg) -> str | None:
     return cfg.simulate.errors.profile_name
 
 
+def ballbar_summary(v: dict) -> dict:
+    """The ball-bar figures of ``verification.json``: each length with its one U (its
+    budget's, None without a budget) and ISO 14253-1 verdict, and the GUM statement of
+    the mean length under ``mean_length`` (the mean's U, not a length's)."""
+    cal = v["calibrated"]
+    budget = v.get("uncertainty") or {}
+    by_name = {str(e["measurement"]): e for e in budget.get("lengths") or []}
+    gum = cal["uncertainty"]
+    mean = cal["mean_length_mm"]
+    return {
+        "reference_length_mm": cal["reference_length_mm"], "max_abs_error_mm": cal["max_abs_error_mm"],
+        "volume_diagonal_mm": cal["volume_diagonal_mm"], "one_part_in": cal["one_part_in"], "mpe_mm": cal["mpe_mm"],
+        "within_mpe": cal["pass"], "n_lengths": len(cal["positions"]), "n_failures": len(v["failures"]),
+        "lengths": [{"measurement": str(p["measurement"]), "error_mm": p["error_mm"],
+                     "U_mm": by_name.get(str(p["measurement"]), {}).get("U_mm"),
+                     "iso14253": by_name.get(str(p["measurement"]), {}).get("iso14253"),
+                     "covered": by_name.get(str(p["measurement"]), {}).get("covered")} for p in cal["positions"]],
+        "length_coverage_factor": budget.get("coverage_factor"),
+        "not_covered": budget.get("not_covered", []),
+        "budget_rms_mm": (budget.get("budget") or {}).get("rms_mm"),
+        "monte_carlo_agrees": None if budget.get("monte_carlo") is None else budget["monte_carlo"]["all_agree"],
+        "mean_length": {"what": "GUM statement of the mean of the lengths (type A over the positions, type B "
+                                "from the certificate): the U of the mean, not of any one length",
+                        "length_mm": mean, "error_mm": mean - cal["reference_length_mm"],
+                        "U_mm": gum["expanded_mm"], "coverage_factor": gum["coverage_factor"]},
+    }
+
+
 def run_summary(rd: RunDir, cfg) -> dict:
-    """The figures of a finished run, from its files (missing parts are None)."""
+    """The figures of a finished run, from its files (missing parts are None), with the
+    run's verdict (:func:`fringecal.acceptance.verdict.run_verdict`) over its
+    ball-bar verification and acceptance test."""
     b = rd.bundle_summary.load()
     v = _maybe(rd.verification)
+    a = _maybe(rd.acceptance)
     t = _maybe(rd.evaluation)
     n_measurements = int((rd.acquisition.load()["kind"] == "artefact").sum())
     out = {
@@ -83,27 +119,15 @@ def run_summary(rd: RunDir, cfg) -> dict:
         "bundle_seconds": b.get("bundle_seconds", b.get("elapsed_s")),
         "bundle_compile_seconds": b.get("bundle_compile_seconds", 0.0),
         "simulation_profile": simulation_profile(cfg),
-        "verification": None, "truth": None,
+        "verification": None, "acceptance": None, "verdict": None, "truth": None,
     }
     if v is not None:
-        cal = v["calibrated"]
-        out["verification"] = {
-            "reference_length_mm": cal["reference_length_mm"], "mean_length_mm": cal["mean_length_mm"],
-            "max_abs_error_mm": cal["max_abs_error_mm"], "volume_diagonal_mm": cal["volume_diagonal_mm"],
-            "one_part_in": cal["one_part_in"], "mpe_mm": cal["mpe_mm"], "pass": cal["pass"],
-            "n_lengths": len(cal["positions"]), "n_failures": len(v["failures"]),
-            "expanded_uncertainty_mm": cal["uncertainty"]["expanded_mm"],
-            "coverage_factor": cal["uncertainty"]["coverage_factor"]}
-        budget = v.get("uncertainty")
-        if budget:
-            out["verification"]["lengths"] = [
-                {"measurement": e["measurement"], "error_mm": e["error_mm"], "U_mm": e["U_mm"],
-                 "iso14253": e["iso14253"], "covered": e["covered"]} for e in budget["lengths"]]
-            out["verification"]["length_coverage_factor"] = budget["coverage_factor"]
-            out["verification"]["not_covered"] = budget["not_covered"]
-            out["verification"]["budget_rms_mm"] = budget["budget"].get("rms_mm")
-            mc = budget.get("monte_carlo")
-            out["verification"]["monte_carlo_agrees"] = None if mc is None else mc["all_agree"]
+        out["verification"] = ballbar_summary(v)
+    if a is not None:
+        out["acceptance"] = {"accepted": a["accepted"], "within_mpe": a["within_mpe"],
+                             "coverage_factor": a["coverage_factor"], "n_parameters": len(a["parameters"]),
+                             "n_failures": len(a["failures"])}
+    out["verdict"] = run_verdict(v, a)
     if t is not None:
         out["truth"] = {
             "max_position_error_mm": t["max_position_error_mm"], "max_angle_error_rad": t["max_angle_error_rad"],

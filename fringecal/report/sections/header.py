@@ -2,10 +2,37 @@
 
 from __future__ import annotations
 
+from fringecal.acceptance.verdict import ACCEPTED, NOT_VERIFIED
 from fringecal.report.formatting import finite, parts, um
 from fringecal.report.rundata import RunData
 
-__all__ = ["build"]
+__all__ = ["build", "verdict_badge"]
+
+#: The badge of each verdict: its text and CSS class.
+BADGES = {ACCEPTED: ("PASS", "pass"), NOT_VERIFIED: ("NOT VERIFIED", "none")}
+
+
+def _component(c: dict) -> str:
+    """One failing component in words: what, where, its verdict and its figures."""
+    what = f"ball-bar E {c['position']}" if c["test"] == "ball-bar" else f"{c['name']} ({c['scanner']})"
+    return (f"{what}: {c['verdict']} (value {um(c['value_mm'])}, U {um(c['U_mm'])}, "
+            f"limit {um(c['limit_mm'])})")
+
+
+def verdict_badge(verdict: dict) -> dict:
+    """The badge of a verdict (PASS only when accepted, NOT ACCEPTED, NOT VERIFIED) and
+    the sentence under it: what was judged, and every failing component."""
+    text, klass = BADGES.get(verdict["word"], (verdict["word"], "fail"))
+    limited = [c for c in verdict["components"] if c["limit_mm"] is not None]
+    failing = [_component(c) for c in limited if c["verdict"] != "conformance"]
+    if verdict["accepted"] is None:
+        why = "no verification ran: the run has no ball-bar and no acceptance measurements."
+    elif verdict["accepted"]:
+        why = (f"accepted: conformance proven under ISO 14253-1 for all {len(limited)} limited components "
+               f"({', '.join(verdict['ran'])}).")
+    else:
+        why = f"not accepted ({verdict['failing']}): " + ("; ".join(failing) or "conformance not proven") + "."
+    return {"text": text, "klass": klass, "why": why}
 
 
 def _key_figures(run: RunData) -> dict:
@@ -27,7 +54,7 @@ def _key_figures(run: RunData) -> dict:
 def build(run: RunData, generated: str, execution: dict) -> dict:
     """The header's facts: name, verdict, source, when it ran and was written, key figures."""
     key = _key_figures(run)
-    return {"name": run.name(), "verified": run.verified(), "source": run.source_text(),
+    return {"name": run.name(), "verdict": verdict_badge(run.verdict()), "source": run.source_text(),
             "started": execution.get("created_utc") or "not recorded",
             "digest": str(run.manifest().get("config_digest") or "n/a")[:16], "generated": generated,
             "key": key, "has_key": any(v is not None for v in key.values())}

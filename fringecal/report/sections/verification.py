@@ -3,6 +3,7 @@ uncertainty of each length under ISO 14253-1."""
 
 from __future__ import annotations
 
+from fringecal.acceptance.verdict import run_verdict
 from fringecal.report import figures
 from fringecal.report.figures import Image
 from fringecal.report.formatting import finite, num, parts, truthy, um
@@ -69,6 +70,12 @@ def _positions(cal: dict, true: dict | None, no_true: str, recorded: dict):
     return table(heads, rows, left=2)
 
 
+def _ballbar_verdict(ver: dict) -> dict:
+    """The ball-bar's part of the run's verdict (each length, its own U, ISO 14253-1)."""
+    v = run_verdict(ver, None)
+    return {"text": v["word"], "klass": "pass" if v["accepted"] else "fail", "failing": v["failing"] or None}
+
+
 def build(run: RunData) -> dict:
     """The section from ``verification.json`` and, for a simulated run, ``evaluation.json``."""
     ver = _verification(run)
@@ -81,7 +88,8 @@ def build(run: RunData) -> dict:
         ratio = (f"max |error| {um(true['max_abs_error_mm'])}; calibrated / true = "
                  f"{cal['max_abs_error_mm'] / true['max_abs_error_mm']:.2f}")
     return {
-        "where": _where(run, cal, recorded), "passed": truthy(cal["pass"]),
+        "where": _where(run, cal, recorded), "within": "yes" if truthy(cal["pass"]) else "no",
+        "ballbar": _ballbar_verdict(ver),
         "reference": num(cal["reference_length_mm"], ".4f", "mm"), "mean": num(cal["mean_length_mm"], ".4f", "mm"),
         "mean_error": um(cal.get("mean_error_mm")),
         "max_error": f"{um(cal['max_abs_error_mm'])} = {parts(cal.get('one_part_in'))} of the "
