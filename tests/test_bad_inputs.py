@@ -281,6 +281,13 @@ CASES = [
     Case("acceptance-no-run", lambda d: ["verify", "acceptance", "--run", d / "nope"], "--run"),
     Case("plan-no-run", lambda d: ["verify", "plan", "--run", d / "nope"], "--run"),
     Case("reproduce-no-run", lambda d: ["reproduce", "--run", d / "nope"], "no such run directory"),
+    Case("reproduce-old-spelling-no-run", lambda d: ["reproduce", d / "nope"], "--run"),  # RUN_DIR as before
+    Case("reproduce-two-runs", lambda d: ["reproduce", "--run", d, d / "other"], "one run directory, as --run"),
+    Case("measure-no-calibration-in-run", lambda d: ["measure", "--run", d, "-s", d, "-o", d / "c.ply"],
+         "a folder without calibration.json"),
+    Case("export-no-calibration-in-run", lambda d: ["export", "opencv", "--calibration", d, "-o", d / "cv"],
+         "--calibration"),
+    Case("ballbar-run-without-ballbar", lambda d: ["verify", "ballbar", "-r", d], "the run measured no ball-bar"),
     Case("decode-no-frames", lambda d: ["decode", "-f", d / "nope", "-o", d / "m.zarr"], "--frames"),
     Case("decode-out-is-a-file", lambda d: ["decode", "-f", d, "-o", write(d, "m.zarr", "x")],
          "--out"),
