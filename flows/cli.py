@@ -15,16 +15,35 @@ from pathlib import Path
 import typer
 
 from fringecal.flows.common import UserInputError, console, err_console, guarded
+from fringecal.flows.help import CONTEXT, example
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Calibrate fringe-projection scanners into one global frame.")
+app = typer.Typer(add_completion=False, no_args_is_help=True, context_settings=CONTEXT,
+                  help="Calibrate fringe-projection scanners into one global frame.",
+                  epilog=example("fringecal run --out runs/demo"))
 
 
-@app.command()
+def _print_version(value: bool) -> None:
+    if value:
+        from fringecal import __version__
+
+        print(f"fringecal {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print fringecal's version and exit."),
+):
+    """Calibrate fringe-projection scanners into one global frame."""
+
+
+@app.command(epilog=example("fringecal pose --artefact configs/thesis/artefact_cmm2.csv "
+                            "--centres configs/thesis/centres_scanner1_table6-3.csv --out poses.csv"))
 @guarded
 def pose(
     artefact: Path = typer.Option(..., "--artefact", "-a", help="Artefact definition CSV (sphere_id, x_mm, y_mm, z_mm, diameter_mm)."),
-    centres: Path = typer.Option(..., "--centres", "-c", help="Sphere centres CSV (measurement, scanner, sphere_id, x_mm, y_mm, z_mm)."),
+    centres: Path = typer.Option(..., "--centres", help="Sphere centres CSV (measurement, scanner, sphere_id, x_mm, y_mm, z_mm)."),
     out: Path = typer.Option(..., "--out", "-o", help="Poses CSV to write."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
@@ -34,7 +53,7 @@ def pose(
     is configured (PREFECT_API_URL or a profile), so that the run shows there.
     """
     from fringecal.artefact import load_artefact
-    from fringecal.flows.common import configured_prefect_api
+    from fringecal.flows.common import configured_prefect_api, no_prefect_telemetry
     from fringecal.flows.validate import output_file
     from fringecal.schemas import SphereCentresTable, read_table
 
@@ -45,6 +64,7 @@ def pose(
     read_table(centres, SphereCentresTable)
 
     if configured_prefect_api():
+        no_prefect_telemetry()
         from fringecal.flows.pose_flow import pose_flow
 
         result = pose_flow(str(artefact), str(centres), str(out))
@@ -92,22 +112,29 @@ def _register_subcommands():
         cli_verify,
     )
 
-    app.command("run")(cli_run.run_command)
-    app.command("reproduce")(cli_run.reproduce_command)
-    app.command("serve")(cli_run.serve_command)
-    app.command("decode")(cli_decode.decode_command)
-    app.command("simulate")(cli_simulate.simulate_command)
-    app.command("acquire")(cli_acquire.acquire_command)
-    app.command("step")(cli_step.step_command)
-    app.command("calibrate")(guarded(cli_step.calibrate_command))
+    commands = [
+        ("run", cli_run.run_command, "fringecal run --out runs/demo"),
+        ("reproduce", cli_run.reproduce_command, "fringecal reproduce --run runs/demo --out runs/demo-again"),
+        ("serve", cli_run.serve_command, "fringecal serve --dataset my-example --out runs/nightly --timezone UTC"),
+        ("decode", cli_decode.decode_command,
+         "fringecal decode --frames my-example/measurements/1/scanner1 --out 1-scanner1.zarr"),
+        ("simulate", cli_simulate.simulate_command, "fringecal simulate --out my-example"),
+        ("acquire", cli_acquire.acquire_command, "fringecal acquire --dataset my-cell --hexapod /dev/ttyUSB0 --dry-run"),
+        ("step", cli_step.step_command, "fringecal step bundle --run runs/demo"),
+        ("calibrate", guarded(cli_step.calibrate_command), "fringecal calibrate --run runs/demo"),
+        ("report", cli_report.report_command, "fringecal report --run runs/demo"),
+        ("measure", cli_measure.measure_command,
+         "fringecal measure --run runs/demo --frames my-example/measurements/1 --out artefact-1.ply"),
+    ]
+    for name, command, line in commands:
+        extra = {"context_settings": cli_run.REPRODUCE_CONTEXT} if name == "reproduce" else {}
+        app.command(name, epilog=example(line), **extra)(command)
     app.add_typer(cli_verify.app, name="verify")
     app.add_typer(cli_fit.fit_app, name="fit")
     app.add_typer(cli_hexapod.app, name="hexapod")
     app.add_typer(cli_artefact.app, name="artefact")
-    app.command("report")(cli_report.report_command)
     app.add_typer(cli_interop.export_app, name="export")
     app.add_typer(cli_interop.import_app, name="import")
-    app.command("measure")(cli_measure.measure_command)
 
 
 if __name__ != "__main__":

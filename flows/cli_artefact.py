@@ -18,8 +18,11 @@ import typer
 from rich.table import Table
 
 from fringecal.flows.common import UserInputError, console, guarded
+from fringecal.flows.help import CONTEXT, example
 
-app = typer.Typer(no_args_is_help=True, help="Artefact engineering: truss, rigidity, sag, thermal, moisture, consistency.")
+TRUSS_EXAMPLE = "fringecal artefact truss --out forces.csv"
+app = typer.Typer(no_args_is_help=True, context_settings=CONTEXT, epilog=example(TRUSS_EXAMPLE),
+                  help="Artefact engineering: truss, rigidity, sag, thermal, moisture, consistency.")
 
 THESIS_SUPPORTS = "5:xyz,1:yz,14:z"
 
@@ -97,12 +100,12 @@ def _load_structure(artefact: Path, rods: Path):
 
 
 ARTEFACT = typer.Option(None, "--artefact", "-a", help="Artefact definition CSV (default: thesis CMM set 2).")
-RODS = typer.Option(None, "--rods", "-r", help="Rods CSV (default: thesis table 3-11).")
+RODS = typer.Option(None, "--rods", help="Rods CSV (default: thesis table 3-11).")
 MATERIALS = typer.Option(None, "--materials", "-m", help="Materials YAML (default: thesis materials.yaml).")
 JSON = typer.Option(False, "--json", help="Print the result as JSON.")
 
 
-@app.command("truss")
+@app.command("truss", epilog=example(TRUSS_EXAMPLE))
 @_engineering
 def truss(
     artefact: Optional[Path] = ARTEFACT,
@@ -171,7 +174,7 @@ def truss(
                   f"(node {summary['max_displacement_node']})")
 
 
-@app.command("rigidity")
+@app.command("rigidity", epilog=example("fringecal artefact rigidity"))
 @_engineering
 def rigidity(
     artefact: Optional[Path] = ARTEFACT,
@@ -207,7 +210,7 @@ def rigidity(
                       f"spheres that move: {', '.join(rep.flexible_nodes)}")
 
 
-@app.command("sag")
+@app.command("sag", epilog=example("fringecal artefact sag --use-gravity 0,-1,0 --out artefact_sag.csv"))
 @_engineering
 def sag(
     artefact: Optional[Path] = ARTEFACT,
@@ -249,7 +252,7 @@ def sag(
     console.print(f"CMM: {summary['cmm']}\nuse: {summary['use']}\nlargest correction {summary['max_correction_um']:.2f} um")
 
 
-@app.command("cte")
+@app.command("cte", epilog=example("fringecal artefact cte --log configs/thesis/thermal_log_table3-5.csv"))
 @_engineering
 def cte(
     log: Path = typer.Option(..., "--log", "-l", help="Cooling log CSV (time_s, temperature_c, length_mm)."),
@@ -272,7 +275,7 @@ def cte(
     console.print(f"CTE = {fit.cte_per_c:.3e} +- {fit.u_cte_per_c:.2e} per C (standard uncertainty)")
 
 
-@app.command("thermal")
+@app.command("thermal", epilog=example("fringecal artefact thermal --temperature-c 23.4 --out artefact_23C.csv"))
 @_engineering
 def thermal(
     artefact: Optional[Path] = ARTEFACT,
@@ -316,11 +319,11 @@ def thermal(
                   f"spheres move up to {s['max_move_um']:.2f} um, diagonal changes {s['diagonal_change_um']:+.2f} um -> {out}")
 
 
-@app.command("moisture")
+@app.command("moisture", epilog=example("fringecal artefact moisture --series uptake.csv --thickness-mm 2.8"))
 @_engineering
 def moisture(
     series: Path = typer.Option(..., "--series", help="Uptake CSV: time_s and mass_g or moisture_pct."),
-    thickness_mm: float = typer.Option(..., "--thickness-mm", "-h", help="h of eq. 3-22 (a wall exposed on one side: 2 x wall)."),
+    thickness_mm: float = typer.Option(..., "--thickness-mm", help="h of eq. 3-22 (a wall exposed on one side: 2 x wall)."),
     dry_mass_g: Optional[float] = typer.Option(None, "--dry-mass-g", help="Dry mass (default: the first mass)."),
     m0_pct: Optional[float] = typer.Option(None, "--m0-pct", help="Content before the step (default: at t = 0 if present, else 0)."),
     m_inf_pct: Optional[float] = typer.Option(None, "--m-inf-pct", help="M_inf for the early-time slope (default: farthest observed, eq. 3-19)."),
@@ -369,7 +372,7 @@ def moisture(
                   f"M_inf = {f['m_inf_pct']:.4f} +- {f['u_m_inf_pct']:.4f} %, residual RMS {f['rms_pct']:.2e} %")
 
 
-@app.command("cme")
+@app.command("cme", epilog=example("fringecal artefact cme --mass-change-pct 0.25"))
 @_engineering
 def cme(
     lengths: Optional[Path] = typer.Option(None, "--lengths", help="Length record CSV (time_h, length_mm); default thesis table 3-6."),
@@ -398,7 +401,7 @@ def cme(
                   f"{s['cme_per_pct_from_change']:.2e} per % from end - start")
 
 
-@app.command("consistency")
+@app.command("consistency", epilog=example("fringecal artefact consistency --out rods_consistency.csv"))
 @_engineering
 def consistency(
     single: Optional[Path] = typer.Option(None, "--single", help="Rods measured singly (default: thesis table 3-11)."),

@@ -33,10 +33,11 @@ def _decode(dirs: list[Path], outs: list[Path], settings, store_frames: bool) ->
     Directly, unless a Prefect server is configured: then as the decode flow on it,
     whose cache skips folders decoded before with the same frames and settings.
     """
-    from fringecal.flows.common import configured_prefect_api
+    from fringecal.flows.common import configured_prefect_api, no_prefect_telemetry
     from fringecal.tasks.refs import ref_for
 
     if configured_prefect_api():
+        no_prefect_telemetry()
         from fringecal.flows.decode_flow import decode_flow
 
         return decode_flow([str(d) for d in dirs], [str(o) for o in outs], settings.model_dump(), store_frames)

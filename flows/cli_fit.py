@@ -9,8 +9,11 @@ from typing import Optional
 import typer
 
 from fringecal.flows.common import UserInputError, console, guarded
+from fringecal.flows.help import CONTEXT, example
 
-fit_app = typer.Typer(add_completion=False, no_args_is_help=True,
+SPHERE_EXAMPLE = "fringecal fit sphere --points configs/thesis/artefact_cmm2.csv"
+fit_app = typer.Typer(add_completion=False, no_args_is_help=True, context_settings=CONTEXT,
+                      epilog=example(SPHERE_EXAMPLE),
                       help="Fit a sphere or a plane to exported points (columns x_mm, y_mm, z_mm).")
 
 def _input_error(message: str) -> Exception:
@@ -39,7 +42,7 @@ def _print(result: dict, title: str, as_json: bool):
     console.print(t)
 
 
-@fit_app.command("sphere")
+@fit_app.command("sphere", epilog=example(SPHERE_EXAMPLE))
 @guarded
 def sphere(
     points: Path = typer.Option(..., "--points", "-p", help=POINTS_HELP),
@@ -68,7 +71,7 @@ def sphere(
     _print({"file": str(points), **result}, f"sphere fit of {points}", as_json)
 
 
-@fit_app.command("plane")
+@fit_app.command("plane", epilog=example("fringecal fit plane --points configs/thesis/artefact_cmm2.csv --robust"))
 @guarded
 def plane(
     points: Path = typer.Option(..., "--points", "-p", help=POINTS_HELP),

@@ -14,8 +14,10 @@ import numpy as np
 import typer
 
 from fringecal.flows.common import UserInputError, console, err_console, fail, guarded
+from fringecal.flows.help import CONTEXT, example
 
-app = typer.Typer(no_args_is_help=True, add_completion=False,
+IK_EXAMPLE = "fringecal hexapod ik --pose 150,-100,900,1,0,-2"
+app = typer.Typer(no_args_is_help=True, add_completion=False, context_settings=CONTEXT, epilog=example(IK_EXAMPLE),
                   help="Stewart-platform hexapod (thesis ch. 4): kinematics, workspace, plan, move, drift.")
 
 CONFIG_HELP = "Hexapod YAML (default: configs/hexapod/thesis_platform.yaml)."
@@ -112,7 +114,7 @@ def _dump(obj):
     print(json.dumps(obj, indent=2, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
-@app.command()
+@app.command(epilog=example(IK_EXAMPLE))
 @_guarded
 def ik(
     pose: str = typer.Option(..., "--pose", "-p", help="px,py,pz,alpha,beta,gamma (mm, deg)."),
@@ -128,7 +130,7 @@ def ik(
         _print_legs(rep, f"inverse kinematics: {_pose_text(_pose(pose))}")
 
 
-@app.command()
+@app.command(epilog=example("fringecal hexapod fk --counts 4495,8620,7031,5418,6998,5810"))
 @_guarded
 def fk(
     lengths: Optional[str] = typer.Option(None, "--lengths", help="Six leg lengths l1,...,l6 (mm, joint to joint)."),
@@ -158,7 +160,7 @@ def fk(
         _print_legs(rep, "legs")
 
 
-@app.command()
+@app.command(epilog=example("fringecal hexapod workspace --limit-mm 200"))
 @_guarded
 def workspace(
     limit_mm: float = typer.Option(250.0, "--limit-mm", help="Translation to test along px, py, pz (mm)."),
@@ -207,7 +209,7 @@ def workspace(
                       f"{cube.limited_by}", highlight=False)
 
 
-@app.command()
+@app.command(epilog=example("fringecal hexapod plan --out plan.csv --commands moves.txt"))
 @_guarded
 def plan(
     poses: Optional[Path] = typer.Option(None, "--poses", help="Artefact poses T_world_artefact (PosePlanTable CSV); "
@@ -266,7 +268,7 @@ def plan(
     console.print(t)
 
 
-@app.command()
+@app.command(epilog=example("fringecal hexapod drift --centres configs/thesis/drift_table4-1.csv --tolerance-um 20"))
 @_guarded
 def drift(
     centres: Path = typer.Option(..., "--centres", help="Repeated sphere centres (DriftCentresTable CSV)."),
@@ -305,7 +307,7 @@ def drift(
         raise typer.Exit(3)
 
 
-@app.command()
+@app.command(epilog=example("fringecal hexapod move --port hexsim://demo --pose 150,-100,900,1,0,-2"))
 @_guarded
 def move(
     port: str = typer.Option(..., "--port", help="Serial port or URL (/dev/ttyACM0, hexsim://name?...)."),
@@ -346,7 +348,7 @@ def move(
                   f"reached: {_pose_text(reached)}", highlight=False)
 
 
-@app.command("run-file")
+@app.command("run-file", epilog=example("fringecal hexapod run-file moves.txt --port hexsim://demo"))
 @_guarded
 def run_file(
     commands: Path = typer.Argument(..., help="Text file of protocol commands (section 4.5.1)."),

@@ -11,9 +11,14 @@ import typer
 from rich.table import Table
 
 from fringecal.flows.common import UserInputError, console, guarded
+from fringecal.flows.help import CONTEXT, example
 
-export_app = typer.Typer(no_args_is_help=True, help="Export a calibration to other software.")
-import_app = typer.Typer(no_args_is_help=True, help="Import calibrations from other software.")
+EXPORT_EXAMPLE = "fringecal export opencv --calibration configs/thesis/sensors_refined_table6-8.csv --out cv"
+IMPORT_EXAMPLE = "fringecal import opencv --stereo cv/scanner1.yml --stereo cv/scanner2.yml --out sensors_prior.csv"
+export_app = typer.Typer(no_args_is_help=True, context_settings=CONTEXT, epilog=example(EXPORT_EXAMPLE),
+                         help="Export a calibration to other software.")
+import_app = typer.Typer(no_args_is_help=True, context_settings=CONTEXT, epilog=example(IMPORT_EXAMPLE),
+                         help="Import calibrations from other software.")
 
 
 def _opencv_errors():
@@ -22,10 +27,12 @@ def _opencv_errors():
     return (OpenCVFileError,)
 
 
-def _read_rig(path: Path):
+def _read_rig(path: Path, option: str):
     from fringecal.calibration.file import read_calibration_json, read_calibration_xml
+    from fringecal.flows.validate import calibration_file
     from fringecal.rig import load_rig
 
+    path = calibration_file(path, option)
     if not path.is_file():
         raise UserInputError(f"{path}: no such file")
     readers = {".json": read_calibration_json, ".xml": read_calibration_xml, ".csv": load_rig}
@@ -64,25 +71,31 @@ def _print(rows: list[dict], title: str, as_json: bool, extra: dict) -> None:
         console.print(f"  {f}", highlight=False, soft_wrap=True)
 
 
-@export_app.command("opencv")
+@export_app.command("opencv", epilog=example(EXPORT_EXAMPLE))
 def export_opencv(
-    calibration: Path = typer.Option(..., "--calibration", "-c", help="calibration.json or .xml of a run, or a "
-                                     "sensor-parameter CSV (e.g. a data set's sensors_prior.csv)."),
+    run: Optional[Path] = typer.Option(None, "--run", "-r", help="A calibrated run directory: export its "
+                                       "calibration (calibration.json)."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", help="calibration.json or .xml of a run (or "
+                                               "the run directory), or a sensor-parameter CSV (e.g. a data set's "
+                                               "sensors_prior.csv)."),
     out: Path = typer.Option(..., "--out", "-o", help="Folder for <scanner>.yml (created if missing)."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """One OpenCV FileStorage YAML per scanner (cv2.stereoCalibrate layout: cameraMatrix1/2,
     distCoeffs1/2, R, T, plus each sensor's world pose); prints each sensor's model
     difference to fringecal's projection in pixels."""
-    guarded(_export, extra=_opencv_errors())(calibration, out, as_json)
+    guarded(_export, extra=_opencv_errors())(run, calibration, out, as_json)
 
 
-def _export(calibration: Path, out: Path, as_json: bool) -> None:
+def _export(run: Optional[Path], calibration: Optional[Path], out: Path, as_json: bool) -> None:
     from fringecal.flows.validate import output_folder
     from fringecal.interop.opencv_storage import write_rig
 
+    if (run is None) == (calibration is None):
+        raise UserInputError("give the calibration as --run RUN_DIR or as --calibration FILE (not both, not none)")
     output_folder(out, "--out")
-    rig = _read_rig(calibration)
+    option, calibration = ("--run", run) if run is not None else ("--calibration", calibration)
+    rig = _read_rig(calibration, option)
     try:
         written = write_rig(rig, out)
     except ValueError as err:  # a lens model that folds over inside the format
@@ -94,7 +107,7 @@ def _export(calibration: Path, out: Path, as_json: bool) -> None:
            {"calibration": str(calibration), "out": str(out)})
 
 
-@import_app.command("opencv")
+@import_app.command("opencv", epilog=example(IMPORT_EXAMPLE))
 def import_opencv(
     stereo: List[Path] = typer.Option(..., "--stereo", "-s", help="A stereo calibration (cv2.FileStorage YAML/XML: "
                                       "cameraMatrix1 = camera, cameraMatrix2 = projector, R, T); one per scanner."),

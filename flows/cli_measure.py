@@ -49,8 +49,11 @@ def _print(summary: dict) -> None:
 
 @guarded
 def measure_command(
-    calibration: Path = typer.Option(..., "--calibration", "-c",
-                                     help="Calibration file (a run's calibration.json; .xml has no covariance)."),
+    run: Optional[Path] = typer.Option(None, "--run", "-r", help="A calibrated run directory: measure with its "
+                                       "calibration (calibration.json)."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration",
+                                               help="Calibration file (a run's calibration.json; .xml has no "
+                                                    "covariance), or a run directory."),
     frames: Optional[list[Path]] = typer.Option(None, "--frames", "-f",
                                                 help="Measurement folder: one frame folder per scanner, named after "
                                                      "it (repeat for several measurements)."),
@@ -70,10 +73,13 @@ def measure_command(
 ):
     """Triangulate every valid pixel of every scanner in the global frame into one point cloud
     (per point: scanner, camera pixel, eps1, modulation, standard uncertainty)."""
-    from fringecal.flows.validate import input_folder, output_file, output_folder
+    from fringecal.flows.validate import calibration_file, input_folder, output_file, output_folder
     from fringecal.measure import MeasurementSourceError
     from fringecal.measure.run import measure_folder
 
+    if (run is None) == (calibration is None):
+        raise UserInputError("give the calibration as --run RUN_DIR or as --calibration FILE (not both, not none)")
+    calibration = calibration_file(run, "--run") if run is not None else calibration_file(calibration, "--calibration")
     if bool(frames) == bool(stores):
         raise UserInputError("give measurement folders either as --frames DIR or as --stores DIR (not both, not none)")
     for folder in frames or stores:

@@ -9,9 +9,12 @@ from typing import Optional
 
 import typer
 
-from fringecal.flows.common import UserInputError, console, err_console, fail, guarded
+from fringecal.flows.common import (UserInputError, configured_prefect_api, console, err_console, fail, guarded,
+                                    no_prefect_telemetry)
+from fringecal.flows.progress import HELP as PROGRESS_HELP
 
-__all__ = ["run_command", "reproduce_command", "serve_command", "validate_run_config", "make_task_runner"]
+__all__ = ["run_command", "reproduce_command", "REPRODUCE_CONTEXT", "serve_command", "validate_run_config", "make_task_runner",
+           "reporter_for"]
 
 
 def validate_run_config(config: Path | dict | None, overrides: dict | None = None, dataset: Path | None = None):
@@ -87,7 +90,9 @@ def _current(cfg, out: Path) -> dict | None:
 
 def _quiet_prefect(verbose: bool) -> None:
     """Progress bars instead of Prefect's log lines; the temporary server's own
-    shutdown chatter (events still in flight when the process ends) is not news."""
+    shutdown chatter (events still in flight when the process ends) is not news; no
+    telemetry notice."""
+    no_prefect_telemetry()
     os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "fringecal")
     os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
     if not verbose:
@@ -155,7 +160,7 @@ def verdict_row(verdict: dict | None) -> tuple[str, str]:
 
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
-             verbose: bool, command: str, progress_console=None, until: Optional[str] = None) -> dict:
+             verbose: bool, command: str, reporter, until: Optional[str] = None) -> dict:
     """Run the flow into ``run_dir``. Ctrl-C or SIGTERM ends the command within seconds
     with one line (:mod:`fringecal.flows.interrupt`); no helper process outlives it
     (:mod:`fringecal.lifeline`); a rerun resumes and says what it reused."""
@@ -168,23 +173,27 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
         raise UserInputError(resume.describe_busy(RunDir(run_dir), owner))
     from fringecal.flows.interrupt import armed
 
-    out = progress_console or console
     warmup = server = None
     try:
         with armed(run_dir):
             warmup = kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
             _quiet_prefect(verbose)
-            from fringecal.flows.progress import RichProgress
-            from fringecal.flows.run_flow import NotAccepted, run_flow
+            api = configured_prefect_api()
+            reporter.say(f"starting Prefect: the flow reports to {api}" if api else
+                         "starting Prefect and its temporary server for this command (a first run on a machine "
+                         "also sets up its database)")
+            with reporter.running():  # from here a line at least every 30 s, also while the server starts
+                from fringecal.flows.run_flow import NotAccepted, run_flow
 
-            kind = runner or cfg.runner.kind
-            task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
-                                           dask_address or cfg.runner.dask_address, workers or cfg.runner.dask_workers)
-            flow = run_flow.with_options(task_runner=task_runner)
-            server = _temporary_server()
-            if server is not None:  # local Dask workers report to it instead of each starting
-                os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
-            with RichProgress(out).running():
+                kind = runner or cfg.runner.kind
+                task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
+                                               dask_address or cfg.runner.dask_address,
+                                               workers or cfg.runner.dask_workers)
+                flow = run_flow.with_options(task_runner=task_runner)
+                server = _temporary_server()
+                if server is not None:  # local Dask workers report to it instead of each starting
+                    os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
+                reporter.say(f"running the flow into {run_dir} ({kind})")
                 try:
                     summary = flow(cfg, str(run_dir), None, command, until)
                 except NotAccepted as verdict:  # the flow run ended Failed; its outputs are written
@@ -195,8 +204,24 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
         lifeline.stop(warmup)
     if summary.get("resumed"):
         n = summary["resumed"]["reused"]
-        out.print(f"resumed: {n} step instance{'' if n == 1 else 's'} reused from the interrupted run")
+        reporter.say(f"resumed: {n} step instance{'' if n == 1 else 's'} reused from the interrupted run")
     return summary
+
+
+def reporter_for(mode: Optional[str], out) -> object:
+    """The progress reporter of ``--progress`` (:func:`fringecal.flows.progress.choose`)."""
+    from fringecal.flows.progress import ENV, choose
+
+    try:
+        return choose(mode, out)
+    except ValueError as err:
+        raise UserInputError(f"{'--progress' if mode else ENV}: {err}") from None
+
+
+def _what(config: Optional[Path], dataset: Optional[Path]) -> str:
+    if dataset is not None:
+        return f"the data set {dataset}" + (f" with the settings of {config}" if config else "")
+    return str(config) if config else "configs/run_thesis.yaml (the default: the simulated thesis rig)"
 
 
 def _temporary_server():
@@ -243,7 +268,8 @@ def _check_inputs(config: Optional[Path], dataset: Optional[Path], out: Path, wo
 def run_command(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML (default: configs/run_thesis.yaml, the simulated thesis rig)."),
     dataset: Optional[Path] = typer.Option(None, "--dataset", "-d", help="A recorded data set folder to calibrate (replaces the config's source)."),
-    out: Path = typer.Option(Path("runs/thesis"), "--out", "-o", help="Run directory."),
+    out: Path = typer.Option(Path("runs/thesis"), "--out", "-o", "--run", "-r",
+                             help="Run directory to write, or to resume and bring up to date."),
     until: Optional[str] = typer.Option(None, "--until", help="Stop after this step (e.g. simulate-render, decode, bundle)."),
     runner: Optional[str] = typer.Option(None, "--runner", help="threads (default) or dask."),
     dask_address: Optional[str] = typer.Option(None, "--dask-address", help="Scheduler of an existing Dask cluster."),
@@ -251,6 +277,7 @@ def run_command(
     as_json: bool = typer.Option(False, "--json", help="Print summary.json."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Show Prefect's logs."),
     force: bool = typer.Option(False, "--force", help="Run the flow even if the run directory is up to date."),
+    progress: Optional[str] = typer.Option(None, "--progress", help=PROGRESS_HELP),
 ):
     """Calibrate: decode or simulate the measurements, extract and label spheres, adjust, verify and report.
 
@@ -258,6 +285,8 @@ def run_command(
     measurements), 3 when the run's verdict is NOT ACCEPTED (the summary is printed
     first), 2 on bad input, 1 on a hexapod fault.
     """
+    reporter = reporter_for(progress, err_console if as_json else console)
+    reporter.say(f"fringecal run: checking {_what(config, dataset)}; the run goes to {out}")
     from fringecal.steps import pipeline
 
     if runner not in (None, "threads", "dask"):
@@ -271,8 +300,7 @@ def run_command(
         from fringecal.hexapod import HexapodFault
 
         try:
-            summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run",
-                               err_console if as_json else console, until)
+            summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run", reporter, until)
         except HexapodFault as err:  # the controller, not the input: its own status
             fail(f"hexapod: {err}", code=1)
     if as_json:
@@ -298,26 +326,34 @@ def not_accepted(summary: dict) -> None:
 
 @guarded
 def reproduce_command(
-    run_dir: Path = typer.Argument(..., help="A run directory with manifest.json."),
+    ctx: typer.Context,
+    run: Optional[Path] = typer.Option(None, "--run", "-r", help="A run directory with manifest.json."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Recompute into a new directory (default: in place, from the cache)."),
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Show Prefect's logs."),
+    progress: Optional[str] = typer.Option(None, "--progress", help=PROGRESS_HELP),
 ):
     """Rerun a run from its manifest and compare the summary numbers.
 
     Exit status 0, 1 when the numbers (or the verdict) differ, 3 when they agree but
     the run's verdict is NOT ACCEPTED, 2 on bad input.
     """
+    reporter = reporter_for(progress, console)
+    run = _one_run(run, ctx.args)
+    if run is None:
+        raise UserInputError("give the run directory to reproduce: --run RUN_DIR")
     from fringecal.flows.validate import input_folder, output_folder
+
+    input_folder(run, "--run", "run directory")
+    output_folder(out, "--out")
+    reporter.say(f"fringecal reproduce: reading {run}; the run goes to {out or run}")
     from fringecal.rundir import RunDir
 
-    input_folder(run_dir, "RUN_DIR", "run directory")
-    output_folder(out, "--out")
-    rd = RunDir(run_dir)
+    rd = RunDir(run)
     manifest = rd.read_manifest()
     old = rd.summary.load() if rd.summary.exists() else None
     cfg = validate_run_config(manifest["config"])
-    target = out or run_dir
-    summary = _execute(cfg, target, None, None, None, verbose, f"fringecal reproduce {run_dir}")
+    target = out or run
+    summary = _execute(cfg, target, None, None, None, verbose, f"fringecal reproduce --run {run}", reporter)
     _print_summary(summary, target)
     if old is not None:
         diffs = _differences(old, summary)
@@ -325,6 +361,19 @@ def reproduce_command(
             fail("reproduction differs: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in diffs), code=1)
         console.print("[green]reproduced:[/] the summary numbers are identical")
     not_accepted(summary)
+
+
+#: ``reproduce`` also takes the run directory as its one argument (its older spelling,
+#: ``fringecal reproduce RUN_DIR``), kept out of the help
+REPRODUCE_CONTEXT = {"allow_extra_args": True}
+
+
+def _one_run(run: Optional[Path], args: list[str]) -> Optional[Path]:
+    """--run, or the older positional RUN_DIR (one, and not a second one)."""
+    paths = ([run] if run is not None else []) + [Path(a) for a in args]
+    if len(paths) > 1:
+        raise UserInputError(f"one run directory, as --run RUN_DIR; got {', '.join(map(str, paths))}")
+    return paths[0] if paths else None
 
 
 def _differences(old: dict, new: dict) -> list[tuple]:
@@ -394,7 +443,8 @@ def _check_prefect_server(api: str) -> None:
 def serve_command(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML."),
     dataset: Optional[Path] = typer.Option(None, "--dataset", "-d", help="A recorded data set folder."),
-    out: Path = typer.Option(Path("runs/nightly"), "--out", "-o", help="Run directory of the scheduled runs."),
+    out: Path = typer.Option(Path("runs/nightly"), "--out", "-o", "--run", "-r",
+                             help="Run directory of the scheduled runs."),
     cron: Optional[str] = typer.Option(None, "--cron", help="Schedule (cron; default \"0 2 * * *\", 02:00 every night)."),
     interval: Optional[float] = typer.Option(None, "--interval", help="Run every SECONDS instead of on a cron schedule."),
     timezone: str = typer.Option("UTC", "--timezone", help="IANA time zone of the schedule (e.g. Europe/Berlin)."),
@@ -407,8 +457,7 @@ def serve_command(
     ACCEPTED ends in Prefect's Failed state with the verdict as its message. Ctrl-C
     stops serving.
     """
-    from fringecal.flows.common import configured_prefect_api
-
+    no_prefect_telemetry()
     api = configured_prefect_api()
     if api is None:
         raise UserInputError("fringecal serve needs a Prefect server, and none is configured (Prefect's temporary "

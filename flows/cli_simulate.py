@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from fringecal.flows.common import UserInputError, console, guarded
+from fringecal.flows.progress import HELP as PROGRESS_HELP
 
 
 @guarded
@@ -15,16 +16,20 @@ def simulate_command(
     out: Path = typer.Option(..., "--out", "-o", help="Data set folder to write (must not exist)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Run config YAML with a simulate section "
                                           "(default: configs/run_thesis.yaml, the thesis rig)."),
-    fmt: str = typer.Option("png", "--format", "-f", help="Frame files: png (16-bit, lossless) or tif."),
+    fmt: str = typer.Option("png", "--format", help="Frame files: png (16-bit, lossless) or tif."),
     truth: Optional[Path] = typer.Option(None, "--truth", help="Folder for the truth (default: <out>-truth); the "
                                          "data set does not reference it."),
     workers: int = typer.Option(2, "--workers", min=1, help="Stacks rendered at a time."),
+    progress: Optional[str] = typer.Option(None, "--progress", help=PROGRESS_HELP),
 ):
     """Render the simulated rig's measurements and write them as a recorded data set
     (the layout `fringecal run --dataset` reads, as a real cell would fill it)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from fringecal.flows import progress as shown
+    from fringecal.flows.cli_run import check_simulation, reporter_for, validate_run_config
 
-    from fringecal.flows.cli_run import check_simulation, validate_run_config
+    reporter = reporter_for(progress, console)
+    reporter.say(f"fringecal simulate: checking {config or 'configs/run_thesis.yaml (the thesis rig)'}; "
+                 f"the data set goes to {out}")
     from fringecal.simulate.export import write_dataset
     from fringecal.simulate.source import acquisition_table, load_simulated_rig, object_plans
 
@@ -43,13 +48,12 @@ def simulate_command(
     sr = load_simulated_rig(cfg.simulate)
     plans = object_plans(cfg.simulate, sr.truth, sr.built, sr.rods, sr.hardware)
     for plan in plans:
-        console.print(f"object {plan.spec.name} ({plan.spec.kind}): recorded by {', '.join(plan.recorders)}")
+        reporter.say(f"object {plan.spec.name} ({plan.spec.kind}): recorded by {', '.join(plan.recorders)}")
         for line in plan.describe_skipped():
-            console.print(line)
+            reporter.say(line)
     n = len(acquisition_table(sr)) + sum(len(p.recorders) for p in plans)
-    with Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console) as progress:
-        task = progress.add_task("render image stacks", total=n)
-        write_dataset(cfg, out, truth, fmt, workers, on_stack=lambda _: progress.advance(task))
+    with reporter.running():
+        shown.step("render image stacks", n)
+        write_dataset(cfg, out, truth, fmt, workers, on_stack=lambda _: shown.advance("render image stacks"))
     console.print(f"data set: {out}\ntruth (not part of the data set): {truth}\n"
                   f"calibrate it with: fringecal run --dataset {out} --out runs/{out.name}")

@@ -10,15 +10,24 @@ import typer
 from rich.table import Table
 
 from fringecal.flows.common import UserInputError, console, guarded
+from fringecal.flows.help import CONTEXT, example
 
-app = typer.Typer(no_args_is_help=True, help="Verification per VDI/VDE 2634 (parts 2 and 3).")
+BALLBAR_EXAMPLE = ("fringecal verify ballbar --centres configs/thesis/ballbar_verification_table6-9.csv "
+                   "--reference-length-mm 1015.65 --volume-diagonal-mm 2872.3 --mpe-mm 0.2")
+app = typer.Typer(no_args_is_help=True, context_settings=CONTEXT, epilog=example(BALLBAR_EXAMPLE),
+                  help="Verification per VDI/VDE 2634 (parts 2 and 3).")
 
 
-@app.command("ballbar")
+@app.command("ballbar", epilog=example(BALLBAR_EXAMPLE))
 @guarded
 def ballbar(
-    centres: Path = typer.Option(..., "--centres", "-c", help="Sphere centres CSV with spheres A and B per measurement."),
-    reference_length_mm: float = typer.Option(..., "--reference-length-mm", "-L", help="Calibrated centre distance."),
+    centres: Optional[Path] = typer.Option(None, "--centres", help="Sphere centres CSV with spheres A and B per "
+                                           "measurement, or a run's tables/ballbar_centres.csv (per position)."),
+    run: Optional[Path] = typer.Option(None, "--run", "-r", help="A verified run directory: its ball-bar centres "
+                                       "(tables/ballbar_centres.csv) and, by default, its bar's CMM length."),
+    reference_length_mm: Optional[float] = typer.Option(None, "--reference-length-mm", "-L",
+                                                        help="Calibrated centre distance (default with --run: "
+                                                             "the run's ballbar.csv)."),
     volume_diagonal_mm: Optional[float] = typer.Option(None, "--volume-diagonal-mm", "-D", help="Measurement volume diagonal."),
     mpe_mm: Optional[float] = typer.Option(None, "--mpe-mm", help="Maximum permissible length error."),
     certificate_u_mm: float = typer.Option(0.0, "--certificate-u-mm", help="Expanded uncertainty of the reference length (certificate)."),
@@ -31,16 +40,17 @@ def ballbar(
     Exit status 0, or 3 when a length error exceeds --mpe-mm (FAIL), 2 on bad input.
     """
     from fringecal.flows.validate import number, positive
-    from fringecal.schemas import SphereCentresTable, read_table
+    from fringecal.schemas import BallbarCentresTable, SphereCentresTable, read_any_table
     from fringecal.verification.lengths import ballbar_lengths, evaluate_ballbar
 
+    centres, reference_length_mm = _ballbar_inputs(centres, run, reference_length_mm)
     positive(reference_length_mm, "--reference-length-mm", "mm")
     positive(volume_diagonal_mm, "--volume-diagonal-mm", "mm")
     positive(mpe_mm, "--mpe-mm", "mm")
     number(certificate_u_mm, "--certificate-u-mm", ge=0, unit="mm")
     positive(certificate_k, "--certificate-k")
     positive(coverage_factor, "--k")
-    table = read_table(centres, SphereCentresTable)
+    table = read_any_table(centres, SphereCentresTable, BallbarCentresTable)
     lengths = ballbar_lengths(table, str(centres))
     result = evaluate_ballbar(lengths.length_mm, reference_length_mm, lengths.measurement, mpe_mm,
                               volume_diagonal_mm, certificate_u_mm, certificate_k, coverage_factor)
@@ -69,10 +79,37 @@ def ballbar(
         raise typer.Exit(3)
 
 
-@app.command("plan")
+def _ballbar_inputs(centres: Optional[Path], run: Optional[Path], length: Optional[float]):
+    """The centres table and the reference length: given, or the run's (--run)."""
+    if run is None:
+        if centres is None or length is None:
+            raise UserInputError("give --centres CSV and --reference-length-mm L, or --run RUN_DIR")
+        return centres, length
+    from fringecal.flows.validate import input_folder
+    from fringecal.rundir import RunDir
+
+    rd = RunDir(input_folder(run, "--run", "run directory"))
+    if centres is None:
+        if not rd.ballbar_centres.exists():
+            raise UserInputError(f"--run {run}: no {rd.ballbar_centres.path.relative_to(rd.root)}: the run "
+                                 "measured no ball-bar (run its verify step first)")
+        centres = rd.ballbar_centres.path
+    if length is None:
+        if not rd.ballbar.exists():
+            raise UserInputError(f"--run {run}: no {rd.ballbar.path.name}; give --reference-length-mm")
+        length = _bar_length(rd.ballbar.load())
+    return centres, length
+
+
+def _bar_length(bar) -> float:
+    """The CMM distance of a ball-bar's spheres A and B (mm)."""
+    return float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
+
+
+@app.command("plan", epilog=example("fringecal verify plan --run runs/demo"))
 @guarded
 def plan(
-    run: Path = typer.Option(..., "--run", help="A calibrated run directory."),
+    run: Path = typer.Option(..., "--run", "-r", help="A calibrated run directory."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Positions CSV to write as well (always "
                                        "written: RUN/tables/ballbar_positions_planned.csv)."),
     per_pair: int = typer.Option(3, "--per-pair", min=0, help="Positions per pair of neighbouring scanners."),
@@ -99,7 +136,7 @@ def plan(
     if missing:
         raise FileNotFoundError(f"{run}: not a calibrated run with a ball-bar (missing {', '.join(missing)})")
     bar = rd.ballbar.load()
-    length = float(((bar.centres[1] - bar.centres[0]) ** 2).sum() ** 0.5)
+    length = _bar_length(bar)
     result = plan_positions(rd.calibration.load(), volumes_from_run(rd), length, per_pair, per_scanner, seed=seed)
     if not len(result.positions):  # refused before anything is written: no header-only table
         if not result.uncovered:
@@ -145,7 +182,7 @@ def acceptance_table(doc: dict) -> Table:
     return t
 
 
-@app.command("acceptance")
+@app.command("acceptance", epilog=example("fringecal verify acceptance --run runs/demo"))
 @guarded
 def acceptance(
     run: Path = typer.Option(..., "--run", "-r", help="A calibrated run directory (fringecal run)."),

@@ -14,7 +14,8 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
-__all__ = ["console", "err_console", "UserInputError", "fail", "guarded", "user_errors", "configured_prefect_api"]
+__all__ = ["console", "err_console", "UserInputError", "fail", "guarded", "user_errors", "configured_prefect_api",
+           "no_prefect_telemetry"]
 
 console = Console()
 err_console = Console(stderr=True)
@@ -85,6 +86,15 @@ def configured_prefect_api() -> str | None:
         if url:
             return str(url)
     return None
+
+
+def no_prefect_telemetry() -> None:
+    """No usage telemetry from the Prefect runs a command starts, and so no notice about
+    it on a first run: Prefect 3 reads ``PREFECT_SERVER_ANALYTICS_ENABLED`` (its
+    server) and ``DO_NOT_TRACK`` (its client); a value the user set is kept. Call before
+    Prefect is imported."""
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("DO_NOT_TRACK", "1")
 
 
 def _profile_url(doc: dict):

@@ -24,7 +24,7 @@ from typing import Optional
 from fringecal.flows.common import UserInputError
 
 __all__ = ["number", "positive", "whole", "input_file", "input_folder", "output_file", "output_folder",
-           "new_folder"]
+           "new_folder", "calibration_file"]
 
 
 def number(value: Optional[float], option: str, *, gt: Optional[float] = None, ge: Optional[float] = None,
@@ -83,6 +83,21 @@ def input_folder(path: Optional[Path], option: str, what: str = "folder") -> Opt
     if not path.is_dir():
         raise UserInputError(f"{option} {path}: no such {what}")
     return path
+
+
+def calibration_file(path: Path, option: str) -> Path:
+    """A calibration file to read (its reader checks it), or a run directory, which stands
+    for its calibration.json."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    from fringecal.rundir import RunDir  # lazy: pandas loads only when a run directory is given
+
+    cal = RunDir(path).calibration.path
+    if not cal.is_file():
+        raise UserInputError(f"{option} {path}: a folder without {cal.name}; expected a calibrated run "
+                             "directory (fringecal run) or a calibration file")
+    return cal
 
 
 def output_file(path: Optional[Path], option: str) -> Optional[Path]:

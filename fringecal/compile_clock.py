@@ -32,6 +32,8 @@ class CompileClock:
 
     ``observer(event, name, seconds)`` is called with ``"start"`` or ``"end"`` for each
     outermost compilation (``seconds`` is the total so far), e.g. to show a progress line.
+    :meth:`busy_seconds` is the wall time during which some thread compiled, up to now
+    (a compilation in progress included), for a display that ticks while numba works.
     """
 
     def __init__(self):
@@ -40,6 +42,9 @@ class CompileClock:
         self.total_seconds = 0.0
         self.kernels: dict[str, float] = {}
         self.observer: Callable[[str, str, float], None] | None = None
+        self._active = 0  # threads inside an outermost compilation
+        self._busy_since = 0.0
+        self._busy_before = 0.0  # wall seconds of earlier busy spells
 
     def _state(self):
         s = self._local
@@ -52,6 +57,10 @@ class CompileClock:
         s.depth += 1
         if s.depth == 1:
             s.t0 = time.perf_counter()
+            with self._lock:
+                if self._active == 0:
+                    self._busy_since = s.t0
+                self._active += 1
             if self.observer is not None:
                 self.observer("start", name, self.total_seconds)
 
@@ -64,11 +73,25 @@ class CompileClock:
             with self._lock:
                 self.total_seconds += dt
                 self.kernels[name] = self.kernels.get(name, 0.0) + dt
+                self._active -= 1
+                if self._active == 0:
+                    self._busy_before += time.perf_counter() - self._busy_since
             if self.observer is not None:
                 self.observer("end", name, self.total_seconds)
 
     def thread_seconds(self) -> float:
         return self._state().seconds
+
+    @property
+    def compiling(self) -> bool:
+        """Whether some thread is compiling now."""
+        return self._active > 0
+
+    def busy_seconds(self) -> float:
+        """Wall seconds during which at least one thread compiled, up to now."""
+        with self._lock:
+            now = time.perf_counter() - self._busy_since if self._active else 0.0
+            return self._busy_before + now
 
 
 _clock: CompileClock | None = None

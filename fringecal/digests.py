@@ -205,12 +205,20 @@ def _resolve(module: str, is_package: bool, node: ast.ImportFrom | ast.Import) -
     return [base] + [f"{base}.{a.name}" for a in node.names]
 
 
+#: one ast.parse at a time: CPython 3.11 (before 3.11.8) tracks the AST constructor's
+#: recursion depth per interpreter, so two threads parsing at once (the step instances a
+#: pool keys together) can fail with "SystemError: AST constructor recursion depth
+#: mismatch" (python/cpython gh-106905)
+_PARSING = threading.Lock()
+
+
 @lru_cache(maxsize=None)
 def _imports(name: str) -> tuple[str, ...]:
     path = _module_file(name)
     if path is None:
         return ()
-    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    with _PARSING:
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
     out = set()
     for node in ast.walk(tree):
         if isinstance(node, (ast.Import, ast.ImportFrom)):

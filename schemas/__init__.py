@@ -32,6 +32,7 @@ from fringecal.schemas.tables import (  # noqa: F401
     ThermalLogTable,
     TrussDisplacementsTable,
     TrussForcesTable,
+    read_any_table,
     read_csv_text,
     read_table,
     validate_table,

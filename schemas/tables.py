@@ -78,6 +78,7 @@ __all__ = [
     "SphereResidualsTable",
     "MeasurementResidualsTable",
     "read_table",
+    "read_any_table",
     "read_csv_text",
     "validate_table",
     "write_table",
@@ -861,6 +862,22 @@ def _utf8_text(raw: bytes, source: str) -> str:
 def read_table(path, model) -> pd.DataFrame:
     """Read a CSV and validate it against ``model`` (one error naming every problem)."""
     return validate_table(read_csv_text(path), model, str(path))
+
+
+def read_any_table(path, *models) -> pd.DataFrame:
+    """Read a CSV that may follow any of ``models``: validated against the first whose
+    required columns it has (e.g. sphere centres per ``measurement`` or a ball-bar's per
+    ``position``); with none, one error naming what each model misses."""
+    df = read_csv_text(path)
+    missing = []
+    for model in models:
+        req, _ = _required_and_optional(model)
+        lacks = [c for c in req if c not in df.columns]
+        if not lacks:
+            return validate_table(df, model, str(path))
+        missing.append(f"{lacks} for a {model.__name__}")
+    raise TableError(str(path), [(None, None, f"missing required column(s) {' or '.join(missing)}; "
+                                              f"found {list(map(str, df.columns))}")])
 
 
 def write_table(df: pd.DataFrame, path, model=None) -> Path:

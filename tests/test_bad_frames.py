@@ -184,7 +184,7 @@ def test_bad_frame_stops_before_decoding(small_dataset, tmp_path, monkeypatch, c
     args = (["run", "--dataset", str(data), "--out", str(out)] if command == "run"
             else ["decode", "--frames", str(stack), "--out", str(out / "m.zarr")])
     res = runner.invoke(app, args)
-    lines = res.output.strip().splitlines()
+    lines = res.stderr.strip().splitlines()  # stdout: what `run` checks and where the run goes
     assert res.exit_code == 2, res.output
     assert "Traceback" not in res.output and len(lines) == 1, res.output
     assert lines[0].startswith(f"error: {frame}: "), lines[0]

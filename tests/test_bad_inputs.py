@@ -131,19 +131,19 @@ class Case:
 
 
 def _ballbar(d, *options):
-    return ["verify", "ballbar", "-c", BALLBAR_CENTRES, "-L", "1015.65", *options]
+    return ["verify", "ballbar", "--centres", BALLBAR_CENTRES, "-L", "1015.65", *options]
 
 
 CASES = [
     # crashes with tracebacks (issue 17)
-    Case("pose-artefact-inf", lambda d: ["pose", "-a", artefact(d), "-c", CENTRES, "-o", d / "p.csv"],
+    Case("pose-artefact-inf", lambda d: ["pose", "-a", artefact(d), "--centres", CENTRES, "-o", d / "p.csv"],
          "artefact.csv: line 3, column 'x_mm': value 'inf' is not a finite number"),
-    Case("pose-centres-minus-inf", lambda d: ["pose", "-a", ARTEFACT, "-c", centres(d), "-o", d / "p.csv"],
+    Case("pose-centres-minus-inf", lambda d: ["pose", "-a", ARTEFACT, "--centres", centres(d), "-o", d / "p.csv"],
          "centres.csv: line 2, column 'y_mm': value '-inf' is not a finite number"),
-    Case("pose-centres-overflow", lambda d: ["pose", "-a", ARTEFACT, "-c", centres(d, 4, "z_mm", "1e999"),
+    Case("pose-centres-overflow", lambda d: ["pose", "-a", ARTEFACT, "--centres", centres(d, 4, "z_mm", "1e999"),
                                              "-o", d / "p.csv"],
          "centres.csv: line 4, column 'z_mm': value '1e999' is not a finite number"),
-    Case("ballbar-centres-inf", lambda d: ["verify", "ballbar", "-c",
+    Case("ballbar-centres-inf", lambda d: ["verify", "ballbar", "--centres",
                                            edited(d, BALLBAR_CENTRES, "bb.csv", 3, "x_mm", "Infinity"),
                                            "-L", "1015.65"],
          "bb.csv: line 3, column 'x_mm': value 'Infinity' is not a finite number"),
@@ -151,18 +151,18 @@ CASES = [
                                             "-o", d / "run"],
          "artefact.csv: line 3, column 'x_mm': value 'inf' is not a finite number"),
     Case("run-config-is-a-folder", lambda d: ["run", "-c", d, "-o", d / "run"], "--config"),
-    Case("pose-artefact-is-a-folder", lambda d: ["pose", "-a", d, "-c", CENTRES, "-o", d / "p.csv"],
+    Case("pose-artefact-is-a-folder", lambda d: ["pose", "-a", d, "--centres", CENTRES, "-o", d / "p.csv"],
          "is a folder; expected a CSV file"),
     Case("run-out-is-a-file", lambda d: ["run", "-o", write(d, "run", "x")], "is a file; expected a folder"),
     Case("run-out-inside-a-file", lambda d: ["run", "-o", write(d, "f", "x") / "run"], "is a file, not a folder"),
-    Case("pose-out-is-a-folder", lambda d: ["pose", "-a", ARTEFACT, "-c", CENTRES, "-o", d],
+    Case("pose-out-is-a-folder", lambda d: ["pose", "-a", ARTEFACT, "--centres", CENTRES, "-o", d],
          "is a folder; expected the name of a file to write"),
     # wrong answers with status 0 (issue 17)
-    Case("ballbar-negative-reference", lambda d: ["verify", "ballbar", "-c", BALLBAR_CENTRES, "-L", "-1015.65"],
+    Case("ballbar-negative-reference", lambda d: ["verify", "ballbar", "--centres", BALLBAR_CENTRES, "-L", "-1015.65"],
          "--reference-length-mm: must be greater than 0 mm, got -1015.65"),
-    Case("ballbar-nan-reference", lambda d: ["verify", "ballbar", "-c", BALLBAR_CENTRES, "-L", "nan"],
+    Case("ballbar-nan-reference", lambda d: ["verify", "ballbar", "--centres", BALLBAR_CENTRES, "-L", "nan"],
          "--reference-length-mm: must be a finite number"),
-    Case("ballbar-inf-reference", lambda d: ["verify", "ballbar", "-c", BALLBAR_CENTRES, "-L", "inf"],
+    Case("ballbar-inf-reference", lambda d: ["verify", "ballbar", "--centres", BALLBAR_CENTRES, "-L", "inf"],
          "--reference-length-mm: must be a finite number"),
     Case("ballbar-zero-diagonal", lambda d: _ballbar(d, "--volume-diagonal-mm", "0"),
          "--volume-diagonal-mm: must be greater than 0"),
@@ -183,16 +183,16 @@ CASES = [
     # found late (issue 17): an unwritable --out, a Latin-1 byte
     Case("run-out-unwritable", lambda d: ["run", "-o", unwritable(d) / "fringecal-bad-inputs" / "run"],
          "cannot write in"),
-    Case("pose-out-unwritable", lambda d: ["pose", "-a", ARTEFACT, "-c", CENTRES, "-o", unwritable(d) / "p.csv"],
+    Case("pose-out-unwritable", lambda d: ["pose", "-a", ARTEFACT, "--centres", CENTRES, "-o", unwritable(d) / "p.csv"],
          "cannot write in"),
     Case("artefact-latin1-byte", lambda d: ["pose", "-a", write(d, "artefact.csv", ARTEFACT.read_bytes().replace(
-        b"\n3,", b"\n3\xe9,", 1)), "-c", CENTRES, "-o", d / "p.csv"],
+        b"\n3,", b"\n3\xe9,", 1)), "--centres", CENTRES, "-o", d / "p.csv"],
          "artefact.csv: line 4, column 'sphere_id': byte 0xe9 (character 2 of the line) is not UTF-8"),
-    Case("centres-latin1-bytes", lambda d: ["verify", "ballbar", "-c", write(
+    Case("centres-latin1-bytes", lambda d: ["verify", "ballbar", "--centres", write(
         d, "bb.csv", BALLBAR_CENTRES.read_bytes().replace(b",A,", b",\xb5A,", 2)), "-L", "1015.65"],
          "bb.csv: 2 problem(s), the first on line 2, column 'sphere_id': byte 0xb5"),
     Case("utf16-table", lambda d: ["pose", "-a", write(d, "a.csv", ARTEFACT.read_text().encode("utf-16")),
-                                   "-c", CENTRES, "-o", d / "p.csv"], "a.csv: line 1: the file is UTF-16 text"),
+                                   "--centres", CENTRES, "-o", d / "p.csv"], "a.csv: line 1: the file is UTF-16 text"),
     Case("config-latin1-byte", lambda d: ["run", "-c", write(d, "run.yaml", b"name: caf\xe9\n"), "-o", d / "run"],
          "run.yaml: line 1: byte 0xe9 is not UTF-8 text"),
     # silently surprising (issue 17)
@@ -202,7 +202,7 @@ CASES = [
          "run.yaml: the file is empty"),
     Case("workers-zero", lambda d: ["run", "--workers", "0", "-o", d / "run"], "--workers: must be at least 1, got 0"),
     Case("pose-two-sphere-artefact", lambda d: ["pose", "-a", write(d, "a.csv", "\n".join(lines_of(ARTEFACT)[:3]) + "\n"),
-                                                "-c", CENTRES, "-o", d / "p.csv"],
+                                                "--centres", CENTRES, "-o", d / "p.csv"],
          "a.csv: 2 sphere(s); a pose needs at least 3 spheres"),
     Case("run-two-sphere-artefact", lambda d: ["run", "-c", run_config(d, "simulate:\n  rig: " + str(rig(d, write(
         d, "a.csv", "\n".join(lines_of(ARTEFACT)[:3]) + "\n"))) + "\n"), "-o", d / "run"],
@@ -231,23 +231,23 @@ CASES = [
          "--runner must be threads or dask"),
     Case("run-unknown-until", lambda d: ["run", "--until", "nosuchstep", "-o", d / "run"],
          "--until nosuchstep: not a step of this run"),
-    Case("scanner-without-projector", lambda d: ["export", "opencv", "-c", sensors_without_projector(d),
+    Case("scanner-without-projector", lambda d: ["export", "opencv", "--calibration", sensors_without_projector(d),
                                                  "-o", d / "cv"], "needs one camera and one projector"),
-    Case("sensor-unknown-role", lambda d: ["export", "opencv", "-c", edited(d, SENSORS, "s.csv", 3, "role", "lidar"),
+    Case("sensor-unknown-role", lambda d: ["export", "opencv", "--calibration", edited(d, SENSORS, "s.csv", 3, "role", "lidar"),
                                            "-o", d / "cv"], "line 3, column 'role'"),
-    Case("artefact-duplicate-id", lambda d: ["pose", "-a", artefact(d, 3, "sphere_id", "1"), "-c", CENTRES,
+    Case("artefact-duplicate-id", lambda d: ["pose", "-a", artefact(d, 3, "sphere_id", "1"), "--centres", CENTRES,
                                              "-o", d / "p.csv"],
          "artefact.csv: line 3, column 'sphere_id': value '1' is a duplicate (first on line 2)"),
-    Case("artefact-nan-cell", lambda d: ["pose", "-a", artefact(d, 5, "z_mm", "NaN"), "-c", CENTRES,
+    Case("artefact-nan-cell", lambda d: ["pose", "-a", artefact(d, 5, "z_mm", "NaN"), "--centres", CENTRES,
                                          "-o", d / "p.csv"],
          "artefact.csv: line 5, column 'z_mm': value is missing"),
     Case("artefact-bom-crlf", lambda d: ["pose", "-a", write(d, "artefact.csv", b"\xef\xbb\xbf" + artefact(
-        d, 4, "diameter_mm", "-50").read_bytes().replace(b"\n", b"\r\n")), "-c", CENTRES, "-o", d / "p.csv"],
+        d, 4, "diameter_mm", "-50").read_bytes().replace(b"\n", b"\r\n")), "--centres", CENTRES, "-o", d / "p.csv"],
          "artefact.csv: line 4, column 'diameter_mm': value -50.0 must be > 0"),
-    Case("centres-duplicate-row", lambda d: ["pose", "-a", ARTEFACT, "-c", write(
+    Case("centres-duplicate-row", lambda d: ["pose", "-a", ARTEFACT, "--centres", write(
         d, "c.csv", "\n".join(lines_of(CENTRES) + lines_of(CENTRES)[1:2]) + "\n"), "-o", d / "p.csv"],
          "duplicate"),
-    Case("pose-artefact-missing", lambda d: ["pose", "-a", d / "nope.csv", "-c", CENTRES, "-o", d / "p.csv"],
+    Case("pose-artefact-missing", lambda d: ["pose", "-a", d / "nope.csv", "--centres", CENTRES, "-o", d / "p.csv"],
          "nope.csv: file not found"),
     Case("fit-not-a-number", lambda d: ["fit", "sphere", "-p", write(d, "p.csv", "x_mm,y_mm,z_mm\n1,2,3\n4,five,6\n")],
          "p.csv: line 3, column 'y_mm': value 'five' is not a number"),
@@ -255,7 +255,7 @@ CASES = [
          "missing required column(s)"),
     Case("truss-mechanism", lambda d: ["artefact", "truss", "--supports", "5:xyz,1:xyz", "-o", d / "f.csv"],
          "is a mechanism"),
-    Case("truss-unknown-sphere-in-rods", lambda d: ["artefact", "truss", "-r", edited(
+    Case("truss-unknown-sphere-in-rods", lambda d: ["artefact", "truss", "--rods", edited(
         d, THESIS / "rods.csv", "rods.csv", 2, "sphere_b", "16"), "-o", d / "f.csv"],
          "line 2, column 'sphere_b': sphere '16' is not in artefact"),
     Case("truss-out-is-a-folder", lambda d: ["artefact", "truss", "-o", d], "--out"),
@@ -266,7 +266,7 @@ CASES = [
     Case("cme-zero-mass-change", lambda d: ["artefact", "cme", "--mass-change-pct", "0"],
          "--mass-change-pct: must not be 0"),
     Case("moisture-negative-thickness", lambda d: ["artefact", "moisture", "--series", write(
-        d, "m.csv", "time_s,mass_g\n0,10\n60,10.1\n"), "-h", "-2"], "--thickness-mm: must be greater than 0"),
+        d, "m.csv", "time_s,mass_g\n0,10\n60,10.1\n"), "--thickness-mm", "-2"], "--thickness-mm: must be greater than 0"),
     Case("hexapod-move-outside-stroke", lambda d: ["hexapod", "move", "--port", f"hexsim://bad{next(_hexsim)}",
                                                    "--counts", "5000,5000,5000,5000,5000,10500"],
          "outside the stroke"),
@@ -280,14 +280,21 @@ CASES = [
     Case("step-unknown", lambda d: ["step", "nosuchstep", "--run", d], "no step 'nosuchstep'"),
     Case("acceptance-no-run", lambda d: ["verify", "acceptance", "--run", d / "nope"], "--run"),
     Case("plan-no-run", lambda d: ["verify", "plan", "--run", d / "nope"], "--run"),
-    Case("reproduce-no-run", lambda d: ["reproduce", d / "nope"], "no such run directory"),
+    Case("reproduce-no-run", lambda d: ["reproduce", "--run", d / "nope"], "no such run directory"),
+    Case("reproduce-old-spelling-no-run", lambda d: ["reproduce", d / "nope"], "--run"),  # RUN_DIR as before
+    Case("reproduce-two-runs", lambda d: ["reproduce", "--run", d, d / "other"], "one run directory, as --run"),
+    Case("measure-no-calibration-in-run", lambda d: ["measure", "--run", d, "-s", d, "-o", d / "c.ply"],
+         "a folder without calibration.json"),
+    Case("export-no-calibration-in-run", lambda d: ["export", "opencv", "--calibration", d, "-o", d / "cv"],
+         "--calibration"),
+    Case("ballbar-run-without-ballbar", lambda d: ["verify", "ballbar", "-r", d], "the run measured no ball-bar"),
     Case("decode-no-frames", lambda d: ["decode", "-f", d / "nope", "-o", d / "m.zarr"], "--frames"),
     Case("decode-out-is-a-file", lambda d: ["decode", "-f", d, "-o", write(d, "m.zarr", "x")],
          "--out"),
     Case("decode-nan-modulation", lambda d: ["decode", "-f", d, "-o", d / "m.zarr", "--min-modulation", "nan"],
          "--min-modulation"),
     Case("simulate-out-exists", lambda d: ["simulate", "-o", d], "already exists"),
-    Case("measure-frames-and-stores", lambda d: ["measure", "-c", d / "cal.json", "-f", d, "-s", d, "-o", d / "c.ply"],
+    Case("measure-frames-and-stores", lambda d: ["measure", "--calibration", d / "cal.json", "-f", d, "-s", d, "-o", d / "c.ply"],
          "not both, not none"),
     Case("import-opencv-inf-width", lambda d: ["import", "opencv", "-s", d / "s.yml", "-o", d / "p.csv",
                                                "--camera-width-mm", "inf"], "--camera-width-mm: must be a finite"),
@@ -349,6 +356,6 @@ def test_excel_bom_and_crlf_exports_read_like_plain_csv(tmp_path):
     excel = write(tmp_path, "excel.csv", b"\xef\xbb\xbf" + ARTEFACT.read_bytes().replace(b"\n", b"\r\n"))
     a, b = load_artefact(ARTEFACT), load_artefact(excel)
     assert a.ids == b.ids and (a.centres == b.centres).all() and (a.diameters == b.diameters).all()
-    res = CliRunner().invoke(app, ["pose", "-a", str(excel), "-c", str(CENTRES), "-o", str(tmp_path / "p.csv")])
+    res = CliRunner().invoke(app, ["pose", "-a", str(excel), "--centres", str(CENTRES), "-o", str(tmp_path / "p.csv")])
     assert res.exit_code == 0, res.output
     assert len(lines_of(tmp_path / "p.csv")) > 1

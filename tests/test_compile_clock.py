@@ -62,3 +62,24 @@ def test_observer_sees_outermost_compilations_only():
     finally:
         clock.observer = None
     assert events == [("start", "outer"), ("end", "outer")]
+
+
+def test_busy_seconds_tick_while_a_kernel_compiles():
+    """The wall time of compilation is readable while numba still compiles (what the
+    progress line shows each second), and counts overlapping threads once."""
+    import time
+
+    clock = compile_clock.CompileClock()
+    assert not clock.compiling and clock.busy_seconds() == 0.0
+    clock.start("a")
+    time.sleep(0.2)
+    assert clock.compiling and clock.busy_seconds() >= 0.2  # before the compilation ends
+    other = threading.Thread(target=lambda: (clock.start("b"), time.sleep(0.2), clock.end("b")))
+    other.start()
+    other.join()
+    clock.end("a")
+    busy = clock.busy_seconds()
+    assert not clock.compiling and 0.4 <= busy < 0.55  # the two overlapping spells once, not 0.2 + 0.4 + 0.2
+    assert clock.total_seconds >= 0.6  # the compile time of both threads
+    time.sleep(0.05)
+    assert clock.busy_seconds() == busy  # idle: no ticking

@@ -264,7 +264,7 @@ def test_a_run_directory_another_run_writes_is_refused_before_any_work(small_con
         before = sorted(p.name for p in rd.root.iterdir())
         res = CliRunner().invoke(app, ["run", "-c", str(small_config), "--out", str(rd.root)])
         assert res.exit_code == 2, res.output
-        first = res.output.strip().splitlines()[0]
+        first = res.stderr.strip().splitlines()[0]  # stdout: what the run checks and where it goes
         assert first.startswith(f"error: {rd.root}: another fringecal run is writing this run directory (pid "
                                 f"{writer.pid}"), first
         assert "Traceback" not in res.output

@@ -164,7 +164,7 @@ def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
 
     folder, cal = cell["folder"], cell["calibration"]
     out = tmp_path / "out.ply"
-    args = ["measure", "-c", str(cal), "--stores", str(folder), "-o", str(out)]
+    args = ["measure", "--calibration", str(cal), "--stores", str(folder), "-o", str(out)]
     expect = {"both": "not both, not none", "neither": "not both, not none",
               "unknown_scanner": "is not in the calibration", "suffix": "is written as .ply or .zarr",
               "xml_has_no_store": "a store, but --frames expects", "out_is_dir": "is a folder",
@@ -172,7 +172,7 @@ def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
     if case == "both":
         args += ["--frames", str(folder)]
     elif case == "neither":
-        args = ["measure", "-c", str(cal), "-o", str(out)]
+        args = ["measure", "--calibration", str(cal), "-o", str(out)]
     elif case == "unknown_scanner":
         bad = tmp_path / "m"
         bad.mkdir()
@@ -200,7 +200,7 @@ def test_cli_summary_json(cell, tmp_path):
     from fringecal.flows.cli import app
 
     out = tmp_path / "c.ply"
-    r = CliRunner().invoke(app, ["measure", "-c", str(cell["calibration"]), "--stores", str(cell["folder"]),
+    r = CliRunner().invoke(app, ["measure", "--calibration", str(cell["calibration"]), "--stores", str(cell["folder"]),
                                  "-o", str(out), "--json", "--decimate", "3"])
     assert r.exit_code == 0, r.output
     doc = json.loads(r.output)
@@ -223,3 +223,29 @@ def test_several_measurement_folders_make_one_cloud(cell, tmp_path):
     assert two["overlap"] == []                  # several measurements: no overlap report
     with pytest.raises(ValueError, match="given twice"):
         measure_folder(cell["calibration"], [cell["folder"], cell["folder"]], "stores", tmp_path / "x.ply")
+
+
+def test_a_run_directory_stands_for_its_calibration(cell, tmp_path):
+    """``measure --run RUN``, ``measure --calibration RUN`` and ``export opencv --run RUN``
+    use RUN's calibration.json, as the file itself does; a folder without one is refused."""
+    from fringecal.flows.cli import app
+
+    run = cell["calibration"].parent
+    points = {}
+    for name, given in (("file", ["--calibration", str(cell["calibration"])]), ("run", ["--run", str(run)]),
+                        ("run-as-calibration", ["--calibration", str(run)])):
+        out = tmp_path / f"{name}.ply"
+        r = CliRunner().invoke(app, ["measure", *given, "--stores", str(cell["folder"]), "-o", str(out), "--json",
+                                     "--decimate", "4"])
+        assert r.exit_code == 0, r.output
+        points[name] = json.loads(r.output)["points"]
+    assert points["file"] == points["run"] == points["run-as-calibration"] > 0
+    r = CliRunner().invoke(app, ["export", "opencv", "--run", str(run), "--out", str(tmp_path / "cv"), "--json"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "cv").iterdir()) == [f"{s}.yml" for s in SCANNERS]
+    r = CliRunner().invoke(app, ["measure", "--run", str(tmp_path), "--stores", str(cell["folder"]),
+                                 "-o", str(tmp_path / "x.ply")])
+    assert r.exit_code == 2 and "a folder without calibration.json" in " ".join(r.output.split()), r.output
+    r = CliRunner().invoke(app, ["measure", "--run", str(run), "--calibration", str(cell["calibration"]),
+                                 "--stores", str(cell["folder"]), "-o", str(tmp_path / "x.ply")])
+    assert r.exit_code == 2 and "not both, not none" in r.output

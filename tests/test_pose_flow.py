@@ -82,7 +82,7 @@ def test_pose_command_runs_without_prefect(thesis_dir, tmp_path):
     import sys
 
     out = tmp_path / "poses.csv"
-    code = ("import sys; from fringecal.flows.cli import main; sys.argv = ['fringecal', 'pose', '-a', sys.argv[1], '-c', "
+    code = ("import sys; from fringecal.flows.cli import main; sys.argv = ['fringecal', 'pose', '-a', sys.argv[1], '--centres', "
             "sys.argv[2], '-o', sys.argv[3], '--json']\n"
             "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
             "assert 'prefect' not in sys.modules, 'prefect imported'")

@@ -137,7 +137,7 @@ def test_up_to_date_shortcut_redigests_the_inputs(first_run, small_config, tmp_p
 @pytest.mark.flow
 def test_reproduce_gives_the_same_summary(first_run):
     run_dir, _ = first_run
-    res = runner.invoke(app, ["reproduce", str(run_dir)])
+    res = runner.invoke(app, ["reproduce", "--run", str(run_dir)])
     assert res.exit_code == 3, res.output  # the same numbers, and the same verdict: NOT ACCEPTED
     assert "reproduced" in res.output
 

@@ -371,7 +371,7 @@ def test_dataset_door_writes_objects_that_calibration_ignores(tmp_path):
     T_world_reference = frames_from_rows(known.scanner_frames.load(), key="scanner")["scanner1"]
     for name in ("panel", "artefact-pose-13"):
         out = tmp_path / f"{name}.ply"
-        r = CliRunner().invoke(app, ["measure", "-c", str(rd.calibration.path), "--frames", str(data / "objects" / name),
+        r = CliRunner().invoke(app, ["measure", "--run", str(rd.root), "--frames", str(data / "objects" / name),
                                      "-o", str(out), "--datum", "calibration", "--json"])
         assert r.exit_code == 0, r.output
         cloud = read_cloud(out)

@@ -101,3 +101,53 @@ def test_position_tables_name_their_problems_by_position():
     assert "position 'p2' has no row(s) for sphere 'B'" in str(info.value)
     lengths = ballbar_lengths(rows[rows.position == "p1"])
     assert lengths.measurement.tolist() == ["p1"] and lengths.length_mm[0] == pytest.approx(1000.0)
+
+
+def _as_run_table(thesis_dir, path):
+    """Thesis table 6-9 in the layout of a run's tables/ballbar_centres.csv (one row per
+    position, scanner and sphere, named by position)."""
+    table = pd.read_csv(thesis_dir / "ballbar_verification_table6-9.csv", dtype={"measurement": str})
+    table.rename(columns={"measurement": "position"}).to_csv(path, index=False)
+    return path
+
+
+def test_either_centres_layout_is_read_and_neither_is_named(thesis_dir, tmp_path):
+    from fringecal.schemas import BallbarCentresTable, read_any_table
+
+    models = (SphereCentresTable, BallbarCentresTable)
+    by_measurement = read_any_table(thesis_dir / "ballbar_verification_table6-9.csv", *models)
+    by_position = read_any_table(_as_run_table(thesis_dir, tmp_path / "run.csv"), *models)
+    assert "measurement" in by_measurement and "position" in by_position and len(by_position) == 18
+    np.testing.assert_array_equal(ballbar_lengths(by_position).length_mm, ballbar_lengths(by_measurement).length_mm)
+    (tmp_path / "neither.csv").write_text("scanner,sphere_id,x_mm,y_mm,z_mm\ns1,A,0,0,0\n")
+    with pytest.raises(TableError) as info:
+        read_any_table(tmp_path / "neither.csv", *models)
+    assert "neither.csv" in str(info.value) and "['measurement'] for a SphereCentresTable or ['position'] for a " \
+        "BallbarCentresTable" in str(info.value)
+
+
+def test_verify_ballbar_takes_what_a_run_wrote(thesis_dir, tmp_path):
+    """A run's tables/ballbar_centres.csv as --centres, and the run itself as --run (its
+    centres and its bar's CMM length): the same lengths as thesis table 6-9's layout."""
+    import shutil
+
+    from fringecal.rundir import RunDir
+
+    args = ["--reference-length-mm", "1015.650", "--json"]
+    given = runner.invoke(app, ["verify", "ballbar", "--centres", str(thesis_dir / "ballbar_verification_table6-9.csv"),
+                                *args])
+    rd = RunDir(tmp_path / "run")
+    rd.ballbar_centres.path.parent.mkdir(parents=True)
+    _as_run_table(thesis_dir, rd.ballbar_centres.path)
+    table = runner.invoke(app, ["verify", "ballbar", "--centres", str(rd.ballbar_centres.path), *args])
+    shutil.copy(thesis_dir / "ballbar.csv", rd.ballbar.path)
+    run = runner.invoke(app, ["verify", "ballbar", "--run", str(rd.root), "--json"])
+    for res in (given, table, run):
+        assert res.exit_code == 0, res.output
+    lengths = [[p["length_mm"] for p in json.loads(r.stdout)["positions"]] for r in (given, table, run)]
+    assert len(lengths[0]) == 9 and lengths[0] == lengths[1] == lengths[2]
+    assert json.loads(run.stdout)["reference_length_mm"] == pytest.approx(1015.65)
+    empty = runner.invoke(app, ["verify", "ballbar", "--run", str(tmp_path)])
+    assert empty.exit_code == 2 and "no tables/ballbar_centres.csv" in empty.output
+    neither = runner.invoke(app, ["verify", "ballbar", "-L", "1000"])
+    assert neither.exit_code == 2 and "--centres CSV and --reference-length-mm L, or --run RUN_DIR" in neither.output
