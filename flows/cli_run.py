@@ -9,8 +9,15 @@ from typing import Optional
 
 import typer
 
-from fringecal.flows.common import (UserInputError, configured_prefect_api, console, err_console, fail, guarded,
-                                    no_prefect_telemetry)
+from fringecal.flows.common import (
+    UserInputError,
+    configured_prefect_api,
+    console,
+    err_console,
+    fail,
+    guarded,
+    no_prefect_telemetry,
+)
 from fringecal.flows.progress import HELP as PROGRESS_HELP
 
 __all__ = ["run_command", "reproduce_command", "REPRODUCE_CONTEXT", "serve_command", "validate_run_config", "make_task_runner",

@@ -36,8 +36,8 @@ os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
 from prefect import flow  # noqa: E402
 from prefect.states import Failed, State  # noqa: E402
 
-from fringecal.run import resume  # noqa: E402
 from fringecal.flows import interrupt, progress  # noqa: E402
+from fringecal.run import resume  # noqa: E402
 from fringecal.run.config import RunConfig, load_run_config  # noqa: E402
 from fringecal.run.summary import manifest, run_summary  # noqa: E402
 from fringecal.rundir import RunDir  # noqa: E402

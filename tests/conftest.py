@@ -7,6 +7,12 @@ import os
 import tempfile
 from pathlib import Path
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # one core per test worker: BLAS, OpenMP and numba threads of two workers on two cores
+    # would oversubscribe them (and OpenBLAS's waiting threads spin), costing more than they give
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
 _PREFECT_TMP = Path(tempfile.mkdtemp(prefix="fringecal-prefect-"))
 os.environ["PREFECT_HOME"] = str(_PREFECT_TMP / "home")
 os.environ["PREFECT_LOCAL_STORAGE_PATH"] = str(_PREFECT_TMP / "storage")

@@ -4,12 +4,16 @@ objects' stacks in ``verification/acceptance/``), then processed by ``run --data
 up to the acceptance step, which finds every object and gives every parameter."""
 
 
+import pytest
+
 from fringecal.run.config import load_run_config
 from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
 from fringecal.simulate.export import write_dataset
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.steps import run_pipeline
+
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
 
 
 def test_acceptance_of_a_data_set_from_its_verification_folder(tmp_path):

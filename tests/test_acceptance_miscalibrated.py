@@ -27,6 +27,8 @@ from fringecal.steps.acceptance import acceptance_stores
 from fringecal.steps.verify import ballbar_stores
 from fringecal.verification.verify import verify_ballbar
 
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):

@@ -235,6 +235,7 @@ def _stamp(path):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_simulated_acquisition_two_poses_two_scanners(prefect_harness, tmp_path, thesis):
     from fringecal.flows.run_flow import run_flow
     from fringecal.rundir import RunDir
@@ -289,6 +290,7 @@ def test_simulated_acquisition_two_poses_two_scanners(prefect_harness, tmp_path,
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_cli_run_until_the_acquisition_json(prefect_harness, tmp_path):
     cfg = tiny_config(tmp_path, pose_rows=(0,), width=64, url="hexsim://clitest", hexapod={"enabled": False})
     res = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "run"), "--until", "simulate-render",
@@ -303,6 +305,7 @@ def test_cli_run_until_the_acquisition_json(prefect_harness, tmp_path):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_cli_run_controller_fault_exits_1(prefect_harness, tmp_path):
     cfg = tiny_config(tmp_path, pose_rows=(0,), url="hexsim://?fault=garbled")
     res = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "run")])

@@ -24,6 +24,7 @@ def test_prediction_at_the_truth_is_the_noise_free_observation(truth):
     np.testing.assert_allclose(predicted, res.problem.prj_mm, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_bootstrap_spread_matches_the_linear_uncertainty(truth):
     """40 re-adjustments of one noisy calibration (every 20 px, eps1 noise 45 um): the
     spread of each free sensor parameter against its linear standard uncertainty.

@@ -8,6 +8,7 @@ from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 
 
+@pytest.mark.slow
 def test_uncertainties_describe_the_scatter_over_noise_realisations():
     """30 noise realisations on the same control-point pixels (every 20 px): the RMS error
     of each parameter over the runs against its mean reported uncertainty. With 30 runs

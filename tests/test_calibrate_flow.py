@@ -17,6 +17,8 @@ from fringecal.simulate.control_points import dlt_start, simulate_control_points
 from fringecal.steps import bundle as bundle_step_module
 from fringecal.steps import get_step, run_step
 
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 BUNDLE = get_step("bundle")
 
 runner = CliRunner()

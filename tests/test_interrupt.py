@@ -127,6 +127,7 @@ def reference(small_config, tmp_path_factory):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_kill_9_at_three_points_then_the_same_command_resumes_to_the_same_numbers(reference, small_config,
                                                                                   tmp_path):
     out = tmp_path / "killed"
@@ -165,6 +166,7 @@ def test_kill_9_at_three_points_then_the_same_command_resumes_to_the_same_number
 
 @pytest.mark.flow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.slow
 def test_a_signal_stops_the_run_within_seconds_with_one_line(sig, small_config, tmp_path):
     out = tmp_path / "run"
     run = Run(small_config, out, tmp_path, json_out=False)
@@ -251,6 +253,7 @@ def test_leftovers_are_the_interrupted_writes_and_nothing_else(tmp_path):
     assert leftovers(rd.root) == [] and all(p.exists() for p in keep)
 
 
+@pytest.mark.slow
 def test_a_run_directory_another_run_writes_is_refused_before_any_work(small_config, tmp_path):
     """A record of a live process of this host: ``begin`` refuses, and so does the
     command (status 2, one line, nothing written, before Prefect starts); a record of

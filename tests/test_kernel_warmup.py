@@ -4,6 +4,10 @@ import os
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 CHECK = """
 import numpy as np, pandas as pd, sys
 from fringecal import compile_clock

@@ -101,6 +101,7 @@ def test_priors_have_the_documented_errors(rigs, name):
 
 
 @pytest.mark.parametrize("name", RIGS)
+@pytest.mark.slow
 def test_with_the_plan_every_view_is_labelled_right_and_linked(rigs, name):
     obs = rigs[name]
     res = label_pose_link(obs.fits, obs.artefact, obs.reference, planned=obs.planned)
@@ -116,6 +117,7 @@ def test_with_the_plan_every_view_is_labelled_right_and_linked(rigs, name):
 
 
 @pytest.mark.parametrize("name", RIGS)
+@pytest.mark.slow
 def test_without_the_plan_labels_are_right_or_refused_as_ambiguous(rigs, name):
     """Thesis rig and three-scanner row: every view is one octahedron or one triangle of
     near-regular ones, ambiguous at these errors (the exact spheres seen are ambiguous at the

@@ -230,6 +230,7 @@ def staging(ds: Path) -> list[Path]:
 
 # -- the full acquisition -----------------------------------------------------------------
 
+@pytest.mark.slow
 def test_full_acquisition_gives_a_data_set_and_the_reached_poses(tmp_path, tool, pty_box):
     ds = build_dataset(tmp_path / "ds")
     box = pty_box()
@@ -323,6 +324,7 @@ def _frames_in_staging(ds: Path, m: str, s: str) -> int:
                 and p.name.startswith(f".{s}.")), default=0)
 
 
+@pytest.mark.slow
 def test_sigint_stops_cleanly_and_sigkill_loses_nothing_complete(tmp_path, tool, pty_box):
     ds = build_dataset(tmp_path / "ds")
     box = pty_box()

@@ -34,6 +34,8 @@ from fringecal.steps import run_pipeline
 from fringecal.store import open_store
 from fringecal.verification.measure import store_scanner
 
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 SCANNERS = ("scanner1", "scanner2")
 
 

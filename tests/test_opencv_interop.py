@@ -221,6 +221,7 @@ def test_bad_values_and_bad_calibration_give_one_message(tmp_path, thesis_dir):
     assert r.exit_code == 2 and "calibration.json" in r.output and not (tmp_path / "none").exists()
 
 
+@pytest.mark.slow
 def test_imported_opencv_prior_calibrates_like_the_native_prior(tmp_path):
     """(d) The small simulated thesis data set (320 px cameras, poses 1, 5, 9, 12) is
     calibrated up to the bundle step twice: with its own sensors_prior.csv, and with a

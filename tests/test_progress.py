@@ -136,6 +136,7 @@ def test_runs_we_start_send_no_telemetry_and_so_show_no_notice(tmp_path):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_a_run_into_a_pipe_says_what_it_does_from_its_first_second(small_config, tmp_path):
     """``fringecal run`` with its output in a file or pipe (CI, nohup): a first line at
     once, then timestamped lines as the steps start and end, never 40 s of silence."""

@@ -42,6 +42,7 @@ def first_run(prefect_harness, small_config, tmp_path_factory):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_run_writes_the_run_directory_and_meets_the_noise_floor(first_run):
     run_dir, s = first_run
     rd = RunDir(run_dir)
@@ -85,6 +86,7 @@ def test_run_writes_the_run_directory_and_meets_the_noise_floor(first_run):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_rerun_is_all_cache_hits_and_bundle_weights_rerun_only_what_depends_on_them(first_run, small_config):
     run_dir, first = first_run
     again = _flow(str(small_config), str(run_dir))
@@ -102,6 +104,7 @@ def test_rerun_is_all_cache_hits_and_bundle_weights_rerun_only_what_depends_on_t
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_deleted_output_is_recomputed(first_run, small_config):
     run_dir, first = first_run
     rd = RunDir(run_dir)
@@ -115,6 +118,7 @@ def test_deleted_output_is_recomputed(first_run, small_config):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_up_to_date_shortcut_redigests_the_inputs(first_run, small_config, tmp_path):
     """Before Prefect starts: an unchanged run is recognised; a rig table edited in
     place is not (the inputs are digested again, not trusted)."""
@@ -135,6 +139,7 @@ def test_up_to_date_shortcut_redigests_the_inputs(first_run, small_config, tmp_p
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_reproduce_gives_the_same_summary(first_run):
     run_dir, _ = first_run
     res = runner.invoke(app, ["reproduce", "--run", str(run_dir)])
@@ -175,6 +180,7 @@ class _Unreadable:
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_simulated_data_set_has_the_contract_layout(small_dataset, first_run):
     from fringecal.dataset import DataSet
 
@@ -194,6 +200,7 @@ def test_simulated_data_set_has_the_contract_layout(small_dataset, first_run):
 
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_data_set_run_agrees_with_the_simulated_run_and_never_reads_the_truth(first_run, small_dataset, tmp_path):
     """The thesis rig through both doors: `fringecal simulate` + `fringecal run --dataset`
     gives the calibration `fringecal run` gives, with the truth unreadable."""
@@ -276,6 +283,7 @@ def test_bad_data_sets_stop_before_any_work(small_dataset, tmp_path, case):
 # -- runners, deployments, bad configs ------------------------------------------------
 
 @pytest.mark.flow
+@pytest.mark.slow
 def test_dask_runner_two_workers(prefect_harness, small_config, tmp_path):
     """The same flow on a two-worker local Dask cluster gives the same calibration."""
     from fringecal.flows.cli_run import make_task_runner
@@ -287,6 +295,7 @@ def test_dask_runner_two_workers(prefect_harness, small_config, tmp_path):
     assert s["n_control_points"] > 2000 and s["verification"]["max_abs_error_mm"] < 0.2
 
 
+@pytest.mark.slow
 def test_deployment_for_a_nightly_schedule(small_config):
     from fringecal.flows.run_flow import run_flow
 

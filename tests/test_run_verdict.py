@@ -23,6 +23,8 @@ from fringecal.flows.cli import app
 from fringecal.rundir import RunDir
 from fringecal.simulate.small_thesis import write_small_thesis_config
 
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 runner = CliRunner()
 
 #: Limits no value of the small cell comes near (mm): every conformance is proven.

@@ -26,6 +26,8 @@ from fringecal.rundir import RunDir
 from fringecal.simulate.small_thesis import write_small_thesis_config
 from fringecal.steps import run_pipeline
 
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 SCALE = 50e-6
 
 QUIET = {"simulate": {"acquisition": {"render": {"excess_noise": 0.0, "shot_noise": False, "read_noise_e": 0.0}}},

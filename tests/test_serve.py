@@ -22,6 +22,8 @@ from typer.testing import CliRunner
 
 from fringecal.flows.cli import app
 
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 runner = CliRunner()
 BIN = Path(sys.executable).parent
 USER, PASSWORD = "fringecal", "test-password"

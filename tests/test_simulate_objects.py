@@ -301,6 +301,7 @@ def test_view_threshold_skips_scanners_and_an_unseen_object_is_refused(rig256, a
 
 # -- the data-set door -------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_dataset_door_writes_objects_that_calibration_ignores(tmp_path):
     """``fringecal simulate`` with a panel and the artefact at a new pose on the small
     rig (320 px): ``objects/<name>/<scanner>/`` for the scanners that see each, the

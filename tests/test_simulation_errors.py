@@ -509,6 +509,7 @@ def realistic_run(realistic_config, tmp_path_factory):
     return rd, d / "data", d / "data-truth"
 
 
+@pytest.mark.slow
 def test_both_doors_render_the_as_built_world(realistic_run):
     """`fringecal simulate` and the simulated run's steps render the same frames with
     every error on; each keeps the CMM table and the certificate for the pipeline and
@@ -534,6 +535,7 @@ def test_both_doors_render_the_as_built_world(realistic_run):
         np.testing.assert_array_equal(read_frames(folder).frames, open_store(rd.store(m).path)["frames"].values)
 
 
+@pytest.mark.slow
 def test_each_switch_keys_exactly_the_steps_it_affects(realistic_run, realistic_config, tmp_path):
     """A switch keys the steps that read it: artefact switches the prepare step (whose
     as-built tables then key the renders by content), render switches every rendered

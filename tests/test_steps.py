@@ -16,6 +16,8 @@ from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
 from fringecal.steps import STEPS, current_record, get_step, pipeline, run_pipeline, run_step, step_key
 
+pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
+
 
 def ran(records: dict) -> set[str]:
     """step:item of every instance that had to run."""
