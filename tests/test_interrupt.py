@@ -119,11 +119,18 @@ def _calibrated(out: Path):
 
 @pytest.fixture(scope="module")
 def reference(small_config, tmp_path_factory):
-    """One uninterrupted run of the small rig (the numbers every resumed run must give)."""
-    d = tmp_path_factory.mktemp("interrupt")
-    run = Run(small_config, d / "reference", d)
-    run.start()
-    return run.finish()
+    """The summary of one uninterrupted run of the small rig: the numbers every resumed
+    run must give. Its steps run in this process without Prefect (the flow calls the same
+    steps, tests/test_run_flow.py), which saves a command's start-up and server."""
+    from fringecal.run.config import load_run_config
+    from fringecal.run.summary import manifest, run_summary
+    from fringecal.steps import run_pipeline
+
+    cfg = load_run_config(small_config)
+    rd = RunDir(tmp_path_factory.mktemp("interrupt") / "reference").create()
+    rd.manifest.save(manifest(cfg))
+    run_pipeline(rd, cfg, workers=2)
+    return run_summary(rd, cfg)
 
 
 @pytest.mark.flow
