@@ -1,5 +1,13 @@
-"""The virtual scanner: renders the fringe frames a scanner would record of a scene,
-with per-pixel ground truth.
+"""The simulated data source, whole: the virtual scanner that renders the fringe frames
+a scanner would record of a scene, with per-pixel ground truth (:mod:`.render`,
+:mod:`.scene`, :mod:`.scenes`, :mod:`.kernel`), the simulated world and its unmodelled
+errors (:mod:`.world`, :mod:`.errors`), the simulated rig and its priors
+(:mod:`.source`, :mod:`.prior`, :mod:`.rigs`), the hexapod's moves and each simulated
+measurement (:mod:`.moves`, :mod:`.measurement`), the rig written as a data set
+(:mod:`.export`), objects to measure (:mod:`.objects`), and simulated control points
+and sphere centres without images for tests and benchmarks (:mod:`.control_points`,
+:mod:`.sphere_centres`, :mod:`.basin`). The ``simulate:`` section of a run
+configuration is :mod:`.settings`.
 
 Typical use::
 
