@@ -148,7 +148,15 @@ def _import(stereo, names, out, reference, camera_size, projector_size, camera_w
     sizes = {"camera_size": _size(camera_size, "--camera-size"),
              "projector_size": _size(projector_size, "--projector-size")}
     files = [read_stereo(p) for p in stereo]
-    names = names or [f.scanner or f.path.stem for f in files]
+    from fringecal.names import check_name
+
+    for n in names:  # names become file names: one safe path component each
+        check_name(n, "--scanner")
+    names = names or [check_name(f.scanner or f.path.stem, "scanner", str(f.path)) for f in files]
+    for f in files:
+        for sensor in (f.camera_name, f.projector_name):
+            if sensor:
+                check_name(sensor, "sensor name", str(f.path))
     for i, n in enumerate(names):
         if names.index(n) != i:
             raise UserInputError(f"scanner name {n!r} given twice ({stereo[names.index(n)]} and {stereo[i]}); "

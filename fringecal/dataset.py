@@ -133,9 +133,10 @@ from fringecal.config import ConfigError, StrictModel, load_yaml_model
 from fringecal.engineering.corrections import ArtefactCorrections
 from fringecal.fringe.importer import SEQUENCE_FILE, check_levels, check_stack
 from fringecal.fringe.sequence import FringeSequence, SequenceError
+from fringecal.names import name_problem
 from fringecal.rig import Rig, load_rig
 from fringecal.schemas import HexapodMovesTable, PosePlanTable, TableError, read_table
-from fringecal.store import store_attributes
+from fringecal.store import store_attributes, verify_store
 
 __all__ = [
     "DATASET_FILE", "ARTEFACT_FILE", "RODS_FILE", "SENSORS_PRIOR_FILE", "POSES_PLANNED_FILE",
@@ -302,14 +303,16 @@ class DataSet:
 
     def check_frames(self, threads: int | None = None) -> None:
         """Decode the first frame of each orientation of every frame stack and refuse a
-        dark or over-exposed one (:func:`~fringecal.fringe.importer.check_levels`; the
-        first problem in :meth:`stacks` order is raised). 2 of 98 frames per stack: a
-        small part of decoding, run before it (``fringecal run --dataset``)."""
+        dark or over-exposed one (:func:`~fringecal.fringe.importer.check_levels`), and
+        check every decoded store's content against its digests
+        (:func:`~fringecal.store.verify_store`: a flipped byte is named); the first
+        problem in :meth:`stacks` order is raised. 2 of 98 frames per stack: a small part
+        of decoding, run before it (``fringecal run --dataset``)."""
         from concurrent.futures import ThreadPoolExecutor
 
-        folders = [s.path for s in self.stacks() if s.format == "frames"]
+        jobs = [(check_levels if s.format == "frames" else verify_store, s.path) for s in self.stacks()]
         with ThreadPoolExecutor(max_workers=threads or _cores()) as pool:
-            futures = [pool.submit(check_levels, f) for f in folders]
+            futures = [pool.submit(check, path) for check, path in jobs]
             errors = [e for e in (f.exception() for f in futures) if e is not None]
         if errors:
             raise errors[0]
@@ -389,9 +392,14 @@ def _cores() -> int:
 
 
 def _entries(folder: Path) -> list[Path]:
-    """Visible sub-folders in natural order (hidden entries and regular files ignored)."""
-    return sorted((p for p in folder.iterdir() if not p.name.startswith(".") and p.is_dir()),
-                  key=lambda p: natural_key(p.name))
+    """Visible sub-folders in natural order (hidden entries and regular files ignored);
+    each name must be one safe path component (it becomes part of a run's store names)."""
+    found = sorted((p for p in folder.iterdir() if not p.name.startswith(".") and p.is_dir()),
+                   key=lambda p: natural_key(p.name))
+    for p in found:
+        if (problem := name_problem(p.name)) is not None:
+            raise DataSetError(f"{p}: folder name: {problem}; rename the folder")
+    return found
 
 
 def _groups(sources: Iterable[StackSource]) -> list[str]:

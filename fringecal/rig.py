@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from fringecal.names import check_name
 from fringecal.schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
 from fringecal.sensor import PARAM_COLUMNS, Sensor, SensorFormat, scaled_format, sensor_in_frame
 
@@ -46,6 +47,10 @@ class Rig:
     uncertainty: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
+        for s in self.scanners:  # names become file names (an export's <scanner>.yml, a run's stores)
+            check_name(s.name, "scanner")
+            for sensor in s.sensors:
+                check_name(sensor.name, f"sensor of scanner {s.name!r}")
         names = [s.name for s in self.scanners]
         if len(set(names)) != len(names):
             raise ValueError(f"duplicate scanner names {names}")

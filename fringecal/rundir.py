@@ -31,6 +31,8 @@ bound to the file's schema and written by the one atomic writer
       .digests/, .prefect/       digest cache, Prefect's cached task results
       .in_progress.json          while a run writes the directory: who (pid, start), since when
                                  (left behind by an interrupted run; :mod:`fringecal.run.resume`)
+      .in_progress.lock          locked by the process writing the directory (one run at a time)
+      fringecal.log              what Prefect and fringecal logged, tracebacks included (appended)
 
 A store id is ``<measurement>-<scanner>`` (e.g. ``1-scanner1``) for the artefact and
 ``<position>-<scanner>`` (e.g. ``bb01-scanner2``) for the ball-bar.
@@ -55,6 +57,7 @@ from typing import Iterator
 import pandas as pd
 
 from fringecal import atomic
+from fringecal.names import OutsideFolderError
 
 __all__ = ["RunDir", "RunFile", "TableFile", "JsonFile", "TextFile", "StoreFile", "ArtefactFile", "RigFile",
            "RodsFile", "CalibrationFile", "ArraysFile", "TruthDir", "measurement_id", "package_versions"]
@@ -80,6 +83,17 @@ def package_versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             out[name] = "not installed"
     return out
+
+
+def _inside(root: Path, rel: str) -> str:
+    """``rel`` if it names a place inside the run directory (relative, no ``..``, no
+    empty part): every path of a run is built from names (measurement, scanner), and
+    none may lead a write out of the run directory."""
+    parts = rel.split("/")
+    if rel.startswith("/") or any(p in ("", ".", "..") or "\\" in p for p in parts):
+        raise OutsideFolderError(f"{root / rel}: would be written outside the run directory {root}; "
+                                 "a name in the path is not one folder or file name")
+    return rel
 
 
 # -- typed files ------------------------------------------------------------------------
@@ -293,7 +307,7 @@ class TruthDir:
         self.prefix = prefix
 
     def _at(self, cls, rel: str, **kw):
-        return cls(self.root, f"{self.prefix}{rel}", **kw)
+        return cls(self.root, _inside(self.root, f"{self.prefix}{rel}"), **kw)
 
     @property
     def sensors(self) -> RigFile:
@@ -382,7 +396,7 @@ class RunDir:
             yield cls(d).create()
 
     def _at(self, cls, rel: str, **kw):
-        return cls(self.root, rel, **kw)
+        return cls(self.root, _inside(self.root, rel), **kw)
 
     def _table(self, rel: str, schema_name: str | None, optional: bool = False) -> TableFile:
         from fringecal import schemas  # lazy: pandera loads when a table is read
@@ -595,6 +609,27 @@ class RunDir:
     def step_record(self, step: str, item: str) -> JsonFile:
         """What ``step`` computed for ``item`` ('' for one-off steps) and from what."""
         return self._at(JsonFile, f".steps/{step}/{item or '_'}.json")
+
+    def step_records(self) -> list[JsonFile]:
+        """Every step record of the run directory (none before its first step ran)."""
+        base = self.root / ".steps"
+        if not base.is_dir():
+            return []
+        return [self._at(JsonFile, p.relative_to(self.root).as_posix()) for p in sorted(base.glob("*/*.json"))
+                if not p.name.startswith(".")]
+
+    @property
+    def log(self) -> RunFile:
+        """The run's log file: every line Prefect and fringecal log while a command runs
+        the flow, tracebacks included (the terminal shows one line per failure), appended
+        run after run."""
+        return self._at(RunFile, "fringecal.log")
+
+    @property
+    def lock(self) -> RunFile:
+        """Held (an exclusive ``flock``) by the one process that runs the flow into this
+        directory; released when that process ends, however it ends."""
+        return self._at(RunFile, ".in_progress.lock")
 
     @property
     def in_progress(self) -> JsonFile:

@@ -65,6 +65,7 @@ from fringecal.acquisition.live_plan import TOLERANCE_MARGIN, LivePlan, check_re
 from fringecal.acquisition.live_state import MovesLog, Survey, acquisition_lock, move_row, survey
 from fringecal.dataset import MEASUREMENTS_DIR, DataSet
 from fringecal.hexapod import ForwardKinematicsError, HexapodFault, HexapodRig, PlatformMover, TargetRejected
+from fringecal.names import check_name, confined
 
 __all__ = ["EXIT_HEXAPOD", "EXIT_INPUT", "EXIT_CAPTURE", "EXIT_INTERRUPTED", "TOLERANCE_MARGIN", "AcquisitionError",
            "StopRequest", "stop_on_signals", "LivePlan", "prepare", "check_reachable", "reach_tolerance",
@@ -272,7 +273,7 @@ class _Run:
     def _capture(self, m: str, s: str) -> None:
         w, h = self.plan.cameras[s]
         expect = StackExpectation(m, s, w, h, self.sequence, self.sequence_source)
-        final = self.plan.root / MEASUREMENTS_DIR / m / s
+        final = confined(self.plan.root, MEASUREMENTS_DIR, check_name(m, "measurement"), check_name(s, "scanner"))
         for attempt in range(self.retries + 1):
             try:
                 spec = capture_stack(self.plan.capture, expect, final, self.plan.root, self.timeout_s, self.stop)

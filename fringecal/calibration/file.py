@@ -49,6 +49,7 @@ import numpy as np
 from fringecal import __version__
 from fringecal.atomic import write_text
 from fringecal.calibration.propagation import ParameterCovariances
+from fringecal.names import UnsafeNameError, check_name
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import PARAM_NAMES, Sensor, SensorFormat
 
@@ -123,22 +124,41 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
 
 
 def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
+    """The rig of a calibration document; every name must be one safe path component
+    and every parameter, format and uncertainty a finite number (a NaN parameter would
+    drop its scanner's points from a cloud without a word)."""
     try:
         scanners, free, unc = [], [], []
-        for sc in d["scanners"]:
+        for i, sc in enumerate(d["scanners"]):
+            check_name(sc["name"], f"scanners[{i}] name", source)
             pair = {}
             for se in sc["sensors"]:
+                where = f"scanner {sc['name']!r} sensor {se['name']!r}"
+                check_name(se["name"], f"scanner {sc['name']!r}: sensor", source)
                 f = se["format"]
                 fmt = SensorFormat(int(f["width_px"]), int(f["height_px"]), float(f["width_mm"]), float(f["height_mm"]))
+                if not (fmt.width_px > 1 and fmt.height_px > 1 and fmt.width_mm > 0 and fmt.height_mm > 0):
+                    raise CalibrationFileError(f"{source}: {where}: format {f} must be positive (width_px, height_px "
+                                               "> 1, width_mm, height_mm > 0)")
                 p = se["parameters"]
                 vals = [float(p[n]["value"]) for n in PARAM_NAMES]
+                u = [float(p[n]["u"]) if "u" in p[n] else np.nan for n in PARAM_NAMES]
+                for n, v, un in zip(PARAM_NAMES, vals, u):
+                    if not np.isfinite(v):
+                        raise CalibrationFileError(f"{source}: {where}: parameter {n!r} is {v}; every parameter "
+                                                   "must be a finite number")
+                    if "u" in p[n] and not (un >= 0):  # NaN or negative
+                        raise CalibrationFileError(f"{source}: {where}: parameter {n!r} has uncertainty u = {un}; "
+                                                   "a standard uncertainty is a finite number >= 0")
                 pair[se["role"]] = Sensor(se["name"], se["role"], fmt, vals)
                 free.append([bool(p[n]["free"]) for n in PARAM_NAMES])
-                unc.append([float(p[n]["u"]) if "u" in p[n] else np.nan for n in PARAM_NAMES])
+                unc.append(u)
             scanners.append(Scanner(sc["name"], pair["camera"], pair["projector"]))
         u = np.array(unc)
         return Rig(tuple(scanners), d["reference_scanner"], np.array(free),
                    None if np.isnan(u).all() else u)
+    except UnsafeNameError as err:
+        raise CalibrationFileError(str(err)) from None
     except (KeyError, TypeError, ValueError) as err:
         raise CalibrationFileError(f"{source}: malformed calibration ({type(err).__name__}: {err})") from None
 
@@ -191,10 +211,42 @@ def _covariances(doc: dict, rig: Rig, source: str):
         if arrays[key].shape != shape:
             raise CalibrationFileError(f"{source}: covariance {key!r} has shape {arrays[key].shape}, expected {shape}")
         if not np.isfinite(arrays[key]).all():
-            raise CalibrationFileError(f"{source}: covariance {key!r} holds non-finite values")
+            bad = np.argwhere(~np.isfinite(arrays[key]))[0]
+            raise CalibrationFileError(f"{source}: covariance {key!r} holds non-finite values (first at "
+                                       f"{_entry(names, bad)})")
+        if arrays[key].ndim == 2:
+            _check_covariance(arrays[key], names, key, source)
     if not np.isfinite(u_scale) or u_scale < 0:
         raise CalibrationFileError(f"{source}: covariance 'artefact_scale_u_rel' must be finite and >= 0, got {u_scale}")
     return ParameterCovariances(arrays["adjustment"], arrays["artefact_cmm"], arrays["artefact_scale"], u_scale)
+
+
+def _entry(names: list[str], index) -> str:
+    return ", ".join(names[int(i)] for i in index) if len(index) else "?"
+
+
+def _check_covariance(c: np.ndarray, names: list[str], key: str, source: str) -> None:
+    """A covariance matrix: variances >= 0 on the diagonal, symmetric, every correlation
+    within [-1, 1] (up to rounding): else it is not one, and an uncertainty drawn from it
+    would be meaningless."""
+    diag = np.diag(c)
+    if (neg := np.flatnonzero(diag < 0)).size:
+        i = int(neg[0])
+        raise CalibrationFileError(f"{source}: covariance {key!r}: the variance of {names[i]} is {diag[i]:.6g}; "
+                                   "a variance cannot be negative")
+    scale = np.sqrt(np.outer(diag, diag))
+    tol = 1e-9 * max(float(np.max(np.abs(c))), 1e-300)
+    asym = np.abs(c - c.T) > tol + 1e-6 * scale
+    if asym.any():
+        i, j = np.argwhere(asym)[0]
+        raise CalibrationFileError(f"{source}: covariance {key!r} is not symmetric ({names[i]}, {names[j]}: "
+                                   f"{c[i, j]:.6g} against {c[j, i]:.6g})")
+    beyond = np.abs(c) > scale * (1 + 1e-6) + tol
+    if beyond.any():
+        i, j = np.argwhere(beyond)[0]
+        raise CalibrationFileError(f"{source}: covariance {key!r}: |cov({names[i]}, {names[j]})| = "
+                                   f"{abs(c[i, j]):.6g} exceeds the product of their standard deviations; "
+                                   "not a covariance matrix")
 
 
 def read_calibration(path) -> Calibration:

@@ -40,6 +40,7 @@ import numpy as np
 from fringecal.atomic import write_text
 from fringecal.frames import Frame
 from fringecal.interop.opencv import DEPTHS_MM, GRID, F, ImportedSensor, OpenCVCamera, from_opencv, to_opencv
+from fringecal.names import check_name, confined
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import SensorFormat, sensor_in_frame
 
@@ -128,8 +129,9 @@ def write_rig(rig: Rig, out_dir, grid: int = GRID, depths=DEPTHS_MM) -> dict[str
     """
     out_dir = Path(out_dir)
     docs = {s.name: stereo_text(s, grid, depths) for s in rig.scanners}
+    paths = {name: confined(out_dir, f"{check_name(name, 'scanner')}.yml") for name in docs}  # all before any write
     out_dir.mkdir(parents=True, exist_ok=True)
-    return {name: (write_text(out_dir / f"{name}.yml", text), cam, prj) for name, (text, cam, prj) in docs.items()}
+    return {name: (write_text(paths[name], text), cam, prj) for name, (text, cam, prj) in docs.items()}
 
 
 def read_stereo(path) -> StereoFile:

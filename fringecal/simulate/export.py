@@ -41,6 +41,7 @@ from fringecal.artefact import load_rods
 from fringecal.atomic import temporary_sibling
 from fringecal.frames import frame_rows, frames_from_rows
 from fringecal.fringe.importer import write_frames
+from fringecal.names import check_name, confined
 from fringecal.rig import scaled_scanner
 from fringecal.rundir import TruthDir, measurement_id
 from fringecal.schemas import ArtefactTable, PosePlanTable, RodsTable, SensorParametersTable, read_table, write_table
@@ -70,6 +71,11 @@ def _dataset_yaml(cfg) -> dict:
     if processing:
         doc["processing"] = processing
     return doc
+
+
+def _folder(root: Path, *names: str) -> Path:
+    """``root/<names>``: each name one safe path component, the result inside ``root``."""
+    return confined(root, *(check_name(n, "folder name") for n in names))
 
 
 def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_stack=None) -> Path:
@@ -137,7 +143,7 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
             scene = artefact_scene(built, rods, T, sr.hardware)
             for s in truth.scanners:
                 s = drifted_scanner(s, session_displacement(errors, s.name, list(reached)[:i + 1]))
-                jobs.append((measurement_id(m, s.name), s, scene, acq, tmp / layout.MEASUREMENTS_DIR / m / s.name,
+                jobs.append((measurement_id(m, s.name), s, scene, acq, _folder(tmp, layout.MEASUREMENTS_DIR, m, s.name),
                              render_errors(errors, s, T, "artefact", scene.sphere_ids, native)))
         for name, T in positions.items():
             scene = artefact_scene(bar, ballbar_rods(bar), T, sr.hardware)
@@ -145,7 +151,7 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
                 s = truth.scanner(scanner)
                 if sim.verification.camera_width_px is not None:
                     s = scaled_scanner(s, sim.verification.camera_width_px)
-                jobs.append((measurement_id(name, scanner), s, scene, v_acq, verification / name / scanner,
+                jobs.append((measurement_id(name, scanner), s, scene, v_acq, _folder(verification, name, scanner),
                              render_errors(errors, s, T, "ballbar", scene.sphere_ids, native)))
         # the acceptance objects as simulate-sphere/-dumbbell/-flat render them: the
         # acceptance's camera width (else the verification's) and noise seed
@@ -157,7 +163,7 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
             if a_width is not None:
                 s = scaled_scanner(s, a_width)
             jobs.append((measurement_id(name, row.scanner), s, scene, a_acq,
-                         acceptance_dir / row.test / name / row.scanner,
+                         _folder(acceptance_dir, row.test, name, row.scanner),
                          render_errors(errors, s, T, row.test, scene.sphere_ids, native)))
 
         # the objects to measure: the acquisition's cameras and noise, each object's own
@@ -171,7 +177,7 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
             for scanner in plan.recorders:
                 s = truth.scanner(scanner)
                 jobs.append((measurement_id(spec.name, scanner), s, plan.scene, o_acq,
-                             tmp / layout.OBJECTS_DIR / spec.name / scanner,
+                             _folder(tmp, layout.OBJECTS_DIR, spec.name, scanner),
                              render_errors(errors, s, plan.T_world_object, label, plan.scene.sphere_ids, native)))
 
         def render(job):

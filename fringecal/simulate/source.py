@@ -40,6 +40,7 @@ from fringecal.acceptance.standards import load_standards
 from fringecal.artefact import Artefact, load_artefact, load_rods
 from fringecal.config import ConfigError
 from fringecal.frames import frames_from_rows
+from fringecal.names import check_name
 from fringecal.rig import Rig, load_rig, scaled_rig
 from fringecal.rundir import measurement_id
 from fringecal.schemas import PosePlanTable, TableError, read_table
@@ -172,6 +173,8 @@ def _positions(sim, truth: Rig, ballbar: Artefact, artefact: Artefact, planned: 
         return _planned_positions(sim, truth, artefact, planned, ballbar)
     table = pd.read_csv(sim.positions_path(), dtype={"measurement": str})
     positions = thesis_positions(table, scanners=("", ""))
+    for p in positions:  # a position's name becomes folders and store names
+        check_name(p.name, "ball-bar position", str(sim.positions_path()))
     if sim.verification.scheme == "vdi7":
         positions = vdi7_positions(positions, float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0])))
     placed, recorders = [], {}
