@@ -4,6 +4,18 @@ Unknown keys are errors (``extra="forbid"``), numbers must be finite (``.inf`` a
 ``.nan`` are refused), relative paths resolve against the YAML file's folder, an empty
 file is refused (it would silently mean "every default"), and every error names the
 file and the offending key.
+
+Every YAML file fringecal reads (configurations, ``dataset.yaml``, ``sequence.yaml``,
+``standards.yaml``) goes through :func:`load_yaml_text`, a safe loader that also
+refuses what a plain ``yaml.safe_load`` lets through silently:
+
+* a key given twice in one mapping (the last value would win: a second
+  ``reference_scanner`` would switch the calibration's frame), naming both lines;
+* a document that aliases expand beyond :data:`MAX_YAML_VALUES` values (an "alias
+  bomb": a few lines of nested ``&a``/``*a`` grow to gigabytes when expanded), and
+  aliases that refer to themselves. The expanded size is counted on the parsed node
+  graph, before anything is built or validated; the largest configuration fringecal
+  reads holds a few hundred values.
 """
 
 from __future__ import annotations
@@ -16,7 +28,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 __all__ = ["ConfigError", "StrictModel", "RigConfig", "load_yaml_model", "read_yaml_mapping", "validate_model",
-           "deep_update", "configs_dir", "thesis_dir", "bundled_config"]
+           "deep_update", "configs_dir", "thesis_dir", "bundled_config", "load_yaml_text", "yaml_problem",
+           "YAMLRefused", "MAX_YAML_VALUES"]
 
 
 class ConfigError(ValueError):
@@ -90,6 +103,97 @@ def _resolve_paths(model: BaseModel, base: Path) -> BaseModel:
     return model.model_copy(update=updates) if updates else model
 
 
+#: the most values (scalars, lists, mappings) a YAML document may expand to through aliases
+MAX_YAML_VALUES = 100_000
+
+
+class YAMLRefused(yaml.YAMLError):
+    """A YAML document :func:`load_yaml_text` refuses; ``line`` (1-based) when known."""
+
+    def __init__(self, message: str, line: int | None = None):
+        super().__init__(message)
+        self.message, self.line = message, line
+
+    def __str__(self) -> str:
+        return f"line {self.line}: {self.message}" if self.line else self.message
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a mapping key given twice."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            first: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # "<<: *base" merges on purpose; explicit keys override merged ones
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    line = first.setdefault(key, key_node.start_mark.line + 1)
+                except TypeError:  # an unhashable key: SafeLoader refuses it itself
+                    continue
+                if line != key_node.start_mark.line + 1:
+                    raise YAMLRefused(f"key {key!r} is given twice (first on line {line}); a mapping takes each "
+                                      "key once (the last value would silently win)", key_node.start_mark.line + 1)
+        return super().construct_mapping(node, deep)
+
+
+def _expanded_size(root, limit: int) -> int:
+    """How many values the node graph of a document expands to (aliases repeat the node
+    they refer to); stops counting past ``limit``. A node reachable from itself is refused."""
+    sizes: dict[int, int] = {}
+    active: set[int] = set()
+
+    def size(node) -> int:
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in active:
+            raise YAMLRefused("an alias refers to the value that holds it (a recursive structure)",
+                              node.start_mark.line + 1)
+        active.add(key)
+        n = 1
+        if isinstance(node, yaml.SequenceNode):
+            for child in node.value:
+                n += size(child)
+                if n > limit:
+                    break
+        elif isinstance(node, yaml.MappingNode):
+            for k, v in node.value:
+                n += size(k) + size(v)
+                if n > limit:
+                    break
+        active.discard(key)
+        sizes[key] = n = min(n, limit + 1)
+        return n
+
+    return size(root)
+
+
+def load_yaml_text(text: str):
+    """The value of a YAML document, loaded safely (see the module notes: no key given
+    twice, at most :data:`MAX_YAML_VALUES` values once aliases are expanded). Raises
+    ``yaml.YAMLError`` (:class:`YAMLRefused` for those two refusals)."""
+    loader = _StrictLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        if _expanded_size(node, MAX_YAML_VALUES) > MAX_YAML_VALUES:
+            raise YAMLRefused(f"the document expands to more than {MAX_YAML_VALUES:,} values through its aliases "
+                              "(&anchor/*alias); a configuration holds a few hundred (an alias bomb?)")
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def yaml_problem(err: yaml.YAMLError) -> str:
+    """One line saying what is wrong with a YAML document (its line when known)."""
+    if isinstance(err, YAMLRefused):
+        return str(err)
+    return f"not valid YAML ({' '.join(str(err).split())})"
+
+
 def read_yaml_mapping(path, empty_hint: str = "expected a mapping of settings") -> dict:
     """The top-level mapping of a YAML file.
 
@@ -98,7 +202,7 @@ def read_yaml_mapping(path, empty_hint: str = "expected a mapping of settings") 
     """
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = load_yaml_text(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except IsADirectoryError:
@@ -110,7 +214,7 @@ def read_yaml_mapping(path, empty_hint: str = "expected a mapping of settings") 
         raise ConfigError(f"{path}: line {line}: byte 0x{err.object[err.start]:02x} is not UTF-8 text; "
                           "save the file as UTF-8") from None
     except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(err).split())})") from None
+        raise ConfigError(f"{path}: {yaml_problem(err)}") from None
     if data is None:
         raise ConfigError(f"{path}: the file is empty; {empty_hint}")
     if not isinstance(data, dict):

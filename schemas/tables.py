@@ -45,6 +45,7 @@ import pandera.pandas as pa  # noqa: E402
 from pandera.typing import Series  # noqa: E402
 
 from fringecal.atomic import atomic_path  # noqa: E402
+from fringecal.names import name_problem  # noqa: E402
 from fringecal.sensor import PARAM_NAMES  # noqa: E402
 
 __all__ = [
@@ -83,9 +84,21 @@ __all__ = [
     "validate_table",
     "write_table",
     "FREE_COLUMNS",
+    "NAME_COLUMNS",
+    "MAX_SPHERES",
+    "MAX_POINTS",
 ]
 
 FREE_COLUMNS = tuple(f"free_{n}" for n in PARAM_NAMES)
+
+#: the most spheres an artefact (or a ball-bar) table may hold: see ArtefactTable
+MAX_SPHERES = 200
+#: the most points a points table may hold (2**24): see PointsTable
+MAX_POINTS = 1 << 24
+
+#: columns whose values become file or folder names (a run's stores, a data set's folders,
+#: an export's files): each value must be one safe path component (:mod:`fringecal.names`)
+NAME_COLUMNS = ("measurement", "scanner", "sensor", "position", "pose")
 
 
 class TableError(ValueError):
@@ -134,6 +147,11 @@ class _Base(pa.DataFrameModel):
     _unique_together = ()
     #: number columns that may hold +-inf (none: every number must be finite)
     _infinite_allowed = ()
+    #: the most rows an input table may have (what the method can use; None: no bound),
+    #: checked before the cells are parsed so that a huge table is refused in seconds
+    _max_rows = None
+    #: why that bound (the end of the refusal's message)
+    _max_rows_reason = ""
 
 
 class ArtefactTable(_Base):
@@ -147,6 +165,10 @@ class ArtefactTable(_Base):
     u_mm: Optional[Series[float]] = pa.Field(ge=0)
 
     _id_columns = ("sphere_id",)
+    _max_rows = MAX_SPHERES
+    _max_rows_reason = (f"the labelling compares every candidate's distances with all m^2 distances of the "
+                        f"artefact (8 m^3 bytes: 64 MB at {MAX_SPHERES} spheres, 1 GB at 500); the thesis's "
+                        "artefact has 15")
 
 
 class RodsTable(_Base):
@@ -158,6 +180,9 @@ class RodsTable(_Base):
     length_mm: Series[float] = pa.Field(gt=0)
 
     _id_columns = ("rod_id", "sphere_a", "sphere_b")
+    _max_rows = MAX_SPHERES * (MAX_SPHERES - 1) // 2
+    _max_rows_reason = (f"a rod joins two spheres, each pair at most once: {MAX_SPHERES * (MAX_SPHERES - 1) // 2:,} "
+                        f"pairs of the largest artefact ({MAX_SPHERES} spheres)")
 
 
 class SphereCentresTable(_Base):
@@ -273,6 +298,10 @@ class PointsTable(_Base):
     x_mm: Series[float] = pa.Field()
     y_mm: Series[float] = pa.Field()
     z_mm: Series[float] = pa.Field()
+
+    _max_rows = MAX_POINTS
+    _max_rows_reason = ("every pixel of a 4096 x 4096 camera; one scanner's points of one sphere or plane "
+                        "cannot be more")
 
 
 class PosesTable(_Base):
@@ -769,6 +798,7 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
                                      f"duplicate {dict(zip(group, key))} (first on line {first[key] + 2})"))
                 else:
                     first[key] = i
+    problems += _unsafe_names(df, columns)
     try:
         out = model.validate(df, lazy=True)
     except pa.errors.SchemaErrors as err:
@@ -799,6 +829,8 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
             if check == "column_in_dataframe":
                 problems.append((None, str(value), "required column is missing"))
                 continue
+            if line is None and str(value).startswith(("TypeError(", "ValueError(")):
+                continue  # a check that could not run on uncoerced text: the cell's type error says why
             problems.append((line, col, f"value {value!r} {_describe_check(check)}"))
         if not problems:
             problems.append((None, None, str(err)))
@@ -808,11 +840,31 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
     return out
 
 
-def read_csv_text(path) -> pd.DataFrame:
+def _unsafe_names(df: pd.DataFrame, columns) -> list[tuple[int, str, str]]:
+    """A problem per distinct value of a name column (:data:`NAME_COLUMNS`) that is not
+    one safe path component, on the line where it first appears."""
+    problems = []
+    for col in (c for c in NAME_COLUMNS if c in df.columns and c in columns):
+        s = df[col]
+        for value in pd.unique(s):
+            if value is None or (isinstance(value, float) and np.isnan(value)) or value == "":
+                continue  # missing: reported as such
+            problem = name_problem(str(value))
+            if problem is not None:
+                line = int(np.flatnonzero((s == value).to_numpy())[0]) + 2
+                shown = value if len(str(value)) <= 60 else str(value)[:40] + "..." + str(value)[-10:]
+                problems.append((line, col, f"value {shown!r}: {problem}"))
+    return problems
+
+
+def read_csv_text(path, max_rows: int | None = None, why: str = "") -> pd.DataFrame:
     """Read a CSV with every cell as text (validation coerces types and names bad cells).
 
     The file must be UTF-8 (a byte-order mark, as Excel's "CSV UTF-8" writes, and CRLF
     line ends are fine); bytes that are not UTF-8 are reported with their line and column.
+    A table of more than ``max_rows`` rows is refused before its cells are parsed
+    (``why`` says why the bound); a table whose columns are separated by semicolons or
+    tabs (a spreadsheet of another locale) is refused with that hint.
     """
     path = Path(path)
     try:
@@ -824,13 +876,32 @@ def read_csv_text(path) -> pd.DataFrame:
     except OSError as err:
         raise TableError(str(path), [(None, None, f"cannot be read ({err.strerror or err})")]) from None
     text = _utf8_text(raw, str(path))
+    if max_rows is not None and text.count("\n") > max_rows:
+        rows = sum(1 for line in text.splitlines()[1:] if line.strip())
+        if rows > max_rows:
+            raise TableError(str(path), [(None, None, f"{rows:,} rows; at most {max_rows:,} can be used"
+                                                      + (f" ({why})" if why else ""))])
+    _check_separator(text, str(path))
     try:
         df = pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False, skipinitialspace=True,
                          comment=None)
     except (pd.errors.ParserError, pd.errors.EmptyDataError) as err:
-        raise TableError(str(path), [(None, None, f"not a readable CSV table ({err})")]) from None
+        raise TableError(str(path), [(None, None, "not a readable CSV table (" + " ".join(str(err).split()) + ")")]
+                         ) from None
     df.columns = [c.strip() for c in df.columns]
     return df
+
+
+def _check_separator(text: str, source: str) -> None:
+    """Refuse a header separated by ``;`` or tabs rather than commas (a spreadsheet saved
+    with another locale's list separator, often with decimal commas too)."""
+    header = text.lstrip("\ufeff").split("\n", 1)[0]
+    for sep, what in ((";", "semicolons"), ("\t", "tabs")):
+        if "," not in header and header.count(sep) >= 1:
+            raise TableError(source, [(1, None, f"the columns are separated by {what}, not commas; fringecal reads "
+                                                "comma-separated values with a decimal point (in a spreadsheet "
+                                                "set the list separator to ',' and the decimal symbol to '.', "
+                                                "or save as 'CSV UTF-8 (comma delimited)' in an English locale)")])
 
 
 def _utf8_text(raw: bytes, source: str) -> str:
@@ -860,8 +931,9 @@ def _utf8_text(raw: bytes, source: str) -> str:
 
 
 def read_table(path, model) -> pd.DataFrame:
-    """Read a CSV and validate it against ``model`` (one error naming every problem)."""
-    return validate_table(read_csv_text(path), model, str(path))
+    """Read a CSV and validate it against ``model`` (one error naming every problem);
+    more rows than the model's bound are refused before the cells are parsed."""
+    return validate_table(read_csv_text(path, model._max_rows, model._max_rows_reason), model, str(path))
 
 
 def read_any_table(path, *models) -> pd.DataFrame:

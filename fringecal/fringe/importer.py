@@ -87,7 +87,7 @@ import tifffile
 import yaml
 from pydantic import Field, ValidationError
 
-from fringecal.config import StrictModel
+from fringecal.config import StrictModel, load_yaml_text, yaml_problem
 from fringecal.fringe.frame_files import (
     SEQUENCE_FILE,
     FrameStackError,
@@ -354,12 +354,14 @@ def _stem(orientation: str, fringes: int, step: int) -> str:
 
 def _load_spec(path: Path) -> StackSpec:
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml_text(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise FrameStackError(f"{path}: missing; a frame folder needs {SEQUENCE_FILE} (orientations, fringe_counts, "
                               "n_steps, width_px, height_px, bit_depth)") from None
-    except (yaml.YAMLError, UnicodeDecodeError) as err:
-        raise FrameStackError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    except UnicodeDecodeError as err:
+        raise FrameStackError(f"{path}: not UTF-8 text (byte 0x{err.object[err.start]:02x})") from None
+    except yaml.YAMLError as err:
+        raise FrameStackError(f"{path}: {yaml_problem(err)}") from None
     if not isinstance(data, dict):
         raise FrameStackError(f"{path}: expected a mapping, found {type(data).__name__}")
     try:

@@ -18,10 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from fringecal.artefact import Artefact
-from fringecal.config import StrictModel, thesis_dir
+from fringecal.config import StrictModel, read_yaml_mapping, thesis_dir
 from fringecal.frames import Frame
 from fringecal.rig import Scanner
 from fringecal.simulate.scene import Box, Cylinder, Plane, Scene, SceneObject, Sphere
@@ -56,7 +55,7 @@ class ArtefactHardware(StrictModel):
         """Read ``tube.outer_diameter_mm`` and ``end_cap.outer_diameter_mm, length_mm``
         from a materials file (default: the thesis's ``materials.yaml``)."""
         path = Path(path) if path is not None else thesis_dir() / "materials.yaml"
-        data = yaml.safe_load(path.read_text())
+        data = read_yaml_mapping(path)
         try:
             return cls(tube_diameter_mm=data["tube"]["outer_diameter_mm"],
                        end_cap_diameter_mm=data["end_cap"]["outer_diameter_mm"],
