@@ -27,6 +27,8 @@ from typing import Any, Optional
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from fringecal.names import not_a_file
+
 __all__ = ["ConfigError", "StrictModel", "RigConfig", "load_yaml_model", "read_yaml_mapping", "validate_model",
            "deep_update", "configs_dir", "thesis_dir", "bundled_config", "load_yaml_text", "yaml_problem",
            "YAMLRefused", "MAX_YAML_VALUES"]
@@ -201,6 +203,8 @@ def read_yaml_mapping(path, empty_hint: str = "expected a mapping of settings") 
     "every default", it would run something the user did not write down.
     """
     path = Path(path)
+    if (kind := not_a_file(path)) is not None and kind != "a folder":  # a FIFO would be waited on forever
+        raise ConfigError(f"{path}: {kind}, not a YAML file")
     try:
         data = load_yaml_text(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

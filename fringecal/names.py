@@ -30,7 +30,9 @@ fringecal.names.UnsafeNameError: scanner '../../tmp/x': a name must be one folde
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
 from pathlib import Path
 
 __all__ = ["MAX_NAME_CHARS", "OutsideFolderError", "UnsafeNameError", "check_name", "confined", "name_problem"]
@@ -93,3 +95,25 @@ def confined(root, *parts) -> Path:
         raise OutsideFolderError(f"{path}: would be written outside {root} (it resolves to {target}); "
                                  "nothing was written there")
     return path
+
+
+def not_a_file(path) -> str | None:
+    """What ``path`` is when it is not a regular file (or a link to one) that can be read
+    -- "a symbolic link loop", "a FIFO (named pipe)", "a device" -- else None. Never
+    opens it (opening a FIFO to read waits for a writer forever)."""
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            return "a symbolic link loop"
+        if path.is_symlink():
+            return f"a broken symbolic link (to {os.readlink(path)})"
+        return None  # missing: the caller says so
+    mode = st.st_mode
+    for test, kind in ((stat.S_ISREG, None), (stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return "not a regular file"

@@ -45,7 +45,7 @@ import pandera.pandas as pa  # noqa: E402
 from pandera.typing import Series  # noqa: E402
 
 from fringecal.atomic import atomic_path  # noqa: E402
-from fringecal.names import name_problem  # noqa: E402
+from fringecal.names import name_problem, not_a_file  # noqa: E402
 from fringecal.sensor import PARAM_NAMES  # noqa: E402
 
 __all__ = [
@@ -867,6 +867,8 @@ def read_csv_text(path, max_rows: int | None = None, why: str = "") -> pd.DataFr
     tabs (a spreadsheet of another locale) is refused with that hint.
     """
     path = Path(path)
+    if (kind := not_a_file(path)) is not None and kind != "a folder":  # a FIFO would be waited on forever
+        raise TableError(str(path), [(None, None, f"{kind}, not a CSV file")])
     try:
         raw = path.read_bytes()
     except FileNotFoundError:

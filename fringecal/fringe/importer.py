@@ -38,6 +38,18 @@ far too much exposure is refused before any decoding (``fringecal run --dataset`
   or above :data:`DARK_LEVEL` (2 % of full scale, the decoder's default minimum
   modulation) is dark and refuses the stack; hot pixels stay below that count, while a
   projected fringe lights about half of what the camera sees.
+* **One level**: every phase step shows the same mean level (the fringes move, their
+  average does not); a frame below the stack's median level divided by
+  :data:`LEVEL_RATIO` (4: two bits) was saved at another bit depth or scaling (a 16-bit
+  stack with one frame 4 bits short lost 30 % of its valid pixels silently) and
+  refuses the stack.
+* **Repeated step**: consecutive phase steps of one fringe count differ by a phase
+  shift; a step whose mean difference from the one before is below the stack's median
+  step difference divided by :data:`REPEAT_RATIO` (8) repeats it (a double trigger)
+  and refuses the stack (:func:`read_frames` only: it needs every frame).
+* **Not a file**: an entry named like a frame that is a symbolic link loop, a broken
+  link, a FIFO, a device or a socket is refused as what it is (a FIFO is never opened:
+  reading one would wait forever).
 
 How frames are read (the readers are in :mod:`fringecal.fringe.frame_files`; decisions
 measured by ``benchmarks/image_import.py``, the table is in docs/decoding.md, "Image
@@ -101,10 +113,11 @@ from fringecal.fringe.frame_files import (
     read_tif,
 )
 from fringecal.fringe.sequence import FringeSequence, SequenceError
+from fringecal.names import not_a_file
 
 __all__ = ["FrameStackError", "StackSpec", "FrameStack", "read_stack_spec", "check_stack", "check_levels",
            "read_frames", "write_frames", "SEQUENCE_FILE", "STACK_FILE", "FRAME_FORMATS", "MAX_SATURATED_FRACTION",
-           "DARK_LEVEL", "MIN_LIT_FRACTION"]
+           "DARK_LEVEL", "MIN_LIT_FRACTION", "LEVEL_RATIO", "REPEAT_RATIO"]
 
 STACK_FILE = "frames.npy"
 FRAME_FORMATS = ("png", "tif", "bmp")
@@ -179,7 +192,10 @@ def read_stack_spec(folder) -> tuple[StackSpec, list[Path], str]:
         raise FrameStackError(f"{folder}: not a folder of fringe frames")
     spec = _load_spec(folder / SEQUENCE_FILE)
     seq = spec.sequence
-    entries = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_EXTS)
+    entries = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_EXTS and not p.is_dir())
+    for p in entries:
+        if (kind := not_a_file(p)) is not None:
+            raise FrameStackError(f"{p}: {kind}, not a frame file; replace it with the frame's image file")
     stack = folder / STACK_FILE
     if stack.exists():
         others = [p for p in entries if p != stack]
@@ -249,9 +265,10 @@ def check_levels(folder, max_saturated_fraction: float = MAX_SATURATED_FRACTION)
         reader, scratch = {"png": read_png, "tif": read_tif, "bmp": read_bmp}[fmt], Scratch()
         for j, i in enumerate(picked):
             reader(files[i], spec, frames[j], scratch)
-    peak, n_full, n_lit = _frame_stats(frames, spec.full_scale, _lit_level(spec.full_scale))
-    _check_values(peak, n_full, n_lit, [_frame_label(files, spec, i) for i in picked], spec,
-                  max_saturated_fraction)
+    peak, n_full, n_lit, total = _frame_stats(frames, spec.full_scale, _lit_level(spec.full_scale))
+    labels = [_frame_label(files, spec, i) for i in picked]
+    _check_values(peak, n_full, n_lit, labels, spec, max_saturated_fraction)
+    _check_same_level(total / (spec.width_px * spec.height_px), labels, spec)
 
 
 def read_frames(folder, threads: int | None = None,
@@ -290,9 +307,11 @@ def read_frames(folder, threads: int | None = None,
             errors = [e for e in (f.exception() for f in futures) if e is not None]
         if errors:
             raise errors[0]
-    peak, n_full, n_lit = _frame_stats(frames, spec.full_scale, _lit_level(spec.full_scale))
-    _check_values(peak, n_full, n_lit, [_frame_label(files, spec, i) for i in range(len(frames))], spec,
-                  max_saturated_fraction)
+    peak, n_full, n_lit, total = _frame_stats(frames, spec.full_scale, _lit_level(spec.full_scale))
+    labels = [_frame_label(files, spec, i) for i in range(len(frames))]
+    _check_values(peak, n_full, n_lit, labels, spec, max_saturated_fraction)
+    _check_same_level(total / (spec.width_px * spec.height_px), labels, spec)
+    _check_steps_differ(frames, labels, spec.sequence)
     return FrameStack(folder, spec, frames, files, fmt)
 
 
@@ -353,6 +372,9 @@ def _stem(orientation: str, fringes: int, step: int) -> str:
 
 
 def _load_spec(path: Path) -> StackSpec:
+    if path.exists() or path.is_symlink():
+        if (kind := not_a_file(path)) is not None:
+            raise FrameStackError(f"{path}: {kind}, not a file")
     try:
         data = load_yaml_text(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -454,25 +476,101 @@ def _check_values(peak, n_full, n_lit, labels: list[str], spec: StackSpec, max_s
                               f"{MIN_LIT_FRACTION:.2%} of its pixels lit)")
 
 
+#: a frame whose mean level is below the stack's median level divided by this (two bits)
+#: was saved at another bit depth or exposure than the others
+LEVEL_RATIO = 4.0
+#: consecutive phase steps whose mean difference is below the stack's median step
+#: difference divided by this show the same fringe position: a repeated step
+REPEAT_RATIO = 8.0
+
+
+def _check_same_level(means, labels: list[str], spec: StackSpec) -> None:
+    """Refuse a frame far darker than the stack's others: every phase step of a stack
+    shows the same mean level (the fringes shift, their average does not), so a frame at
+    1/16 of it is 4 bits short -- saved with another bit depth or scaling -- and would
+    silently cost valid pixels in decoding."""
+    means = np.asarray(means, float)
+    if len(means) < 2:
+        return
+    median = float(np.median(means))
+    low = np.flatnonzero(means * LEVEL_RATIO < median)
+    if low.size:
+        i = int(low[0])
+        bits = np.log2(median / max(means[i], 1e-9))
+        raise FrameStackError(f"{labels[i]}: mean level {means[i]:.0f} DN against the stack's {median:.0f} DN (median "
+                              f"of its frames): about {bits:.0f} bits short; a frame saved at another bit depth or "
+                              f"scaling than {SEQUENCE_FILE}'s bit_depth {spec.bit_depth} (or a far shorter "
+                              "exposure)? Every frame of a stack must be recorded alike")
+
+
+def _check_steps_differ(frames: np.ndarray, labels: list[str], sequence: FringeSequence) -> None:
+    """Refuse a phase step that repeats the one before it (a double trigger: the camera
+    fired twice on one pattern): consecutive steps of a fringe count differ by a phase
+    shift of 2 pi / N, so their mean difference is a large part of the modulation, while
+    a repeated step differs by noise alone."""
+    previous = np.full(len(frames), -1, np.int64)
+    for i, (_, _, k) in enumerate(sequence.frames()):
+        if k > 0:
+            previous[i] = i - 1
+    if not (previous >= 0).any():
+        return
+    diff = _step_differences(frames, previous)
+    pairs = np.flatnonzero(previous >= 0)
+    median = float(np.median(diff[pairs]))
+    # a pair far below the median, in a fringe count whose other steps do move (a count
+    # without fringes at all is the decoder's "zero modulation" message, not a repeat)
+    group = np.array([i - k for i, (_, _, k) in enumerate(sequence.frames())])
+    moving = {g: diff[pairs[group[pairs] == g]].max() * REPEAT_RATIO >= median for g in np.unique(group[pairs])}
+    same = [i for i in pairs if diff[i] * REPEAT_RATIO < median and moving[group[i]]]
+    if same:
+        i = int(same[0])
+        raise FrameStackError(f"{labels[i]}: repeats the phase step before it ({labels[previous[i]]}): their mean "
+                              f"difference is {diff[i]:.1f} DN against {median:.0f} DN between the stack's other "
+                              "consecutive steps; a double trigger (the camera fired twice on one pattern)? Every "
+                              "step must show the next phase shift")
+
+
 @nb.njit(parallel=True, cache=True)
 def _frame_stats(frames, full_scale, lit_level):  # pragma: no cover - numba
-    """Per frame: the largest value, the number of pixels at or above full scale and the
-    number at or above ``lit_level``."""
+    """Per frame: the largest value, the number of pixels at or above full scale, the
+    number at or above ``lit_level`` and the sum of the values."""
     n, h, w = frames.shape
     peak = np.zeros(n, np.int64)
     n_full = np.zeros(n, np.int64)
     n_lit = np.zeros(n, np.int64)
+    total = np.zeros(n, np.int64)
     for i in nb.prange(n):
         m = 0
         s = 0
         q = 0
+        t = 0
         for r in range(h):
             for c in range(w):
                 v = np.int64(frames[i, r, c])
                 m = max(m, v)
                 s += v >= full_scale
                 q += v >= lit_level
+                t += v
         peak[i] = m
         n_full[i] = s
         n_lit[i] = q
-    return peak, n_full, n_lit
+        total[i] = t
+    return peak, n_full, n_lit, total
+
+
+@nb.njit(parallel=True, cache=True)
+def _step_differences(frames, previous):  # pragma: no cover - numba
+    """Mean absolute difference of each frame from frame ``previous[i]`` (the step before
+    it in its fringe count; -1: none, the result is -1)."""
+    n, h, w = frames.shape
+    out = np.full(n, -1.0)
+    for i in nb.prange(n):
+        j = previous[i]
+        if j < 0:
+            continue
+        t = 0
+        for r in range(h):
+            for c in range(w):
+                t += abs(np.int64(frames[i, r, c]) - np.int64(frames[j, r, c]))
+        out[i] = t / (h * w)
+    return out
