@@ -9,13 +9,14 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from fringecal.flows.common import UserInputError, console, fail, user_errors
+from fringecal.flows.common import UserInputError, console, fail, guarded, user_errors
 
 CAPTURE_HELP = ("Capture command template, run once per (measurement, scanner), e.g. "
                 "'vendor-scan --scanner {scanner} --out {out}'. Placeholders: {measurement}, {scanner}, {out} "
                 "(the folder to write the image stack into), {dataset}. Needed unless --dry-run.")
 
 
+@guarded
 def acquire_command(
     dataset: Path = typer.Option(..., "--dataset", "-d", help="Data set folder with dataset.yaml, artefact.csv, "
                                  "sensors_prior.csv and poses_planned.csv (measurements/ is filled)."),

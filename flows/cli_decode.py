@@ -27,6 +27,19 @@ def _measurements(frames: Path, out: Path) -> tuple[list[Path], list[Path]]:
     return dirs, [out / f"{d.name}.zarr" for d in dirs]
 
 
+def _store_size(dirs: list[Path], store_frames: bool) -> float:
+    """Roughly the bytes of the stores: six maps of four bytes per pixel (tau_x, tau_y,
+    modulation, phase error, texture, valid), and the frames when kept, before compression."""
+    from fringecal.fringe.importer import read_stack_spec
+
+    total = 0.0
+    for d in dirs:
+        spec, _, _ = read_stack_spec(d)
+        pixels = spec.width_px * spec.height_px
+        total += 24 * pixels + (spec.sequence.n_frames * pixels * spec.dtype.itemsize if store_frames else 0)
+    return total
+
+
 def _decode(dirs: list[Path], outs: list[Path], settings, store_frames: bool) -> list:
     """Decode each folder into its store, one after the other (each decode uses every core).
 
@@ -81,6 +94,9 @@ def decode_command(
         check_stack(d)
     for d in dirs:  # then one frame per orientation of each: dark or over-exposed stacks
         check_levels(d)
+    from fringecal.flows.common import needs_space
+
+    needs_space(out, lambda: _store_size(dirs, store_frames), f"decoding {len(dirs)} stack(s)")
     refs = _decode(dirs, outs, settings, store_frames)
     rows = []
     for d, ref in zip(dirs, refs):

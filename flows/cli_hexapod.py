@@ -34,7 +34,7 @@ def _guarded(fn):
     def wrapper(*args, **kwargs):
         from fringecal.hexapod import ForwardKinematicsError, HexapodFault, TargetRejected
 
-        inner = guarded(fn, extra=(TargetRejected, ForwardKinematicsError, ValueError))
+        inner = guarded(fn, extra=(TargetRejected, ForwardKinematicsError, ValueError), passing=(HexapodFault,))
         try:
             return inner(*args, **kwargs)
         except HexapodFault as err:

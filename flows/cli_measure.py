@@ -47,6 +47,26 @@ def _print(summary: dict) -> None:
     console.print(f"{summary['seconds']['total']:.1f} s")
 
 
+def _cloud_size(folders: list[Path], decimate: int) -> float:
+    """Roughly the bytes of the cloud: per camera pixel kept, about 40 bytes (x, y, z as
+    float64, pixel, scanner, eps1, modulation, u), from the folders' stacks and stores."""
+    from fringecal.fringe.importer import read_stack_spec
+    from fringecal.store import open_store
+
+    pixels = 0
+    for folder in folders:
+        for entry in Path(folder).iterdir():
+            try:
+                if entry.suffix == ".zarr":
+                    pixels += int(open_store(entry)["valid"].size)
+                elif entry.is_dir():
+                    spec, _, _ = read_stack_spec(entry)
+                    pixels += spec.width_px * spec.height_px
+            except ValueError:
+                continue
+    return 40.0 * pixels / decimate**2
+
+
 @guarded
 def measure_command(
     run: Optional[Path] = typer.Option(None, "--run", "-r", help="A calibrated run directory: measure with its "
@@ -87,6 +107,9 @@ def measure_command(
     (output_folder if out.suffix.lower() == ".zarr" else output_file)(out, "--out")
     settings = _settings(decimate, max_eps1_mm, uncertainty)
     kind, folders = ("frames", frames) if frames else ("stores", stores)
+    from fringecal.flows.common import needs_space
+
+    needs_space(out, lambda: _cloud_size(folders, decimate), "the point cloud")
     try:
         summary = measure_folder(calibration, folders, kind, out, settings, datum=datum)
     except MeasurementSourceError as err:

@@ -167,17 +167,32 @@ def verdict_row(verdict: dict | None) -> tuple[str, str]:
 
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
-             verbose: bool, command: str, reporter, until: Optional[str] = None) -> dict:
+             verbose: bool, command: str, reporter, until: Optional[str] = None, fresh_digests: bool = False) -> dict:
     """Run the flow into ``run_dir``. Ctrl-C or SIGTERM ends the command within seconds
     with one line (:mod:`fringecal.flows.interrupt`); no helper process outlives it
-    (:mod:`fringecal.lifeline`); a rerun resumes and says what it reused."""
+    (:mod:`fringecal.lifeline`); a rerun resumes and says what it reused. The run
+    directory is claimed (:func:`fringecal.run.resume.claim`) before Prefect starts, so a
+    second command into it is refused at once; Prefect's log lines go to the run's log
+    file (:mod:`fringecal.flows.prefect_logs`), and a failure ends with one line
+    (:func:`fringecal.flows.common.guarded`). ``fresh_digests`` (``--force``) forgets the
+    run's digest cache: every file is hashed again."""
+    import shutil
+
     from fringecal import lifeline
+    from fringecal.flows import prefect_logs
+    from fringecal.flows.common import log_failures_to, needs_space
     from fringecal.run import resume
     from fringecal.run import warmup as kernel_warmup
     from fringecal.rundir import RunDir
 
-    if (owner := resume.busy(RunDir(run_dir))) is not None:
-        raise UserInputError(resume.describe_busy(RunDir(run_dir), owner))
+    rd = RunDir(run_dir)
+    if (owner := resume.busy(rd)) is not None:
+        raise UserInputError(resume.describe_busy(rd, owner))
+    resume.claim(rd)
+    if fresh_digests:
+        shutil.rmtree(rd.digest_cache_dir, ignore_errors=True)
+    needs_space(run_dir, lambda: run_size_estimate(cfg), "the run")
+    log_failures_to(rd.log.path)
     from fringecal.flows.interrupt import armed
 
     warmup = server = None
@@ -191,6 +206,9 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
                          "also sets up its database)")
             with reporter.running():  # from here a line at least every 30 s, also while the server starts
                 from fringecal.flows.run_flow import NotAccepted, run_flow
+
+                if not verbose:
+                    prefect_logs.to_file(rd.log.path)
 
                 kind = runner or cfg.runner.kind
                 task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
@@ -209,10 +227,30 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
         if server is not None:
             os.environ.pop("PREFECT_API_URL", None)
         lifeline.stop(warmup)
+        prefect_logs.restore()
+        resume.release(rd)
     if summary.get("resumed"):
         n = summary["resumed"]["reused"]
         reporter.say(f"resumed: {n} step instance{'' if n == 1 else 's'} reused from the interrupted run")
     return summary
+
+
+def run_size_estimate(cfg) -> float:
+    """Roughly the bytes a run writes: per image stack (measurement, position) a store of
+    its decoded maps and the maps and labels derived from it, some 16 float32 values per
+    camera pixel before compression (an upper bound: the stores are compressed)."""
+    if cfg.source == "dataset":
+        from fringecal.dataset import DataSet
+
+        stacks = DataSet.open(cfg.dataset).stacks()
+        pixels = sum(s.width_px * s.height_px for s in stacks)
+    else:
+        from fringecal.simulate.source import acquisition_table, load_simulated_rig
+
+        sr = load_simulated_rig(cfg.simulate)
+        width = cfg.simulate.acquisition.camera_width_px
+        pixels = len(acquisition_table(sr)) * width * width
+    return 16 * 4 * pixels
 
 
 def reporter_for(mode: Optional[str], out) -> object:
@@ -261,6 +299,14 @@ def _temporary_server():
     return server
 
 
+def _apart(cfg, out: Path) -> None:
+    """A run directory outside the data set it calibrates (and not around it)."""
+    if cfg.source == "dataset":
+        from fringecal.flows.validate import apart
+
+        apart(out, "--out", cfg.dataset)
+
+
 def _check_inputs(config: Optional[Path], dataset: Optional[Path], out: Path, workers: Optional[int] = None) -> None:
     """The options' paths and numbers, before the config is read (flows/validate.py)."""
     from fringecal.flows.validate import input_file, input_folder, output_folder, whole
@@ -300,6 +346,7 @@ def run_command(
         raise UserInputError(f"--runner must be threads or dask, not {runner!r}")
     _check_inputs(config, dataset, out, workers)
     cfg = validate_run_config(config, dataset=dataset)
+    _apart(cfg, out)
     if until is not None and until not in (names := [s.name for s in pipeline(cfg)]):
         raise UserInputError(f"--until {until}: not a step of this run; the steps are {', '.join(names)}")
     summary = None if force or until else _current(cfg, out)
@@ -307,7 +354,8 @@ def run_command(
         from fringecal.hexapod import HexapodFault
 
         try:
-            summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run", reporter, until)
+            summary = _execute(cfg, out, runner, dask_address, workers, verbose, "fringecal run", reporter, until,
+                               fresh_digests=force)
         except HexapodFault as err:  # the controller, not the input: its own status
             fail(f"hexapod: {err}", code=1)
     if as_json:
@@ -360,6 +408,7 @@ def reproduce_command(
     old = rd.summary.load() if rd.summary.exists() else None
     cfg = validate_run_config(manifest["config"])
     target = out or run
+    _apart(cfg, target)
     summary = _execute(cfg, target, None, None, None, verbose, f"fringecal reproduce --run {run}", reporter)
     _print_summary(summary, target)
     if old is not None:
@@ -461,8 +510,11 @@ def serve_command(
     Prefect server: PREFECT_API_URL (or the active profile) must name one, started with
     `prefect server start --host 127.0.0.1` (Prefect's temporary server cannot schedule).
     One run at a time; each run's verdict is in OUT/summary.json, and a run that is NOT
-    ACCEPTED ends in Prefect's Failed state with the verdict as its message. Ctrl-C
-    stops serving.
+    ACCEPTED ends in Prefect's Failed state with the verdict as its message. Once
+    serving, the terminal shows one line for what ends it, the details go to
+    OUT/fringecal.log. Ctrl-C or SIGTERM stops serving within seconds (status 130 or
+    143), as does a Prefect server that stops answering (one line, status 1); a run in
+    progress is then stopped, and the next run resumes its finished steps.
     """
     no_prefect_telemetry()
     api = configured_prefect_api()
@@ -472,13 +524,22 @@ def serve_command(
     schedule, when = _schedule(cron, interval, timezone)
     _check_inputs(config, dataset, out)
     cfg = validate_run_config(config, dataset=dataset)
+    _apart(cfg, out)
     _check_prefect_server(api)
     from prefect.types.entrypoint import EntrypointType
 
     from fringecal.flows.run_flow import run_flow
 
+    from fringecal.flows import serving
+    from fringecal.rundir import RunDir
+
     run_dir = out.expanduser().absolute()  # the runs start in their own processes and folders
-    console.print(f"serving deployment {name!r} ({when}) on {api}; runs write to {run_dir} (Ctrl-C stops)")
+    log = RunDir(run_dir).log.path
+    console.print(f"serving deployment {name!r} ({when}) on {api}; runs write to {run_dir}, the details to {log} "
+                  "(Ctrl-C stops)")
+    serving.detach(log)
+    serving.arm_signals(run_dir)
+    serving.watch_server(api, run_dir, log)
     run_flow.serve(name=name, schedule=schedule, limit=1, entrypoint_type=EntrypointType.MODULE_PATH,
                    print_starting_message=False,
                    parameters={"config": cfg.model_dump(mode="json"), "run_dir": str(run_dir),

@@ -52,6 +52,13 @@ def simulate_command(
         for line in plan.describe_skipped():
             reporter.say(line)
     n = len(acquisition_table(sr)) + sum(len(p.recorders) for p in plans)
+    from fringecal.flows.common import needs_space
+    from fringecal.simulate.export import remove_interrupted_exports
+
+    for folder, size in remove_interrupted_exports(out.absolute().parent, truth.absolute().parent):
+        reporter.say(f"removed {folder} ({size / 1e6:.0f} MB), left by an interrupted fringecal simulate")
+    w = cfg.simulate.acquisition.camera_width_px
+    needs_space(out.absolute().parent, n * 100 * w * w * 2, "the data set (16-bit frames, about 100 per stack)")
     with reporter.running():
         shown.step("render image stacks", n)
         write_dataset(cfg, out, truth, fmt, workers, on_stack=lambda _: shown.advance("render image stacks"))

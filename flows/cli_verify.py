@@ -43,6 +43,7 @@ def ballbar(
     from fringecal.schemas import BallbarCentresTable, SphereCentresTable, read_any_table
     from fringecal.verification.lengths import ballbar_lengths, evaluate_ballbar
 
+    given = reference_length_mm
     centres, reference_length_mm = _ballbar_inputs(centres, run, reference_length_mm)
     positive(reference_length_mm, "--reference-length-mm", "mm")
     positive(volume_diagonal_mm, "--volume-diagonal-mm", "mm")
@@ -52,6 +53,10 @@ def ballbar(
     positive(coverage_factor, "--k")
     table = read_any_table(centres, SphereCentresTable, BallbarCentresTable)
     lengths = ballbar_lengths(table, str(centres))
+    from fringecal.flows.validate import same_unit
+
+    same_unit(float(lengths.length_mm.mean()), reference_length_mm,
+              "--reference-length-mm" if given is not None else "the run's ballbar.csv: reference length")
     result = evaluate_ballbar(lengths.length_mm, reference_length_mm, lengths.measurement, mpe_mm,
                               volume_diagonal_mm, certificate_u_mm, certificate_k, coverage_factor)
     failed = mpe_mm is not None and not result.passed  # exit status 3 after the result is printed

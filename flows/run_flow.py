@@ -93,8 +93,16 @@ class StepRunner:
             futures[item] = task.submit(step.name, str(self.rd.root), self.config, item, key, context)
             futures[item].add_done_callback(self._count)
         for item, future in futures.items():
-            record = future.result()
             name = f"{step.name}:{item}" if item else step.name
+            try:
+                record = future.result()
+            except Exception as err:  # the command's one line says which step instance failed
+                if getattr(err, "fringecal_step", None) is None:
+                    try:
+                        err.fringecal_step = name
+                    except AttributeError:  # an exception type without a __dict__
+                        pass
+                raise
             (self.cached if future.state.name == "Cached" or record.get("reused") else self.ran).append(name)
             self.records[name] = {"key": record["key"], "outputs": record["outputs"]}
             if record.get("compile_seconds") and not record.get("reused"):

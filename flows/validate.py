@@ -24,7 +24,7 @@ from typing import Optional
 from fringecal.flows.common import UserInputError
 
 __all__ = ["number", "positive", "whole", "input_file", "input_folder", "output_file", "output_folder",
-           "new_folder", "calibration_file"]
+           "new_folder", "calibration_file", "apart", "same_unit"]
 
 
 def number(value: Optional[float], option: str, *, gt: Optional[float] = None, ge: Optional[float] = None,
@@ -148,3 +148,37 @@ def _writable(folder: Path, option: str, target: Path) -> None:
                              f"({err.strerror or err})") from None
     os.close(fd)
     os.unlink(probe)
+
+
+def apart(out: Path, option: str, data: Path, what: str = "the data set") -> None:
+    """``out`` (a run directory) neither equal to, inside, nor holding the folder ``data``:
+    a run inside a data set adds folders its contract refuses (every later run of it
+    would stop), and a run around one would treat it as the run's own files."""
+    a, b = Path(os.path.realpath(out)), Path(os.path.realpath(data))
+    if a == b or b in a.parents:
+        raise UserInputError(f"{option} {out}: inside {what} {data}; write the run outside it (it would add files "
+                             f"and folders to {what}, which later runs would refuse)")
+    if a in b.parents:
+        raise UserInputError(f"{option} {out}: holds {what} {data}; write the run to a folder of its own, beside "
+                             f"{what}")
+
+
+#: (factor, unit): a reference length ``factor`` times too small was likely given in ``unit``
+_UNITS = ((1000.0, "metres"), (304.8, "feet"), (25.4, "inches"), (10.0, "centimetres"), (1e-3, "micrometres"))
+
+
+def same_unit(measured_mm: float, reference_mm: float, option: str) -> None:
+    """Refuse a reference length that differs from the measured lengths by more than a
+    factor of two: no calibration is that wrong, a unit slip or the wrong bar is (a
+    reference in metres judged as a failed cell, status 3, misleads); names the likely
+    unit."""
+    if not (math.isfinite(measured_mm) and measured_mm > 0):
+        return
+    ratio = measured_mm / reference_mm
+    if 0.5 <= ratio <= 2.0:
+        return
+    guess = next((f"; given in {unit}? ({reference_mm * f:.6g} mm)" for f, unit in _UNITS
+                  if abs(math.log(ratio / f)) < math.log(1.1)), "; the wrong bar or unit?")
+    raise UserInputError(f"{option} {reference_mm:g}: the measured lengths average {measured_mm:.6g} mm, "
+                         f"{ratio:.4g} times the reference{guess} An error this large is an input mix-up, not "
+                         "a failed cell")

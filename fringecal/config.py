@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from fringecal.names import not_a_file
 
 __all__ = ["ConfigError", "StrictModel", "RigConfig", "load_yaml_model", "read_yaml_mapping", "validate_model",
-           "deep_update", "configs_dir", "thesis_dir", "bundled_config", "load_yaml_text", "yaml_problem",
+           "deep_update", "configs_dir", "thesis_dir", "bundled_config", "load_yaml_text", "yaml_problem", "validate_section",
            "YAMLRefused", "MAX_YAML_VALUES"]
 
 
@@ -81,12 +81,12 @@ class RigConfig(StrictModel):
     materials: Optional[Path] = None
 
 
-def _format_validation_error(path: Path, err: ValidationError) -> str:
+def _format_validation_error(path: Path, err: ValidationError, prefix: str = "") -> str:
     """One line for one error (``FILE: invalid configuration: key.path: message``), else
-    a first line and one line per error."""
+    a first line and one line per error; ``prefix`` goes before every key path."""
     found = []
     for e in err.errors():
-        loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
+        loc = prefix + ".".join(str(x) for x in e["loc"]) or "(top level)"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
         found.append(f"{loc}: {msg}")
     if len(found) == 1:
@@ -224,6 +224,16 @@ def read_yaml_mapping(path, empty_hint: str = "expected a mapping of settings") 
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, found {type(data).__name__}")
     return data
+
+
+def validate_section(data, model: type[BaseModel], source, prefix: str) -> None:
+    """Check ``data`` against ``model`` alone, errors naming ``source`` and the keys under
+    ``prefix`` (a data set's ``processing.bundle`` before it is merged into a run config,
+    so that its errors name ``dataset.yaml``, not the run configuration)."""
+    try:
+        model.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(Path(source), err, prefix)) from None
 
 
 def validate_model(data: dict, model: type[BaseModel], source, base: Path):

@@ -6,10 +6,11 @@ uses and of the source of the fringecal modules it runs.
 
 * :func:`digest_path` hashes a file, or a folder's relative paths and file contents
   (hidden entries are skipped, so temporaries and lock files never count).
-* :class:`DigestCache` remembers digests by each file's size, modification time and
-  inode, as git's index does, so an unchanged 100 MB store or a 98-frame image stack
-  is hashed once, not at every check. A file changed in place gets a new mtime and is
-  hashed again. Entries for files modified within two seconds of hashing are not
+* :class:`DigestCache` remembers digests by each file's size, modification time,
+  change time and inode, as git's index does, so an unchanged 100 MB store or a
+  98-frame image stack is hashed once, not at every check. A file changed in place
+  gets a new change time (ctime), which, unlike the modification time, no program can
+  set back: a same-size rewrite whose mtime was restored is hashed again. Entries for files modified within two seconds of hashing are not
   kept (a second write within the file system's timestamp resolution could
   otherwise go unseen).
 * :func:`source_digest` hashes the source files of modules and of every fringecal or
@@ -125,15 +126,16 @@ class DigestCache:
 
     @staticmethod
     def signature(path: Path) -> tuple[str, int]:
-        """(hash of every file's relative path, size, mtime and inode; newest mtime)."""
+        """(hash of every file's relative path, size, mtime, ctime and inode; newest of
+        the mtimes and ctimes)."""
         files = _files(path) if path.is_dir() else [path]
         h = hashlib.sha256()
         newest = 0
         for p in files:
             st = p.stat()
-            newest = max(newest, st.st_mtime_ns)
-            h.update(f"{p.relative_to(path) if p != path else ''}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\n"
-                     .encode())
+            newest = max(newest, st.st_mtime_ns, st.st_ctime_ns)
+            h.update(f"{p.relative_to(path) if p != path else ''}\0{st.st_size}\0{st.st_mtime_ns}\0"
+                     f"{st.st_ctime_ns}\0{st.st_ino}\n".encode())
         return h.hexdigest(), newest
 
     def _entry_file(self, key: str) -> Path | None:

@@ -125,6 +125,9 @@ class Rig:
         parameters fixed, else the first scanner.
         """
         df = validate_table(df, SensorParametersTable, source)
+        if df.empty:
+            raise TableError(source, [(None, None, "no sensors (the table has a header and no rows); a rig needs "
+                                                   "a camera and a projector row per scanner")])
         formats = formats or {}
         problems = []
         scanners = []

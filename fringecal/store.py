@@ -1,12 +1,23 @@
 """Measurement stores: one zarr v3 store per measurement, written atomically.
 
 A store is written under a hidden temporary sibling name (``.M.zarr.tmp-<id>``),
-then finalised -- a manifest of every variable's chunk files (count and bytes) and
+then finalised -- a manifest of every variable's chunk files (count and bytes), the
+SHA-256 of every chunk file and of each array's metadata (``fringecal_digests``) and
 the completion marker ``fringecal_complete = true`` go into the root attributes,
 written last together with the consolidated metadata -- and only then renamed to
 its final name. A crash leaves at most a hidden temporary folder; a folder at the
 final name without the marker, or whose files disagree with the manifest, is
 refused by :func:`open_store` with a message naming the store.
+
+Content is checked on read: :func:`open_store` and :func:`copy_store` (and
+:func:`verify_store`) hash every file the digests list and refuse a store whose
+bytes changed since it was written, naming the file -- one flipped byte in a chunk
+would otherwise decode to other numbers without a word (a chunk's size does not
+change). A store is hashed once per process while its files' size, modification
+and change times and inode stay the same (:data:`_VERIFIED`); the change time
+(ctime) cannot be set back by a program, so a same-size rewrite with its mtime
+restored is hashed again. Stores written before the digests existed carry none and
+are checked by size only.
 
 Stores open with plain ``xarray.open_zarr(path)``; :func:`open_store` adds the
 checks. Maps are float32 (or bool) of shape (H, W) on dims ``("v", "u")`` (camera
@@ -18,9 +29,11 @@ stores of their own. :func:`copy_store` copies one (hard links where possible).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
+import threading
 import uuid
 import warnings
 from pathlib import Path
@@ -31,7 +44,7 @@ import zarr
 from zarr.codecs import BloscCodec
 
 __all__ = ["StoreError", "write_store", "open_store", "is_complete", "store_attributes", "copy_store", "store_encoding",
-           "COMPLETE_ATTR", "MANIFEST_ATTR"]
+           "verify_store", "COMPLETE_ATTR", "MANIFEST_ATTR", "DIGESTS_ATTR"]
 
 # Stores are written with consolidated metadata on purpose (one read opens a store);
 # zarr warns on every write and open that v3 has no such spec yet.
@@ -39,6 +52,7 @@ warnings.filterwarnings("ignore", message="Consolidated metadata is currently no
 
 COMPLETE_ATTR = "fringecal_complete"
 MANIFEST_ATTR = "fringecal_manifest"
+DIGESTS_ATTR = "fringecal_digests"
 MAP_CHUNK = 512
 FRAME_CHUNK = 256
 POINT_CHUNK = 1 << 20
@@ -116,6 +130,7 @@ def open_store(path, verify: bool = False) -> xr.Dataset:
     """
     path = Path(path)
     _check_complete(path)
+    verify_store(path)
     try:
         ds = xr.open_zarr(path, consolidated=True)
     except Exception as err:
@@ -134,6 +149,7 @@ def copy_store(src, dst) -> Path:
     file system allows (stores are never edited in place, so the copy cannot change)."""
     src, dst = Path(src), Path(dst)
     _check_complete(src)
+    verify_store(src)
 
     def link(s, d):
         try:
@@ -179,10 +195,75 @@ def _manifest(path: Path) -> dict[str, list[int]]:
     return out
 
 
+def _content_files(path: Path) -> list[str]:
+    """Relative paths of every file of a store but the root's ``zarr.json`` (which holds
+    the digests), hidden ones left out."""
+    out = []
+    for root, dirs, files in os.walk(path):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        rel = Path(root).relative_to(path)
+        out += [str(rel / f) if str(rel) != "." else f for f in sorted(files) if not f.startswith(".")]
+    return [f for f in out if f != "zarr.json"]
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def _finalise(tmp: Path) -> None:
     group = zarr.open_group(tmp, mode="r+", zarr_format=3)
-    group.attrs.update({MANIFEST_ATTR: _manifest(tmp), COMPLETE_ATTR: True})
+    digests = {rel: _sha256(tmp / rel) for rel in _content_files(tmp)}
+    group.attrs.update({MANIFEST_ATTR: _manifest(tmp), DIGESTS_ATTR: digests, COMPLETE_ATTR: True})
     zarr.consolidate_metadata(tmp)
+
+
+#: stores whose content this process has checked: path -> the stat signature then
+_VERIFIED: dict[str, str] = {}
+_VERIFIED_LOCK = threading.Lock()
+
+
+def _signature(path: Path, files: list[str]) -> str:
+    h = hashlib.sha256()
+    for rel in [*files, "zarr.json"]:
+        st = (path / rel).stat()
+        h.update(f"{rel}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ctime_ns}\0{st.st_ino}\n".encode())
+    return h.hexdigest()
+
+
+def verify_store(path) -> None:
+    """Refuse (:class:`StoreError`, naming the file) a complete store whose files are not
+    the bytes its digests list: a changed, missing or added file. No-op for a store
+    written before stores carried digests."""
+    path = Path(path)
+    doc = _metadata(path)
+    expected = (doc.get("attributes") or {}).get(DIGESTS_ATTR)
+    if not isinstance(expected, dict):
+        return
+    actual = _content_files(path)
+    key = str(path.resolve())
+    try:
+        signature = _signature(path, actual)
+    except OSError as err:
+        raise StoreError(f"{path}: unreadable store ({err.strerror or err})") from None
+    with _VERIFIED_LOCK:
+        if _VERIFIED.get(key) == signature:
+            return
+    for rel in sorted(set(expected) | set(actual)):
+        if rel not in actual:
+            raise StoreError(f"{path / rel}: missing from the store (it was written with it); the store is corrupt: "
+                             "write it again")
+        if rel not in expected:
+            raise StoreError(f"{path / rel}: not part of the store as written (an added file); the store is corrupt: "
+                             "write it again")
+        if _sha256(path / rel) != expected[rel]:
+            raise StoreError(f"{path / rel}: changed since the store was written (its SHA-256 differs from the "
+                             "store's digest: a damaged or edited file); write the store again")
+    with _VERIFIED_LOCK:
+        _VERIFIED[key] = signature
 
 
 def _swap_in(tmp: Path, path: Path) -> None:
@@ -195,7 +276,7 @@ def _swap_in(tmp: Path, path: Path) -> None:
         os.rename(tmp, path)
 
 
-def _check_complete(path: Path) -> None:
+def _metadata(path: Path) -> dict:
     meta = path / "zarr.json"
     if not path.is_dir():
         raise StoreError(f"{path}: no such store")
@@ -205,6 +286,11 @@ def _check_complete(path: Path) -> None:
         raise StoreError(f"{path}: not a zarr store (no zarr.json)") from None
     except (ValueError, UnicodeDecodeError) as err:
         raise StoreError(f"{path}: corrupt store metadata ({err})") from None
+    return doc if isinstance(doc, dict) else {}
+
+
+def _check_complete(path: Path) -> None:
+    doc = _metadata(path)
     attrs = doc.get("attributes", {}) if isinstance(doc, dict) else {}
     if attrs.get(COMPLETE_ATTR) is not True:
         raise StoreError(f"{path}: incomplete store (no completion marker; its writing was interrupted or it was "

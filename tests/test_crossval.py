@@ -129,17 +129,28 @@ def test_projector_shift_in_one_half_is_model_error_of_that_scanner(truth):
     assert cv.to_dict()["verdict"] == "model error"
 
 
-def test_split_alternates_and_refuses_too_few_poses(truth):
+def test_split_alternates_by_standoff_whatever_the_names_and_refuses_too_few_poses(truth):
+    """The thesis's 12 poses, three at each of four stand-offs: alternating nearest first
+    gives each half poses at all four; renamed measurements (other natural order) give
+    the same halves (issue 31: results must not depend on folder names)."""
     problem, cp = _problem(truth, 3)
     a, b = split_measurements(problem)
-    assert a == ("1", "3", "5", "7", "9", "11") and b == ("2", "4", "6", "8", "10", "12")
+    assert a == ("2", "3", "4", "8", "9", "10") and b == ("1", "5", "6", "7", "11", "12")
+    standoff = {m: -int(m) // 3 for m in problem.measurements}  # 1-3, 4-6, 7-9, 10-12: one stand-off each
+    assert {standoff[m] for m in a} == {standoff[m] for m in b} == set(standoff.values())
+    names = {m: f"m{13 - int(m):02d}" for m in problem.measurements}  # reversed natural order
+    rig, art, poses = truth
+    renamed, _ = _problem((rig, art, poses.assign(measurement=poses["measurement"].map(names))), 3,
+                          cp.assign(measurement=cp["measurement"].map(names)))
+    ra, rb = split_measurements(renamed)
+    assert sorted(ra) == sorted(names[m] for m in a) and sorted(rb) == sorted(names[m] for m in b)
     ra, rb = split_measurements(problem, seed=5)
     assert len(ra) == len(rb) == 6 and sorted(ra + rb, key=int) == [str(i) for i in range(1, 13)]
     # scanner2 keeps only measurements 1, 3, 10 and 12 -> two in each half
     keep = ~((cp["scanner"] == "scanner2") & ~cp["measurement"].isin(["1", "3", "10", "12"]))
     thin, _ = _problem(truth, 3, cp[keep].reset_index(drop=True))
     with pytest.raises(ValueError, match=r"scanner scanner2 has control points in 2 measurement\(s\) of half A "
-                                         r"\(1, 3; 4 in all\).*half B \(10, 12; 4 in all\)") as err:
+                                         r"\(3, 10; 4 in all\).*half B \(1, 12; 4 in all\)") as err:
         split_measurements(thin)
     assert "scanner1" not in str(err.value)
 

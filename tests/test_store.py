@@ -130,10 +130,34 @@ def test_corrupt_stores_are_refused_naming_store_and_variable(tmp_path):
         open_store(tmp_path / "nothing.zarr")
 
 
-def test_verify_reads_every_chunk(tmp_path):
+def test_one_flipped_byte_is_found_on_open_and_named(tmp_path):
+    """Same size, same dates, one bit of one chunk changed: the content digest finds it
+    (issue 31: a flipped byte of a decoded store moved the ball-bar error silently)."""
     frames, *_ = frames_for()
     out = tmp_path / "m.zarr"
     decode_to_store(frames, SEQ, out, full_scale=4095)
+    chunk = out / "tau_x" / "c" / "0" / "0"
+    st = chunk.stat()
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    chunk.write_bytes(bytes(data))
+    os.utime(chunk, ns=(st.st_atime_ns, st.st_mtime_ns))  # the mtime put back
+    assert is_complete(out)  # the manifest's sizes agree
+    for read in (open_store, lambda p: copy_store(p, tmp_path / "copy.zarr")):
+        with pytest.raises(StoreError, match=r"m\.zarr/tau_x/c/0/0: changed since the store was written"):
+            read(out)
+    assert not (tmp_path / "copy.zarr").exists()
+
+
+def test_a_store_without_digests_is_checked_by_reading_every_chunk(tmp_path):
+    """A store written before stores carried digests opens (sizes checked); verify=True
+    still reads every chunk."""
+    frames, *_ = frames_for()
+    out = tmp_path / "m.zarr"
+    decode_to_store(frames, SEQ, out, full_scale=4095)
+    meta = json.loads((out / "zarr.json").read_text())
+    del meta["attributes"]["fringecal_digests"]
+    (out / "zarr.json").write_text(json.dumps(meta))
     chunk = out / "texture" / "c" / "0" / "0"
     data = bytearray(chunk.read_bytes())
     data[20:] = bytes(len(data) - 20)  # same size, damaged content: only reading finds it

@@ -13,8 +13,11 @@ propagation of the covariance cannot see that; re-adjusting bootstrap replicas c
 Each replica keeps the camera pixels and replaces the projector observations by those
 the calibrated model predicts (the pixel's ray meets its sphere, the hit is projected
 into the projector) plus the control point's own residual times a random sign
-(Rademacher weights: the wild bootstrap, which keeps every point's noise level). The
-adjustment of each replica starts from the calibration. The replicas' sensor
+(Rademacher weights: the wild bootstrap, which keeps every point's noise level). A
+point's sign in each replica is keyed by its own camera and projector coordinates
+(:mod:`fringecal.calibration.keyed`), not by its place in the problem, so that the
+replicas, and the bias they give, do not depend on the measurements' names or order.
+The adjustment of each replica starts from the calibration. The replicas' sensor
 parameters give, for any derived quantity ``q``, the bias ``mean(q*) - q`` (to be
 subtracted) and its spread ``std(q*)``.
 """
@@ -26,6 +29,7 @@ from dataclasses import replace
 import numpy as np
 
 from fringecal.calibration.bundle import BundleResult, bundle_adjust
+from fringecal.calibration.keyed import keyed_signs, row_keys
 from fringecal.rotation import rotation_matrix
 from fringecal.triangulation import sphere_hits
 
@@ -65,9 +69,9 @@ def bootstrap_calibrations(result: BundleResult, draws: int, seed: int = 0) -> n
     base = np.where(ok[:, None], predicted, problem.prj_mm)
     start = problem.with_start(result.rig, result.poses)
     options = result.options.model_copy(update={"start": "given"})
-    rng = np.random.default_rng(seed)
+    keys = row_keys(problem.cam_mm, problem.prj_mm)
     out = np.empty((draws,) + result.rig.params.shape)
     for i in range(draws):
-        signs = rng.choice((-1.0, 1.0), size=len(residual))[:, None]
+        signs = keyed_signs(keys, seed, i)[:, None]
         out[i] = bundle_adjust(replace(start, prj_mm=base + signs * residual), options).rig.params
     return out

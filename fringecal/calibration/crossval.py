@@ -75,6 +75,7 @@ import numpy as np
 import scipy.stats
 
 from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adjust
+from fringecal.calibration.keyed import keyed_uniform, row_keys
 from fringecal.calibration.model import BundleProblem
 from fringecal.calibration.propagation import (
     point_covariance,
@@ -83,6 +84,7 @@ from fringecal.calibration.propagation import (
     triangulate_mm,
 )
 from fringecal.registration import kabsch
+from fringecal.rotation import rotation_matrix
 from fringecal.sensor import PARAM_NAMES
 
 __all__ = [
@@ -116,12 +118,13 @@ def split_measurements(problem: BundleProblem, seed: int | None = None) -> tuple
     ----------
     problem : BundleProblem
     seed : int or None
-        None (default): alternate measurements in table order (1st, 3rd, ... and 2nd,
-        4th, ...). The poses of a calibration are planned to spread over the hexapod's
-        range and the depth of the volume in table order (the thesis steps through the
-        stand-offs), so alternating gives both halves the same spread; a split into first
-        and second half would give each half half the depth. An int: a random split into
-        halves of the same sizes (for repeated cross-validation).
+        None (default): alternate measurements in the order of their stand-off (1st,
+        3rd, ... and 2nd, 4th, ... nearest first, :func:`standoff_order`), which gives
+        both halves the same spread over the depth of the volume; a split into near and
+        far halves would give each half half the depth. The stand-off, not the table
+        order, so that the halves do not depend on the measurements' names. An int: a
+        random split of that order into halves of the same sizes (for repeated
+        cross-validation).
 
     Returns
     -------
@@ -137,9 +140,9 @@ def split_measurements(problem: BundleProblem, seed: int | None = None) -> tuple
         weakness instead of model error.
     """
     meas = problem.measurements
-    order = np.arange(len(meas))
+    order = standoff_order(problem)
     if seed is not None:
-        order = np.random.default_rng(seed).permutation(len(meas))
+        order = order[np.random.default_rng(seed).permutation(len(meas))]
     halves = tuple(tuple(meas[i] for i in sorted(order[k::2])) for k in (0, 1))
     seen = _measurements_per_scanner(problem)
     missing = []
@@ -154,6 +157,19 @@ def split_measurements(problem: BundleProblem, seed: int | None = None) -> tuple
                          f"points of every scanner in each half of the {len(meas)} measurements: "
                          + "; ".join(missing) + ". Add measurements in which these scanners see the artefact")
     return halves
+
+
+def standoff_order(problem: BundleProblem) -> np.ndarray:
+    """Measurement indices by the distance of the artefact's centroid (at the start
+    poses) from the reference camera's projection centre, nearest first: an order of
+    the data, not of the measurements' names."""
+    poses = np.asarray(problem.poses, float)
+    R = rotation_matrix(poses[:, 3], poses[:, 4], poses[:, 5])
+    centroid = problem.artefact.centres.mean(axis=0)
+    world = poses[:, :3] + np.einsum("nji,j->ni", R, centroid)  # x_world = R^T x_local + t
+    camera = problem.rig.scanner(problem.rig.reference).camera.params[:3]
+    distance = np.linalg.norm(world - camera, axis=1)
+    return np.lexsort((row_keys(poses), distance))
 
 
 def _measurements_per_scanner(problem: BundleProblem) -> dict:
@@ -427,7 +443,8 @@ def cross_validate(problem: BundleProblem, options: BundleOptions | None = None,
         Control points of each scanner sampled (without replacement, uniformly over the
         full problem) for the comparison; all if it has fewer.
     seed : int
-        Seed of that sample.
+        Seed of that sample (each point's draw is keyed by its coordinates,
+        :mod:`fringecal.calibration.keyed`: the sample does not depend on the order).
     split : (sequence of str, sequence of str), optional
         The halves' measurements; default :func:`split_measurements` (alternating).
 
@@ -441,12 +458,12 @@ def cross_validate(problem: BundleProblem, options: BundleOptions | None = None,
     halves = split_measurements(problem) if split is None else tuple(tuple(str(m) for m in h) for h in split)
     opts = BundleOptions(start="given") if options is None else options
     fits = tuple(bundle_adjust(subproblem(problem, h), opts) for h in halves)
-    rng = np.random.default_rng(seed)
+    draw = keyed_uniform(row_keys(problem.cam_mm, problem.prj_mm), seed)  # per point, whatever its place
     index, scanner_of = [], []
     for si in range(len(problem.rig.scanners)):
         idx = np.flatnonzero(problem.scanner_idx == si)
         if len(idx) > n_points_per_scanner:
-            idx = np.sort(rng.choice(idx, n_points_per_scanner, replace=False))
+            idx = np.sort(idx[np.argsort(draw[idx], kind="stable")[:n_points_per_scanner]])
         index.append(idx)
         scanner_of.append(np.full(len(idx), si))
     index, scanner_of = np.concatenate(index), np.concatenate(scanner_of)

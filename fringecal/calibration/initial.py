@@ -37,6 +37,15 @@ def poses_from_table(poses: pd.DataFrame) -> dict[tuple[str, str], Frame]:
             for r in poses.itertuples()}
 
 
+class UnlinkedScanners(ValueError):
+    """Scanners without a link to the reference scanner (``scanners``): no artefact pose
+    of theirs is known in the reference frame, so no start value either."""
+
+    def __init__(self, scanners: list[str], message: str):
+        super().__init__(message)
+        self.scanners = list(scanners)
+
+
 @dataclass(frozen=True)
 class InitialCalibration:
     """Start rig (world frame), one start pose per measurement and the DLT report."""
@@ -64,8 +73,8 @@ def initial_calibration(prior: Rig, centres: pd.DataFrame, poses: pd.DataFrame, 
     link = links_from_table(links)
     missing = [s.name for s in prior.scanners if s.name not in link]
     if missing:
-        raise ValueError(f"scanner(s) {missing} could not be linked to the reference scanner "
-                         f"{prior.reference!r}: they share no measured artefact pose with it")
+        raise UnlinkedScanners(missing, f"scanner(s) {missing} could not be linked to the reference scanner "
+                                        f"{prior.reference!r}: they share no measured artefact pose with it")
     linked = rig_in_frame(prior, link)
     local_pose = poses_from_table(poses)
     world_pose: dict[str, Frame] = {}

@@ -41,6 +41,7 @@ from fringecal.config import (
     load_yaml_model,
     read_yaml_mapping,
     validate_model,
+    validate_section,
 )
 from fringecal.dataset import DATASET_FILE, DatasetConfig
 from fringecal.fringe.decode import DecodeSettings
@@ -132,7 +133,11 @@ def load_run_config(path: Path | None = None, overrides: dict | None = None, dat
         ds = load_yaml_model(root / DATASET_FILE, DatasetConfig) if root.is_dir() else None
         if ds is None:
             raise ConfigError(f"{root}: no such data set folder")
-        data = deep_update(ds.processing.model_dump(exclude_none=True), data)
+        processing = ds.processing.model_dump(exclude_none=True)
+        for section, values in processing.items():  # its errors name dataset.yaml, not the run config
+            validate_section(values, RunConfig.model_fields[section].annotation, root / DATASET_FILE,
+                             f"processing.{section}.")
+        data = deep_update(processing, data)
         data.setdefault("name", ds.name)
         data.setdefault("reference_scanner", ds.reference_scanner)
     cfg = validate_model(data, RunConfig, source, base)

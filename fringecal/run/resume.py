@@ -16,11 +16,19 @@ no longer runs knows the previous run was interrupted, and reports what it reuse
 A record of a process that still runs on this host means another run is writing
 the directory: :func:`busy` says so, and ``fringecal run`` refuses to start rather
 than remove that run's temporaries under it.
+
+The record alone leaves a window: two commands started together both find no
+record. :func:`claim` closes it: the process that runs the flow holds an exclusive
+``flock`` on ``RunDir.lock`` from before Prefect starts to its end (the operating
+system releases it when the process ends, even by ``kill -9``); a second process
+cannot take it and is refused with :class:`RunDirBusy` -- before Prefect starts when
+``fringecal run`` claims the directory, inside the flow for a served run.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import fcntl
 import os
 import re
 import shutil
@@ -30,7 +38,7 @@ from pathlib import Path
 from fringecal.lifeline import process_start
 from fringecal.rundir import RunDir
 
-__all__ = ["leftovers", "remove_leftovers", "busy", "begin", "finish", "RunDirBusy"]
+__all__ = ["leftovers", "remove_leftovers", "busy", "begin", "finish", "RunDirBusy", "claim", "release"]
 
 #: Hidden temporaries of the atomic writers: ``.<name>.<12 hex>.tmp`` (fringecal.atomic),
 #: ``.<name>.tmp-<12 hex>`` and ``.<name>.old-<12 hex>`` (fringecal.store), any hidden ``*.tmp``.
@@ -95,11 +103,44 @@ def describe_busy(rd: RunDir, doc: dict) -> str:
             "wait for it to end or stop it, then rerun")
 
 
+#: run directories whose lock this process holds: resolved root -> the locked file descriptor
+_held: dict[str, int] = {}
+
+
+def claim(rd: RunDir) -> None:
+    """Take ``rd``'s lock for this process (a no-op when it holds it already); raise
+    :class:`RunDirBusy` when another process holds it. The folder is made if missing."""
+    key = str(rd.root.resolve())
+    if key in _held:
+        return
+    rd.root.mkdir(parents=True, exist_ok=True)
+    fd = os.open(rd.lock.path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        doc = _record(rd) or {}
+        if doc.get("pid"):
+            raise RunDirBusy(describe_busy(rd, doc)) from None
+        raise RunDirBusy(f"{rd.root}: another fringecal run is writing this run directory (it holds "
+                         f"{rd.lock.rel}); wait for it to end or stop it, then rerun") from None
+    _held[key] = fd
+
+
+def release(rd: RunDir) -> None:
+    """Give up ``rd``'s lock (if this process holds it)."""
+    fd = _held.pop(str(rd.root.resolve()), None)
+    if fd is not None:
+        os.close(fd)
+
+
 def begin(rd: RunDir, command: str) -> dict | None:
     """Start a run of ``rd``: refuse if another run writes it, remove the leftovers of
     interrupted writes, and record this run. Returns the record of the interrupted
     run it resumes (``{}`` if that record was unreadable), or None."""
+    claim(rd)
     if (doc := busy(rd)) is not None:
+        release(rd)
         raise RunDirBusy(describe_busy(rd, doc))
     previous = _record(rd)
     remove_leftovers(rd.root)
@@ -110,5 +151,7 @@ def begin(rd: RunDir, command: str) -> dict | None:
 
 
 def finish(rd: RunDir) -> None:
-    """The run of ``rd`` ended (normally or with an error): remove its record."""
+    """The run of ``rd`` ended (normally or with an error): remove its record and give
+    up its lock."""
     rd.in_progress.remove()
+    release(rd)

@@ -18,6 +18,11 @@ does not reference (true sensors, the artefact and ball-bar as built, scanner
 frames, reached poses, hexapod moves, ball-bar and acceptance positions, and each object's
 ``objects/<name>.json``), laid out as a run directory's ``truth/`` (:class:`~fringecal.rundir.TruthDir`).
 
+Both are written under hidden temporary names in their parent folders and renamed
+when complete; a ``fringecal simulate`` killed midway leaves them behind, marked with
+its process (:data:`OWNER_FILE`), and the next ``fringecal simulate`` into the same
+folder removes them (:func:`remove_interrupted_exports`).
+
 Both doors render with the same functions, the same measurement ids and noise
 seeds and the same unmodelled errors (``simulate.errors``), and the frames are
 integers written losslessly, so the data set decodes to the very maps the simulated
@@ -26,8 +31,11 @@ run stores.
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
+import socket
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -41,6 +49,7 @@ from fringecal.artefact import load_rods
 from fringecal.atomic import temporary_sibling
 from fringecal.frames import frame_rows, frames_from_rows
 from fringecal.fringe.importer import write_frames
+from fringecal.lifeline import process_start
 from fringecal.names import check_name, confined
 from fringecal.rig import scaled_scanner
 from fringecal.rundir import TruthDir, measurement_id
@@ -53,7 +62,7 @@ from fringecal.simulate.source import acceptance_camera_width, load_simulated_ri
 from fringecal.simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
 from fringecal.verification.ballbar import ballbar_rods
 
-__all__ = ["write_dataset", "PROCESSING_SECTIONS"]
+__all__ = ["write_dataset", "PROCESSING_SECTIONS", "interrupted_exports", "remove_interrupted_exports", "OWNER_FILE"]
 
 PROCESSING_SECTIONS = ("decode", "extraction", "control_points", "bundle", "verification", "acceptance")
 
@@ -71,6 +80,48 @@ def _dataset_yaml(cfg) -> dict:
     if processing:
         doc["processing"] = processing
     return doc
+
+
+#: the owner of a data set being written (in its hidden temporary folder)
+OWNER_FILE = ".fringecal-owner.json"
+_TEMPORARY = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp$")
+
+
+def _own(tmp: Path) -> None:
+    """Mark ``tmp`` as this process's data set in the making (pid, its start, host)."""
+    (tmp / OWNER_FILE).write_text(json.dumps({"pid": os.getpid(), "start": process_start(os.getpid()),
+                                              "host": socket.gethostname()}))
+
+
+def interrupted_exports(folder) -> list[Path]:
+    """The hidden temporary folders in ``folder`` that a ``fringecal simulate`` killed
+    midway left behind: marked by :data:`OWNER_FILE` with a process of this host that no
+    longer runs (a running export's folder, or any folder not marked, is not listed)."""
+    folder = Path(folder)
+    found = []
+    if not folder.is_dir():
+        return found
+    for p in folder.iterdir():
+        if not (_TEMPORARY.match(p.name) and p.is_dir() and not p.is_symlink()):
+            continue
+        try:
+            owner = json.loads((p / OWNER_FILE).read_text())
+        except (OSError, ValueError):
+            continue
+        if owner.get("host") == socket.gethostname() and process_start(int(owner.get("pid", -1))) != owner.get("start"):
+            found.append(p)
+    return sorted(found)
+
+
+def remove_interrupted_exports(*folders) -> list[tuple[Path, int]]:
+    """Remove :func:`interrupted_exports` of ``folders``; (folder removed, its bytes)."""
+    gone = []
+    for folder in dict.fromkeys(Path(f) for f in folders):
+        for p in interrupted_exports(folder):
+            size = sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+            shutil.rmtree(p, ignore_errors=True)
+            gone.append((p, size))
+    return gone
 
 
 def _folder(root: Path, *names: str) -> Path:
@@ -96,8 +147,9 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
     rc = sim.rig_config()
     tmp, tmp_truth = temporary_sibling(out), temporary_sibling(truth_out)
     try:
-        tmp.mkdir(parents=True)
-        tmp_truth.mkdir(parents=True)
+        for t in (tmp, tmp_truth):
+            t.mkdir(parents=True)
+            _own(t)
         (tmp / layout.DATASET_FILE).write_text(yaml.safe_dump(_dataset_yaml(cfg), sort_keys=False))
         write_table(read_table(rc.artefact, ArtefactTable), tmp / layout.ARTEFACT_FILE)
         if rc.rods is not None:
@@ -189,6 +241,8 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
 
         with ThreadPoolExecutor(max_workers=workers) as pool:
             list(pool.map(render, jobs))
+        for t in (tmp, tmp_truth):
+            (t / OWNER_FILE).unlink()
         os.rename(tmp, out)
         os.rename(tmp_truth, truth_out)
     finally:

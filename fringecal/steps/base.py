@@ -32,12 +32,18 @@ from typing import Any, ClassVar, Union
 from fringecal.rundir import RunDir, RunFile, TableFile
 from fringecal.schemas import read_csv_text
 
-__all__ = ["Step", "Rows", "Value", "Settings", "StepError", "Read", "store_row", "store_fields", "stores_of_kind",
-           "save_or_remove"]
+__all__ = ["Step", "Rows", "Value", "Settings", "StepError", "DataProblem", "Read", "store_row", "store_fields",
+           "stores_of_kind", "save_or_remove"]
 
 
 class StepError(RuntimeError):
     """A step broke its declaration (an output it promised is missing)."""
+
+
+class DataProblem(ValueError):
+    """The data cannot give what a step needs (a scanner that never sees three spheres
+    with the reference scanner); the message names the need and the data. Raised in a
+    running flow, it ends the command with that one line and status 2, as bad input."""
 
 
 @dataclass(frozen=True)

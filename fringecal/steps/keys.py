@@ -30,7 +30,8 @@ from fringecal.digests import DigestCache, digest_value, source_digest
 from fringecal.rundir import RunDir, RunFile
 from fringecal.steps.base import Rows, Settings, Step, StepError, Value
 
-__all__ = ["step_key", "current_record", "run_step", "digests_of"]
+__all__ = ["step_key", "current_record", "run_step", "digests_of", "RunFileChanged", "recorded_outputs",
+           "check_unchanged"]
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +78,59 @@ def digests_of(rd: RunDir, files) -> dict[str, str | None]:
     return {_label(f, i): _digest(rd, f) for i, f in enumerate(files)}
 
 
+class RunFileChanged(ValueError):
+    """A run file differs from what the step that wrote it recorded; the message names it."""
+
+
+_records: dict[str, tuple[int, int, str, dict]] = {}
+
+
+def recorded_outputs(rd: RunDir) -> dict[str, tuple[str, str | None]]:
+    """Run-relative path -> (the step instance that last wrote it, its recorded digest),
+    from every step record of ``rd`` (an unreadable record counts as absent; when two
+    records name one file, as after a run of another source into the same directory,
+    the newer record counts). Records are parsed once per process while unchanged."""
+    found = []
+    for rec_file in rd.step_records():
+        try:
+            st = rec_file.path.stat()
+        except OSError:
+            continue
+        key = str(rec_file.path)
+        hit = _records.get(key)
+        if hit is None or hit[:2] != (st.st_mtime_ns, st.st_size):
+            try:
+                rec = rec_file.load()
+                label = f"{rec['step']}:{rec['item']}" if rec.get("item") else rec["step"]
+                hit = (st.st_mtime_ns, st.st_size, label, dict(rec["outputs"]))
+            except (ValueError, KeyError, TypeError, AttributeError):
+                continue
+            _records[key] = hit
+        found.append(hit)
+    out = {}
+    for _, _, label, outputs in sorted(found, key=lambda h: h[0]):
+        for rel, digest in outputs.items():
+            out[rel] = (label, digest)
+    return out
+
+
+def check_unchanged(rd: RunDir, files, recorded: dict | None = None) -> None:
+    """Refuse (:class:`RunFileChanged`) a run file whose content differs from the digest
+    its step recorded when it wrote it: a file the run trusts was damaged or edited
+    after it was written (its size and dates may be unchanged). Files without a record
+    (written by no step) pass."""
+    recorded = recorded_outputs(rd) if recorded is None else recorded
+    for f in files:
+        f = f.table if isinstance(f, Rows) else f
+        if not isinstance(f, RunFile) or f.rel not in recorded or not f.exists():
+            continue
+        producer, digest = recorded[f.rel]
+        if digest is not None and _digest(rd, f) != digest:
+            raise RunFileChanged(f"{f.path}: changed since step {producer} wrote it (its content digest differs "
+                                 "from the step's record: a damaged or edited file); rerun `fringecal run` on this "
+                                 "run directory to recompute it")
+
+
 def step_key(step: Step, rd: RunDir, cfg: Settings, item: str) -> str:
     """The cache key of one instance of ``step`` (see the module notes)."""
     doc = {"step": step.name, "item": item, "settings": cfg.keyed(),
@@ -102,6 +156,9 @@ def current_record(step: Step, rd: RunDir, cfg: Settings, item: str, key: str) -
         return None
     for f in outputs:
         if _digest(rd, f) != rec["outputs"][f.rel]:
+            if rec["outputs"][f.rel] is not None and f.exists():  # there, but not what the step wrote
+                log.warning("%s: changed since step %s wrote it (content digest); it is computed again",
+                            f.path, step.name)
             return None
     return rec
 
@@ -122,6 +179,7 @@ def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | Non
     key = key or step_key(step, rd, cfg, item)
     if not force and (rec := current_record(step, rd, cfg, item, key)) is not None:
         return {**rec, "reused": True}
+    check_unchanged(rd, step.reads(rd, cfg, item))  # what it reads is what the steps before it wrote
     clock = compile_clock.install()
     t0, c0 = time.perf_counter(), clock.thread_seconds()
     step.run(rd, cfg, item, **(context or {}))

@@ -29,6 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
+from fringecal.calibration.keyed import value_key
 from fringecal.calibration.propagation import parameter_covariances
 from fringecal.rig import Rig
 from fringecal.store import open_store
@@ -134,7 +135,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
             entry["calibration_bias"] = {"length_uncorrected_mm": float(r.length_mm), "bias_mm": bias,
                                          "u_bias_mm": u_bias, "bootstrap_spread_mm": spread, "draws": int(len(boot))}
         if config.monte_carlo_draws > 0:
-            rng = np.random.default_rng([config.seed, i])  # per length: the same draws in any thread
+            # per length, keyed by its measured value: the same draws in any thread, order or naming
+            rng = np.random.default_rng([config.seed, value_key(float(r.length_mm))])
             samples = monte_carlo_lengths(a.points, b.points, cov, certificate_u_mm, u_bar_rel,
                                           config.monte_carlo_draws, rng, u_model)
             samples = samples - bias + u_bias * rng.standard_normal(len(samples))
