@@ -24,7 +24,9 @@ def _measurements(frames: Path, out: Path) -> tuple[list[Path], list[Path]]:
     if not dirs:
         raise UserInputError(f"{frames}: neither a measurement folder ({SEQUENCE_FILE} and frames) "
                              f"nor a folder of measurement folders")
-    return dirs, [out / f"{d.name}.zarr" for d in dirs]
+    from fringecal.names import check_name, confined
+
+    return dirs, [confined(out, f"{check_name(d.name, 'measurement folder', str(frames))}.zarr") for d in dirs]
 
 
 def _store_size(dirs: list[Path], store_frames: bool) -> float:

@@ -344,6 +344,10 @@ def run_command(
 
     if runner not in (None, "threads", "dask"):
         raise UserInputError(f"--runner must be threads or dask, not {runner!r}")
+    if config is not None:  # a bundled configuration by name (-c run_thesis_realistic), as README says
+        from fringecal.config import bundled_config
+
+        config = bundled_config(config)
     _check_inputs(config, dataset, out, workers)
     cfg = validate_run_config(config, dataset=dataset)
     _apart(cfg, out)
@@ -536,7 +540,7 @@ def serve_command(
     run_dir = out.expanduser().absolute()  # the runs start in their own processes and folders
     log = RunDir(run_dir).log.path
     console.print(f"serving deployment {name!r} ({when}) on {api}; runs write to {run_dir}, the details to {log} "
-                  "(Ctrl-C stops)")
+                  "(Ctrl-C stops)", soft_wrap=True, highlight=False)
     serving.detach(log)
     serving.arm_signals(run_dir)
     serving.watch_server(api, run_dir, log)

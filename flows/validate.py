@@ -87,16 +87,21 @@ def input_folder(path: Optional[Path], option: str, what: str = "folder") -> Opt
 
 def calibration_file(path: Path, option: str) -> Path:
     """A calibration file to read (its reader checks it), or a run directory, which stands
-    for its calibration.json."""
+    for its calibration.json. A run's calibration file must be what its step wrote (its
+    content digest against the step's record: a damaged or edited file is refused)."""
     path = Path(path)
-    if not path.is_dir():
-        return path
-    from fringecal.rundir import RunDir  # lazy: pandas loads only when a run directory is given
+    from fringecal.rundir import RunDir, RunFile  # lazy: pandas loads only when a run's file is read
+    from fringecal.steps.keys import check_unchanged  # lazy: as above
 
+    if not path.is_dir():
+        if path.is_file() and RunDir(path.parent).step_records():
+            check_unchanged(RunDir(path.parent), [RunFile(path.parent, path.name)])
+        return path
     cal = RunDir(path).calibration.path
     if not cal.is_file():
         raise UserInputError(f"{option} {path}: a folder without {cal.name}; expected a calibrated run "
                              "directory (fringecal run) or a calibration file")
+    check_unchanged(RunDir(path), [RunDir(path).calibration])
     return cal
 
 
@@ -177,8 +182,8 @@ def same_unit(measured_mm: float, reference_mm: float, option: str) -> None:
     ratio = measured_mm / reference_mm
     if 0.5 <= ratio <= 2.0:
         return
-    guess = next((f"; given in {unit}? ({reference_mm * f:.6g} mm)" for f, unit in _UNITS
-                  if abs(math.log(ratio / f)) < math.log(1.1)), "; the wrong bar or unit?")
+    guess = next((f"given in {unit}? ({reference_mm * f:.6g} mm)" for f, unit in _UNITS
+                  if abs(math.log(ratio / f)) < math.log(1.1)), "the wrong bar or unit?")
     raise UserInputError(f"{option} {reference_mm:g}: the measured lengths average {measured_mm:.6g} mm, "
-                         f"{ratio:.4g} times the reference{guess} An error this large is an input mix-up, not "
+                         f"{ratio:.4g} times the reference: {guess} An error this large is an input mix-up, not "
                          "a failed cell")

@@ -2,6 +2,9 @@
 
 from fringecal.schemas.tables import (  # noqa: F401
     FREE_COLUMNS,
+    MAX_POINTS,
+    MAX_SPHERES,
+    NAME_COLUMNS,
     REJECTION_REASONS,
     AcquiredPosesTable,
     AcquisitionTable,

@@ -199,25 +199,77 @@ def test_simulated_data_set_has_the_contract_layout(small_dataset, first_run):
                           RunDir(run_dir).sensors_prior.load().to_frame().filter(like="_mm").to_numpy())
 
 
+#: the small data set's measurements renamed into another natural order (1, 5, 9, 12 ->
+#: a5, b12, m9, z1): results must not depend on folder names or their order (issue 31)
+RENAMED = {"1": "z1", "5": "a5", "9": "m9", "12": "b12"}
+
+
+def _renamed_copy(data: Path, dst: Path) -> Path:
+    ds = _linked_copy(data, dst)
+    for old, new in RENAMED.items():
+        (ds / "measurements" / old).rename(ds / "measurements" / new)
+    plan = pd.read_csv(ds / "poses_planned.csv", dtype={"measurement": str})
+    plan.assign(measurement=plan["measurement"].map(RENAMED)).to_csv(ds / "poses_planned.csv", index=False)
+    return ds
+
+
+def _listing(root: Path) -> list[tuple[str, int]]:
+    return sorted((str(p.relative_to(root)), p.stat().st_size) for p in root.rglob("*"))
+
+
 @pytest.mark.flow
 @pytest.mark.slow
-def test_data_set_run_agrees_with_the_simulated_run_and_never_reads_the_truth(first_run, small_dataset, tmp_path):
+def test_data_set_run_agrees_with_the_simulated_run_and_never_reads_the_truth(first_run, small_dataset, tmp_path,
+                                                                              capfd):
     """The thesis rig through both doors: `fringecal simulate` + `fringecal run --dataset`
-    gives the calibration `fringecal run` gives, with the truth unreadable."""
+    gives the calibration `fringecal run` gives, with the truth unreadable and the
+    measurement folders renamed (another order: the same numbers, issue 31).
+
+    First with a corrupt frame in the middle of a stack (its image data damaged: found
+    when the flow decodes it): one line naming the frame, status 2, no traceback (117
+    lines of Prefect's before issue 31; they are in the run's log file), the data set
+    untouched, nothing half-written; then the frame restored, the same command
+    finishes, reusing the stacks the failed run had decoded."""
+    from fringecal.run.resume import leftovers
+
     run_dir, sim = first_run
     data, truth = small_dataset
+    data = _renamed_copy(data, tmp_path / "renamed")
+    frame = data / "measurements" / "a5" / "scanner1" / "x_016_03.png"
+    good = frame.read_bytes()
+    bad = bytearray(good)
+    bad[len(bad) // 2] ^= 0xFF  # inside the image data: the header probe passes, decoding does not
+    frame.unlink()
+    frame.write_bytes(bytes(bad))
     out = tmp_path / "from-dataset"
+    args = ["run", "--dataset", str(data), "--out", str(out), "--json"]
+    before = _listing(data)
+    capfd.readouterr()
+    res = runner.invoke(app, args)
+    terminal = capfd.readouterr()
+    assert res.exit_code == 2, res.output
+    errors = [ln for ln in res.stderr.splitlines() if not ln[:2].isdigit()]  # --json: progress lines on stderr
+    assert len(errors) == 1 and errors[0].startswith(f"error: {frame}: corrupt or unreadable PNG"), res.stderr
+    assert "Traceback" not in res.output + terminal.out + terminal.err
+    assert _listing(data) == before
+    assert leftovers(out) == [] and not RunDir(out).in_progress.exists()
+    assert "Traceback" in RunDir(out).log.path.read_text()  # the detail is kept
+    frame.unlink()
+    frame.write_bytes(good)
     _Unreadable.block(truth)
     try:
-        res = runner.invoke(app, ["run", "--dataset", str(data), "--out", str(out), "--json"])
+        res = runner.invoke(app, args)
     finally:
         _Unreadable.release(truth)
     assert res.exit_code == 3, res.output  # NOT ACCEPTED, as the simulated run
     s = json.loads(res.stdout[res.stdout.index("{"):])
     assert s["source"] == "dataset" and s["truth"] is None
+    assert [t for t in s["tasks"]["cached"] if t.startswith("decode:")]  # what the failed run decoded is kept
     assert s["verdict"]["failing"] == sim["verdict"]["failing"]
     assert s["n_control_points"] == sim["n_control_points"]
-    assert abs(s["verification"]["max_abs_error_mm"] - sim["verification"]["max_abs_error_mm"]) < 1e-3
+    assert abs(s["verification"]["max_abs_error_mm"] - sim["verification"]["max_abs_error_mm"]) < 1e-6
+    for a, b in zip(s["verification"]["lengths"], sim["verification"]["lengths"]):
+        assert a["measurement"] == b["measurement"] and abs(a["error_mm"] - b["error_mm"]) < 1e-6, (a, b)
     assert s["rms_eps2_mm_after"] == pytest.approx(sim["rms_eps2_mm_after"], rel=1e-6)
     rd = RunDir(out)
     assert not rd.evaluation.exists() and not (out / "truth").exists() and not rd.hexapod_moves.exists()

@@ -163,6 +163,7 @@ def test_a_scheduled_run_starts_and_finishes(server, tmp_path):
                                 start_new_session=True)
     try:
         run = _wait_for_a_finished_scheduled_run(server, proc, log)
+        _ctrl_c_stops_serving_within_seconds(proc, log, out)
     finally:
         _stop(proc)
     auth = (USER, PASSWORD)
@@ -176,6 +177,25 @@ def test_a_scheduled_run_starts_and_finishes(server, tmp_path):
     assert summary["verdict"]["accepted"] is False and (out / "report.html").exists()
     assert run["state_type"] == "FAILED"
     assert run["state"]["message"].startswith(f"NOT ACCEPTED: {summary['verdict']['failing']} (")
+
+
+def _ctrl_c_stops_serving_within_seconds(proc: subprocess.Popen, log: Path, out: Path) -> None:
+    """Ctrl-C (SIGINT): serving ends within 5 s (it hung 60 s before issue 31), status 130,
+    and the terminal shows the serving line and one line saying it stopped -- Prefect's
+    output is in OUT/fringecal.log -- with every process serve started gone."""
+    kids = psutil.Process(proc.pid).children(recursive=True)
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    status = proc.wait(timeout=30)
+    seconds = time.monotonic() - t0
+    assert status == 130 and seconds < 5, (status, seconds, _tail(log))
+    lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
+    assert len(lines) == 2 and lines[0].startswith("serving deployment 'test-serve'"), lines
+    assert lines[1] == (f"stopped serving (SIGINT); a run in progress was stopped, its finished steps are kept in "
+                        f"{out} for the next run")
+    assert (out / "fringecal.log").stat().st_size > 0
+    _, alive = psutil.wait_procs(kids, timeout=5)
+    assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE], alive
 
 
 def _wait_for_a_finished_scheduled_run(url: str, proc: subprocess.Popen, log: Path) -> dict:
