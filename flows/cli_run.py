@@ -532,9 +532,8 @@ def serve_command(
     _check_prefect_server(api)
     from prefect.types.entrypoint import EntrypointType
 
-    from fringecal.flows.run_flow import run_flow
-
     from fringecal.flows import serving
+    from fringecal.flows.run_flow import run_flow
     from fringecal.rundir import RunDir
 
     run_dir = out.expanduser().absolute()  # the runs start in their own processes and folders
