@@ -140,6 +140,20 @@ RESIDUAL_PANELS = (("n_points", "control points per cell", "viridis", False),
                    ("rms_eps2_mm", "RMS ε2 (µm)", "magma", False))
 
 
+def _locator(n: int):
+    from matplotlib.ticker import MaxNLocator
+
+    return MaxNLocator(n)
+
+
+def _few_ticks(ax, fmt) -> None:
+    """Ticks at the first, middle and last pixel of an image axis (drawing many ticks is
+    most of a small panel's cost)."""
+    ax.set_xticks([0, (fmt.width_px - 1) // 2, fmt.width_px - 1])
+    ax.set_yticks([0, (fmt.height_px - 1) // 2, fmt.height_px - 1])
+    ax.tick_params(labelsize=6)
+
+
 def binned_grid(rows, column: str) -> np.ndarray:
     """The values of ``column`` of one sensor's binned residuals (rows with ``nx``,
     ``ny``, ``ix``, ``iy``) as an (ny, nx) grid, NaN where a cell holds no point.
@@ -182,14 +196,16 @@ def residual_maps_png(bins, formats: dict) -> bytes:
                               vmin=-vmax if symmetric else (0 if column == "n_points" else None),
                               vmax=vmax if symmetric else None)
             ax.set_title(f"{name} ({g['role'].iloc[0]}): {title}", fontsize=7)
-            ax.tick_params(labelsize=6)
+            _few_ticks(ax, fmt)
             if j == 0:
                 ax.set_ylabel("row (px)", fontsize=7)
             if i == len(sensors) - 1:
                 ax.set_xlabel("column (px)", fontsize=7)
             bar = fig.colorbar(image, ax=ax, fraction=0.046, pad=0.03)
             bar.ax.tick_params(labelsize=6)
-    fig.tight_layout()
+            bar.locator = _locator(4)
+            bar.update_ticks()
+    fig.subplots_adjust(left=0.06, right=0.97, bottom=0.1, top=0.93, wspace=0.45, hspace=0.35)
     return _png(fig)
 
 
@@ -214,7 +230,7 @@ def uncertainty_maps_png(maps: list, fmt) -> bytes:
         ax.set_xlabel("camera column (px)", fontsize=7)
         if k == 0:
             ax.set_ylabel("camera row (px)", fontsize=7)
-        ax.tick_params(labelsize=6)
+        _few_ticks(ax, fmt)
     if image is not None:
         bar = fig.colorbar(image, ax=fig.axes, fraction=0.02, pad=0.02)
         bar.set_label("u of a measured point (µm, k = 1)", fontsize=7)

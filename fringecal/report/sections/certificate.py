@@ -109,7 +109,7 @@ def _identity(run: RunData, ident: dict, execution: dict) -> list[tuple[str, obj
             ("Scanners", _scanners(run, ident.get("scanners") or {})),
             ("Artefact (CMM) certificate", _reference(ident.get("artefact_certificate"))),
             ("Ball-bar certificate", _reference(ident.get("ballbar_certificate"))),
-            ("Acceptance objects' certificate", _reference(ident.get("standards_certificate"))),
+            ("Acceptance objects certificate", _reference(ident.get("standards_certificate"))),
             ("Temperatures", ", ".join(f"{k} {num(v, '.1f')} °C" for k, v in temps.items()) or BLANK),
             ("Data source", run.source_text())]
 
