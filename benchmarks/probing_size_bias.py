@@ -19,7 +19,9 @@ on the same points. To tell a bias from a scatter, the farthest position is rend
 ``--draws`` more times with other noise seeds; the mean of each fit's P_S over them
 and its standard error are reported, beside the noise-free rendering (the bias of the
 rendering itself: pixel integration), the mean signed distance of the measured points
-from the true sphere, and the mean stated u of each fit against the draws' scatter.
+from the true sphere, the mean stated u of each fit against the draws' scatter, and how
+the noise moves the points: its RMS along and across the camera rays (one draw against
+the noise-free rendering, pixel by pixel).
 """
 
 from __future__ import annotations
@@ -66,6 +68,21 @@ def measure(store, scanner, standard, centre_true) -> dict:
             "rms_orthogonal_mm": m.rms_mm, "n_points": m.n_points}
 
 
+def noise_directions(free_store, noisy_store, scanner) -> tuple[float, float]:
+    """RMS (mm) of the noise of the points along and across their camera rays: the same
+    pixels of a noisy and the noise-free rendering."""
+    _, _, ok0, x0, _ = M._points(free_store, scanner)
+    _, _, ok1, x1, _ = M._points(noisy_store, scanner)
+    both = ok0 & ok1
+    d = (x1 - x0)[both]
+    ray = x0[both] - scanner.camera.pinhole
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    keep = np.linalg.norm(d, axis=1) < 5.0  # a pixel decoded to another fringe is no noise
+    d, ray = d[keep], ray[keep]
+    a = np.sum(d * ray, axis=1)
+    return float(np.sqrt(np.mean(a ** 2))), float(np.sqrt(np.mean(np.sum((d - a[:, None] * ray) ** 2, axis=1))))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--draws", type=int, default=40)
@@ -106,9 +123,11 @@ def main(argv=None) -> int:
             if farthest is None or depth > farthest[0]:
                 farthest = (depth, r.measurement, scanner, centre)
         depth, name, scanner, centre = farthest
-        draws = [measure(render(name, scanner, 5000 + k, acq.render), scanner, standards.sphere, centre)
-                 for k in range(args.draws)]
-        free = measure(render(name, scanner, 0, acq.render.noise_free()), scanner, standards.sphere, centre)
+        stores = [render(name, scanner, 5000 + k, acq.render) for k in range(args.draws)]
+        draws = [measure(st, scanner, standards.sphere, centre) for st in stores]
+        free_store = render(name, scanner, 0, acq.render.noise_free())
+        free = measure(free_store, scanner, standards.sphere, centre)
+        along, across = noise_directions(free_store, stores[0], scanner)
 
     def stats(rows, key):
         v = np.array([r[key] for r in rows])
@@ -132,6 +151,7 @@ def main(argv=None) -> int:
         "repeated_mean_u_along_rays_mm": float(np.mean([d["u_diameter_along_rays_mm"] for d in draws])),
         "repeated_points_mean_distance_from_true_sphere_mm": float(np.mean(
             [d["mean_distance_from_true_sphere_mm"] for d in draws])),
+        "noise_rms_along_rays_mm": along, "noise_rms_across_rays_mm": across,
         "noise_free_P_S_orthogonal_mm": free["P_S_orthogonal_mm"],
         "noise_free_P_S_along_rays_mm": free["P_S_along_rays_mm"],
         "positions": positions,
