@@ -308,7 +308,7 @@ def _certificate(page: str) -> str:
 
 
 def _cells(html_: str) -> list[list[str]]:
-    return [[re.sub(r"<[^>]+>", "", c).strip() for c in re.findall(r"<t[dh][^>]*>(.*?)</t[dh]>", r, re.S)]
+    return [[re.sub(r"<[^>]+>", "", c.replace("<br>", " ")).strip() for c in re.findall(r"<t[dh][^>]*>(.*?)</t[dh]>", r, re.S)]
             for r in re.findall(r"<tr>(.*?)</tr>", html_, re.S)]
 
 
@@ -338,7 +338,7 @@ def test_certificate_page_states_identity_verdict_components_chain_and_approval(
     table = _cells(cert.split('<table class="verdicts">')[1].split("</table>")[0])
     assert table[0] == ["Quality parameter", "scanner1", "scanner2", "MPE"]
     assert table[1] == ["ball-bar lengths of the ball-bar verification (9 positions)",
-                        "47.0 µm (U 50.0 µm, 9 pos.): conformance", "100.0 µm"]
+                        "47.0 µm (U 50.0 µm) conformance, 9 pos.", "100.0 µm"]
     chain = re.findall(r"<li><b>([^<]*)</b><br>([^<]*)</li>", cert)
     assert [c[0] for c in chain] == ["CMM certificate", "Artefact", "Calibration", "Lengths"]
     assert chain[0][1] == "CMM-2026-117 (2026-10-02, PTB)" and chain[1][1].startswith("15 spheres, artefact.csv")

@@ -44,9 +44,15 @@ def _component(c: dict) -> str:
             f"limit {um(c['limit_mm'])})")
 
 
+#: Up to this many failing components are named one by one on the certificate; more are
+#: counted per parameter (the verdict table shows each), so that page one stays one page.
+NAMED = 4
+
+
 def verdict_badge(verdict: dict) -> dict:
     """The badge of a verdict (ACCEPTED, NOT ACCEPTED, NOT VERIFIED) and the sentence
-    under it: what was judged, and every failing component."""
+    under it: what was judged, and the failing components (each named when there are
+    at most :data:`NAMED`, else counted per test and parameter)."""
     text, klass = BADGES.get(verdict["word"], (verdict["word"], "fail"))
     limited = [c for c in verdict["components"] if c["limit_mm"] is not None]
     failing = [_component(c) for c in limited if c["verdict"] != "conformance"]
@@ -55,6 +61,9 @@ def verdict_badge(verdict: dict) -> dict:
     elif verdict["accepted"]:
         why = (f"conformance proven under ISO 14253-1 for all {len(limited)} limited components "
                f"({', '.join(verdict['ran'])}).")
+    elif len(failing) > NAMED:
+        why = (f"not accepted ({verdict['failing']}): conformance not proven for {len(failing)} of {len(limited)} "
+               "limited components (the table below).")
     else:
         why = f"not accepted ({verdict['failing']}): " + ("; ".join(failing) or "conformance not proven") + "."
     return {"text": text, "klass": klass, "why": why}
