@@ -6,6 +6,9 @@ adjustment."""
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 from markupsafe import Markup
 
@@ -21,6 +24,26 @@ __all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths
 
 #: Cells across the camera image of an uncertainty map.
 MAP_CELLS = 24
+#: Maps drawn in this process, by the digests of what they are drawn from: a page rewritten
+#: from the same files (``fringecal serve``, a test's run directory) does not draw them again.
+_DRAWN: OrderedDict = OrderedDict()
+_DRAWN_MAX = 32
+
+
+def _drawn(key: tuple, draw):
+    """``draw()``, or what it gave for the same ``key`` before."""
+    if key in _DRAWN:
+        _DRAWN.move_to_end(key)
+        return _DRAWN[key]
+    value = draw()
+    _DRAWN[key] = value
+    while len(_DRAWN) > _DRAWN_MAX:
+        _DRAWN.popitem(last=False)
+    return value
+
+
+def _sha(f) -> str:
+    return hashlib.sha256(f.path.read_bytes()).hexdigest()
 
 
 def _value(rig, i: int, j: int):
@@ -47,7 +70,8 @@ def residual_maps(run: RunData, scanner: str) -> dict:
         raise Missing(f"{run.rd.residuals_binned.rel} holds no control point of {scanner}")
     rig = run.load(run.rd.calibration)
     formats = {s.name: s.format for s in rig.scanner(scanner).sensors}
-    png = figures.residual_maps_png(mine, formats)
+    key = ("residuals", _sha(run.rd.residuals_binned), _sha(run.rd.calibration), scanner)
+    png = _drawn(key, lambda: figures.residual_maps_png(mine, formats))
     n = int(mine[mine["role"] == "camera"]["n_points"].sum())
     cells = {role: (int((g["n_points"] > 0).sum()), int(g["nx"].iloc[0] * g["ny"].iloc[0]))
              for role, g in mine.groupby("role")}
@@ -92,10 +116,14 @@ def uncertainty_maps(run: RunData, scanner: str) -> dict:
     if cal.covariances is None:
         raise Missing(f"{run.rd.calibration.rel} holds no covariance of the sensor parameters")
     rig = cal.rig
-    cov = scanner_block(frame_free_covariance(rig, cal.covariances.total), rig, scanner)
     at, source = depths(run, scanner)
-    maps = [uncertainty_at_depth(rig.scanner(scanner), cov, d, MAP_CELLS) for d in at]
-    png = figures.uncertainty_maps_png(maps, rig.scanner(scanner).camera.format)
+
+    def draw():
+        cov = scanner_block(frame_free_covariance(rig, cal.covariances.total), rig, scanner)
+        maps = [uncertainty_at_depth(rig.scanner(scanner), cov, d, MAP_CELLS) for d in at]
+        return maps, figures.uncertainty_maps_png(maps, rig.scanner(scanner).camera.format)
+
+    maps, png = _drawn(("uncertainty", _sha(run.rd.calibration), scanner, tuple(at)), draw)
     medians = [float(np.nanmedian(m.u_mm)) if np.isfinite(m.u_mm).any() else float("nan") for m in maps]
     return {"image": Image(png, f"uncertainty of a measured point over the camera image of {scanner}"),
             "source": source, "depths": ", ".join(num(d, ".0f", "mm") for d in at),
