@@ -104,9 +104,9 @@ class AcceptanceLimits(StrictModel):
     """Maximum permissible errors (mm) of the quality parameters; None: not limited
     (the value is reported, its verdict is the uncertainty zone).
 
-    The defaults are the demo's limits for the thesis rig (scanners with ~45 um RMS
-    phase-triangulation noise at 2.5 m over a 2.9 m cell, docs/acceptance.md), not a
-    manufacturer's specification: a real cell writes its own.
+    The defaults are placeholders of no specification; a cell states its scanners'
+    specification (``acceptance.specification`` with these limits), as the demo does in
+    ``configs/run_thesis.yaml`` (docs/acceptance.md).
     """
 
     P_F: Optional[float] = Field(0.5, gt=0)
