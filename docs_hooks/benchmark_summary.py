@@ -15,6 +15,13 @@ Figures come from three sources, in this order:
 At most :data:`MAX_ROWS` rows are kept; a summary says how many were left out. A new
 benchmark therefore appears with its top-level and nested figures without any edit
 here; adding it to :data:`KNOWN` only gives it labels and an order.
+
+A figure that states its credible range (an object holding ``credible_range`` beside
+the figure, e.g. ``summary.coverage``) and lies outside it must say why in one line:
+the file's top-level ``credible_range_why``, written by whoever ran it (as ``rerun.why``
+is). The page shows that line beside the figure and in the overview;
+:attr:`Summary.unexplained` lists the figures without one (the build hook warns, so a
+strict build fails).
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Row", "Summary", "KNOWN", "MAX_ROWS", "fmt", "lookup", "summarise", "page"]
+__all__ = ["Row", "Summary", "KNOWN", "MAX_ROWS", "CREDIBLE_FIGURES", "WHY_KEY", "fmt", "lookup", "outside_credible",
+           "summarise", "page"]
 
 #: Most rows of figures per benchmark.
 MAX_ROWS = 24
@@ -57,6 +65,23 @@ KNOWN: dict[str, tuple[tuple[str, str], ...]] = {
         ("poses", "thesis poses"),
         ("ballbar_positions", "ball-bar positions"),
     ),
+    "probing_size_bias": (
+        ("far_mean_P_S_orthogonal_mm", "mean P_S of the far positions, orthogonal fit (mm)"),
+        ("far_mean_P_S_along_rays_mm", "mean P_S of the far positions, fit along the rays (mm)"),
+        ("repeated_P_S_orthogonal.mean_mm", "repeated position: mean P_S, orthogonal fit (mm)"),
+        ("repeated_P_S_orthogonal.sem_mm", "its standard error (mm)"),
+        ("repeated_P_S_along_rays.mean_mm", "repeated position: mean P_S, fit along the rays (mm)"),
+        ("repeated_P_S_along_rays.sem_mm", "its standard error (mm)"),
+        ("repeated_P_S_along_rays.sd_mm", "scatter of P_S over the draws (mm)"),
+        ("repeated_mean_u_along_rays_mm", "mean stated u of the diameter, fit along the rays (mm)"),
+        ("noise_free_P_S_along_rays_mm", "P_S rendered without noise (mm)"),
+        ("repeated_points_mean_distance_from_true_sphere_mm", "points' mean distance from the true sphere (mm)"),
+        ("noise_rms_along_rays_mm", "point noise along the camera rays, RMS (mm)"),
+        ("noise_rms_across_rays_mm", "point noise across the camera rays, RMS (mm)"),
+        ("repeated_depth_mm", "depth of the repeated position (mm)"),
+        ("draws", "noise draws"),
+        ("far_positions", "far positions"),
+    ),
     "measure": (
         ("median_wall_s", "median wall time of the command (s)"),
         ("walls_s", "wall time of each repeat (s)"),
@@ -71,10 +96,15 @@ KNOWN: dict[str, tuple[tuple[str, str], ...]] = {
     ),
 }
 
+#: Keys of a figure that an object's ``credible_range`` judges.
+CREDIBLE_FIGURES = ("coverage", "value")
+#: The top-level key saying why a figure lies outside its credible range.
+WHY_KEY = "credible_range_why"
+
 #: Top-level keys shown in the header of a summary, not among its figures.
 _META = {"benchmark", "command", "timed_command", "date", "created_utc", "cpu_count", "python",
          "threads", "load_average_start", "load_average_end", "code_digest_start",
-         "code_digest_end", "complete", "stopped", "code_changed_during_run", "rerun"}
+         "code_digest_end", "complete", "stopped", "code_changed_during_run", "rerun", WHY_KEY}
 _DATE_KEYS = ("date", "created_utc", "timestamp")
 _SHORT_TEXT = 40
 _SHORT_LIST = 8
@@ -119,6 +149,10 @@ class Summary:
         Figures left out by the row limit.
     records : list of str
         Top-level lists of records (e.g. ``"`seeds` (50 items)"``), not flattened.
+    outside : list of str
+        One line per figure outside its credible range, with why.
+    unexplained : list of str
+        The figures outside their credible range that the file does not explain.
     """
 
     file: str
@@ -133,6 +167,8 @@ class Summary:
     rows: list[Row] = field(default_factory=list)
     omitted: int = 0
     records: list[str] = field(default_factory=list)
+    outside: list[str] = field(default_factory=list)
+    unexplained: list[str] = field(default_factory=list)
 
 
 def _is_number(value) -> bool:
@@ -187,6 +223,29 @@ def lookup(doc, path: str):
         else:
             return None
     return value
+
+
+def outside_credible(doc, prefix: str = "") -> list[tuple[str, object, list]]:
+    """(path, value, range) of every figure outside the credible range stated beside it.
+
+    >>> outside_credible({"summary": {"coverage": 0.833, "credible_range": [0.93, 0.97]}})
+    [('summary.coverage', 0.833, [0.93, 0.97])]
+    >>> outside_credible({"summary": {"coverage": 0.95, "credible_range": [0.93, 0.97]}})
+    []
+    """
+    out = []
+    if not isinstance(doc, dict):
+        return out
+    rng = doc.get("credible_range")
+    if isinstance(rng, list) and len(rng) == 2 and all(_is_number(v) for v in rng):
+        for key in CREDIBLE_FIGURES:
+            value = doc.get(key)
+            if _is_number(value) and not rng[0] <= value <= rng[1]:
+                out.append((f"{prefix}{key}", value, rng))
+    for key, value in doc.items():
+        if isinstance(value, dict):
+            out += outside_credible(value, f"{prefix}{key}.")
+    return out
 
 
 def _leaves(doc: dict, prefix: str = ""):
@@ -309,10 +368,20 @@ def summarise(path, bench_dir=None) -> Summary:
         date, source = mtime.strftime("%Y-%m-%d %H:%M"), "file modified"
     script, script_notes = _script(doc, name, bench_dir, path.name)
     rows, omitted, records = _rows(doc, name)
+    why = str(doc.get(WHY_KEY) or "").strip()
+    labels = {r.path: r.label for r in rows}
+    outside, unexplained = [], []
+    for where, value, rng in outside_credible(doc):
+        figure = f"{labels.get(where, where)} {fmt(value)}"
+        outside.append(f"{figure} is outside its credible range {fmt(rng[0])}-{fmt(rng[1])}: "
+                       + (why or "not explained"))
+        if not why:
+            unexplained.append(f"{path.name}: {where} = {fmt(value)} is outside its credible range "
+                               f"{fmt(rng[0])}-{fmt(rng[1])} and the file says no why ({WHY_KEY})")
     return Summary(file=path.name, benchmark=name, command=doc.get("command"),
                    timed_command=doc.get("timed_command"), script=script, date=date,
                    date_source=source, machine=_machine(doc), notes=script_notes + _notes(doc), rows=rows,
-                   omitted=omitted, records=records)
+                   omitted=omitted, records=records, outside=outside, unexplained=unexplained)
 
 
 def _cell(text: str) -> str:
@@ -326,6 +395,7 @@ def _section(s: Summary) -> list[str]:
     out = [f"## {s.file}", "", f"* Benchmark: `{s.benchmark}`, script: "
            + (f"`{s.script}`" if s.script else "not found under `benchmarks/`"),
            f"* Date: {when}", f"* Machine: {s.machine}"]
+    out += [f"* Outside its credible range: {o}" for o in s.outside]
     out += [f"* Note: {n}" for n in s.notes]
     if s.records:
         out.append("* Per-item records in the file (not shown): " + ", ".join(s.records))
@@ -353,6 +423,8 @@ def page(summaries: list[Summary], source: str = "benchmarks/results") -> str:
            "", "| file | benchmark | date | headline |", "|---|---|---|---|"]
     for s in summaries:
         head = "; ".join(f"{r.label}: {r.value}" for r in s.rows[:2]) or "no figures"
+        if s.outside:
+            head += "; **outside its credible range**, see below"
         anchor = re.sub(r"[^\w-]", "", s.file.lower())
         date = s.date + ("" if s.date_source == "recorded" else " (file modified)")
         out.append(f"| [{s.file}](#{anchor}) | `{s.benchmark}` | {date} | {_cell(head)} |")

@@ -43,15 +43,16 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
 
         DataSet.open(cfg.dataset).check_frames()  # every frame's header, and one frame per orientation decoded
     else:
-        check_simulation(cfg.simulate)
+        check_simulation(cfg.simulate, cfg.acceptance.specification.depth_range_mm)
     return cfg
 
 
-def check_simulation(sim) -> None:
-    """A simulated rig's files, and every planned pose within the hexapod's reach."""
+def check_simulation(sim, depth_range_mm=None) -> None:
+    """A simulated rig's files, its acceptance positions inside the specified measuring
+    volume (``depth_range_mm``), and every planned pose within the hexapod's reach."""
     from fringecal.simulate.source import load_simulated_rig
 
-    sr = load_simulated_rig(sim)
+    sr = load_simulated_rig(sim, depth_range_mm)
     hx = sim.acquisition.hexapod
     if hx.enabled:
         from fringecal.hexapod import HexapodRig, load_hexapod_config

@@ -30,6 +30,7 @@ from typing import Literal, Optional
 
 from pydantic import Field, model_validator
 
+from fringecal.acceptance.identity import CertificateIdentity
 from fringecal.acceptance.standards import AcceptanceConfig
 from fringecal.calibration.bundle import BundleOptions
 from fringecal.config import (
@@ -71,7 +72,10 @@ class RunConfig(StrictModel):
     a rig, or a recorded ``dataset`` folder; exactly one) and how they are processed.
 
     ``reference_scanner`` (the scanner whose frame is the world) comes from the rig or
-    the data set's ``dataset.yaml`` unless given here.
+    the data set's ``dataset.yaml`` unless given here. ``certificate``: the identity
+    block of the report's certificate page (customer, cell, serial numbers, reference
+    certificates, temperatures, approval; :class:`~fringecal.acceptance.identity.CertificateIdentity`),
+    merged over the data set's own; no step reads it.
     """
 
     name: Optional[str] = None
@@ -85,6 +89,7 @@ class RunConfig(StrictModel):
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
     acceptance: AcceptanceConfig = Field(default_factory=AcceptanceConfig)
     runner: RunnerConfig = Field(default_factory=RunnerConfig)
+    certificate: Optional[CertificateIdentity] = None
 
     @model_validator(mode="before")
     @classmethod
@@ -138,6 +143,9 @@ def load_run_config(path: Path | None = None, overrides: dict | None = None, dat
             validate_section(values, RunConfig.model_fields[section].annotation, root / DATASET_FILE,
                              f"processing.{section}.")
         data = deep_update(processing, data)
+        if ds.certificate is not None:
+            data["certificate"] = deep_update(ds.certificate.model_dump(mode="json", exclude_none=True),
+                                              data.get("certificate") or {})
         data.setdefault("name", ds.name)
         data.setdefault("reference_scanner", ds.reference_scanner)
     cfg = validate_model(data, RunConfig, source, base)
