@@ -193,16 +193,17 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
                 from fringecal.flows.run_flow import NotAccepted, run_flow
 
                 kind = runner or cfg.runner.kind
-                task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
-                                               dask_address or cfg.runner.dask_address,
-                                               workers or cfg.runner.dask_workers)
+                # one thread policy: the worker pool, numba's and BLAS's threads from runner.cores
+                policy = cfg.thread_policy(workers or (cfg.runner.dask_workers if kind == "dask" else None))
+                task_runner = make_task_runner(kind, policy.workers, dask_address or cfg.runner.dask_address,
+                                               policy.workers)
                 flow = run_flow.with_options(task_runner=task_runner)
                 server = _temporary_server()
                 if server is not None:  # local Dask workers report to it instead of each starting
                     os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
                 reporter.say(f"running the flow into {run_dir} ({kind})")
                 try:
-                    summary = flow(cfg, str(run_dir), None, command, until)
+                    summary = flow(cfg, str(run_dir), None, command, until, policy.workers)
                 except NotAccepted as verdict:  # the flow run ended Failed; its outputs are written
                     summary = verdict.summary
     finally:
