@@ -145,7 +145,7 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
         rows.append(("truth: max position / angle error", f"{tr['max_position_error_mm']:.3f} mm / "
                                                           f"{1e3 * tr['max_angle_error_rad']:.3f} mrad"))
     rows += [("bundle adjustment / total", f"{summary['bundle_seconds']:.2f} s / {summary['total_seconds']:.0f} s")]
-    compiled = sum((summary.get("compile_seconds") or {}).values())
+    compiled = sum((summary.get("compile_seconds") or {}).values()) + summary.get("kernel_wait_seconds", 0.0)
     if compiled:
         rows.append(("  of which compiling kernels", f"{compiled:.0f} s (first run on this machine only)"))
     rows.append(("tasks run / from cache", f"{len(summary['tasks']['ran'])} / {len(summary['tasks']['cached'])}"))
@@ -180,10 +180,11 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
         raise UserInputError(resume.describe_busy(RunDir(run_dir), owner))
     from fringecal.flows.interrupt import armed
 
-    warmup = server = None
+    warmup, server = [], None
     try:
         with armed(run_dir):
-            warmup = kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
+            # first run on this machine: the kernels compile in helpers while Prefect starts
+            warmup = kernel_warmup.start(renderer=cfg.source == "simulated")
             _quiet_prefect(verbose)
             api = configured_prefect_api()
             reporter.say(f"starting Prefect: the flow reports to {api}" if api else
@@ -209,7 +210,8 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
     finally:
         if server is not None:
             os.environ.pop("PREFECT_API_URL", None)
-        lifeline.stop(warmup)
+        for proc in warmup:
+            lifeline.stop(proc)
     if summary.get("resumed"):
         n = summary["resumed"]["reused"]
         reporter.say(f"resumed: {n} step instance{'' if n == 1 else 's'} reused from the interrupted run")

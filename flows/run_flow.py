@@ -37,7 +37,7 @@ from prefect import flow  # noqa: E402
 from prefect.states import Failed, State  # noqa: E402
 
 from fringecal.flows import interrupt, progress  # noqa: E402
-from fringecal.run import resume  # noqa: E402
+from fringecal.run import resume, warmup  # noqa: E402
 from fringecal.run.config import RunConfig, load_run_config  # noqa: E402
 from fringecal.run.summary import manifest, run_summary  # noqa: E402
 from fringecal.rundir import RunDir  # noqa: E402
@@ -73,6 +73,7 @@ class StepRunner:
         self.cached: list[str] = []
         self.timings: dict[str, float] = {}
         self.compile_seconds: dict[str, float] = {}
+        self.kernel_wait_seconds = 0.0  # waiting for the renderer's warm-up (first run only)
         self.records: dict[str, dict] = {}
         self.finished = 0  # instances finished so far, counted as they end (what an interruption keeps)
         self._lock = threading.Lock()
@@ -86,6 +87,9 @@ class StepRunner:
         view = step.view(self.config)
         items = step.items(self.rd, view)
         progress.step(step.label, len(items))
+        if step.name == "simulate-render":  # a first run: the renderer compiles in a helper (fringecal.run.warmup)
+            self.kernel_wait_seconds += warmup.wait_for_renderer(
+                lambda: progress.say(f"{progress.COMPILING}: the renderer's kernel, in a helper process"))
         threads = self.policy.instance_threads(len(items))
         futures = {}
         for item in items:
@@ -159,8 +163,10 @@ def _run(cfg: RunConfig, rd: RunDir, command: str, until: str | None, t_start: f
     summary = run_summary(rd, cfg) if until is None else {"name": cfg.name, "source": cfg.source}
     summary.update(execution)
     # compile_seconds: numba compiling kernels (first run on a machine only), per step, summed
-    # over the step's instances (which may overlap in time), part of the step's timing
+    # over the step's instances (which may overlap in time), part of the step's timing;
+    # kernel_wait_seconds: waiting for the renderer compiled by a warm-up helper (first run)
     summary.update(timings=runner.timings, compile_seconds=runner.compile_seconds,
+                   kernel_wait_seconds=runner.kernel_wait_seconds,
                    total_seconds=time.perf_counter() - t_start,
                    tasks={"ran": runner.ran, "cached": runner.cached}, steps=runner.records)
     if interrupted is not None:  # the last run of this directory was interrupted: what it left was reused
