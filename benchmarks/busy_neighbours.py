@@ -21,8 +21,12 @@ machine's own load fall on both; every repeat records the load average before it
    fresh run directory each time) ``--whole-runs`` times each way: wall time and the
    flow's ``total_seconds``; busy/idle ratio (a fair share of two cores is 2).
 
+3. **Why one BLAS thread** (``blas_probe``): ``scipy.linalg.eigh`` of a 122 x 122
+   normal matrix (the default run's size) with one and with two BLAS threads, idle and
+   busy: median and worst of ``--probe-repeats`` calls.
+
 ``--smoke``: part 1 on a tiny simulated problem (4 bootstrap draws), one repeat each
-way; part 2 is left out (a whole run takes minutes) and says so.
+way; part 2 is left out (a whole run takes minutes) and says so; the probe 5 calls.
 """
 
 from __future__ import annotations
@@ -128,6 +132,27 @@ def whole_run(out: Path) -> dict:
             "threads": summary.get("threads"), "load_before": round(load, 2)}
 
 
+def blas_probe(repeats: int) -> dict:
+    """eigh of a 122 x 122 symmetric positive definite matrix with 1 and 2 BLAS threads."""
+    import numpy as np
+    import scipy.linalg
+    from threadpoolctl import threadpool_limits
+
+    a = np.random.default_rng(1).normal(size=(122, 400))
+    n = a @ a.T
+    out = {}
+    for threads in (1, 2):
+        with threadpool_limits(limits=threads, user_api="blas"):
+            times = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                scipy.linalg.eigh(n, check_finite=False)
+                times.append(time.perf_counter() - t0)
+        out[f"{threads}_thread{'s' if threads > 1 else ''}"] = {
+            "median_ms": round(1000 * statistics.median(times), 3), "worst_ms": round(1000 * max(times), 3)}
+    return out
+
+
 def _medians(rows: list[dict], keys) -> dict:
     return {k: statistics.median(r[k] for r in rows) for k in keys}
 
@@ -137,18 +162,23 @@ def main(argv=None) -> dict:
     ap.add_argument("--run-dir", type=Path, help="a run of the default configuration (its bundle inputs are used)")
     ap.add_argument("--repeats", type=int, default=5, help="bundle-step repeats each way (default 5)")
     ap.add_argument("--whole-runs", type=int, default=3, help="whole runs each way (default 3; 0: skip)")
+    ap.add_argument("--probe-repeats", type=int, default=200, help="eigh calls per probe (default 200)")
     args = add_options(ap).parse_args(argv)
     doc = conditions("busy_neighbours", argv, args.smoke)
     doc["neighbours"] = f"2 x {sys.executable} -c \"{BUSY}\""
     with tempfile.TemporaryDirectory(prefix="fringecal-busy-") as tmp:
         work = Path(tmp)
+        probes = 5 if args.smoke else args.probe_repeats
+        doc["blas_probe"] = {"idle": blas_probe(probes)}
+        with busy_neighbours(settle_s=0.2 if args.smoke else 1.0):
+            doc["blas_probe"]["busy"] = blas_probe(probes)
         rd, cfg = _bundle_inputs(args.run_dir, work, args.smoke)
         doc["threads"] = cfg.thread_policy().to_dict()
         bundle_step(rd, cfg)  # kernels loaded, caches warm: not timed
         idle, busy = [], []
         for _ in range(1 if args.smoke else args.repeats):
             idle.append(bundle_step(rd, cfg))
-            with busy_neighbours():
+            with busy_neighbours(settle_s=0.2 if args.smoke else 1.0):
                 busy.append(bundle_step(rd, cfg))
         keys = ("step_wall_s", "bundle_s", "bootstrap_s")
         mi, mb = _medians(idle, keys), _medians(busy, keys)

@@ -166,6 +166,17 @@ def verdict_row(verdict: dict | None) -> tuple[str, str]:
     return (label, f"[red]{verdict['word']}[/]: {verdict['failing']}")
 
 
+def _kernels_needed(cfg, until: Optional[str]) -> tuple[bool, bool]:
+    """(renderer, the others): which compiled kernels a run of ``cfg`` up to ``until``
+    uses, so that a first run warms up only those (``fringecal.run.warmup``). The source's
+    first steps (preparing the rig, moving the hexapod, reading a data set) need none."""
+    from fringecal.steps import pipeline
+
+    names = [s.name for s in pipeline(cfg)]
+    reached = names if until is None or until not in names else names[:names.index(until) + 1]
+    return "simulate-render" in reached, bool(set(reached) - {"simulate-prepare", "simulate-hexapod", "ingest"})
+
+
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
              verbose: bool, command: str, reporter, until: Optional[str] = None) -> dict:
     """Run the flow into ``run_dir``. Ctrl-C or SIGTERM ends the command within seconds
@@ -184,7 +195,7 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
     try:
         with armed(run_dir):
             # first run on this machine: the kernels compile in helpers while Prefect starts
-            warmup = kernel_warmup.start(renderer=cfg.source == "simulated")
+            warmup = kernel_warmup.start(*_kernels_needed(cfg, until))
             _quiet_prefect(verbose)
             api = configured_prefect_api()
             reporter.say(f"starting Prefect: the flow reports to {api}" if api else

@@ -69,11 +69,12 @@ def _helper(*args: str) -> subprocess.Popen:
     return proc
 
 
-def start(renderer: bool = False) -> list[subprocess.Popen]:
+def start(renderer: bool = False, others: bool = True) -> list[subprocess.Popen]:
     """Start the warm-up processes the cache needs (see the module notes); return them.
 
-    ``renderer``: the run renders (a simulated source). They never outlive the command
-    that started them (:mod:`fringecal.lifeline`): stop them with
+    ``renderer``: the run renders (a simulated source); ``others``: it decodes or
+    processes (the decoder and the later kernels). They never outlive the command that
+    started them (:mod:`fringecal.lifeline`): stop them with
     :func:`fringecal.lifeline.stop` when the run ends; if the command is killed, the
     lifeline stops them.
     """
@@ -82,7 +83,7 @@ def start(renderer: bool = False) -> list[subprocess.Popen]:
     if renderer and renderer_is_cold():
         _renderer = _helper("renderer")
         procs.append(_renderer)
-    if cache_is_cold():
+    if others and cache_is_cold():
         procs.append(_helper())
     return procs
 
