@@ -104,7 +104,8 @@ WHY_KEY = "credible_range_why"
 #: Top-level keys shown in the header of a summary, not among its figures.
 _META = {"benchmark", "command", "timed_command", "date", "created_utc", "cpu_count", "python",
          "threads", "load_average_start", "load_average_end", "code_digest_start",
-         "code_digest_end", "complete", "stopped", "code_changed_during_run", "rerun", WHY_KEY}
+         "code_digest_end", "complete", "stopped", "code_changed_during_run", "rerun", "smoke", "commit",
+         "numba_cache_at_start", WHY_KEY}
 _DATE_KEYS = ("date", "created_utc", "timestamp")
 _SHORT_TEXT = 40
 _SHORT_LIST = 8
@@ -293,7 +294,27 @@ def _machine(doc: dict) -> str:
              if isinstance(doc.get(key), list)]
     if loads:
         parts.append("load average (1, 5, 15 min) " + ", ".join(loads))
+    if doc.get("commit"):
+        parts.append(f"commit {doc['commit']}")
+    if doc.get("numba_cache_at_start"):
+        parts.append(f"numba's kernel cache {doc['numba_cache_at_start']} at the start")
     return "; ".join(parts) if parts else "not recorded"
+
+
+def _flatten_conditions(doc: dict) -> dict:
+    """A result written through ``benchmarks/_common.py`` keeps its conditions (date,
+    commit, cores, Python, load averages, numba's cache state) under ``conditions``:
+    the header's keys, at the top level."""
+    c = doc.get("conditions")
+    if not isinstance(c, dict):
+        return doc
+    out = {k: v for k, v in doc.items() if k != "conditions"}
+    for key, new in (("date", "date"), ("cores", "cpu_count"), ("python", "python"), ("commit", "commit"),
+                     ("load_average_start", "load_average_start"), ("load_average_end", "load_average_end"),
+                     ("numba_cache", "numba_cache_at_start")):
+        if key in c:
+            out.setdefault(new, c[key])
+    return out
 
 
 def _script(doc: dict, name: str, bench_dir: Path, json_name: str) -> tuple[str | None, list[str]]:
@@ -359,6 +380,7 @@ def summarise(path, bench_dir=None) -> Summary:
         raise ValueError(f"{path}: not valid JSON ({err})") from None
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: a benchmark result is a JSON object, found {type(doc).__name__}")
+    doc = _flatten_conditions(doc)
     name = str(doc.get("benchmark") or path.stem)
     recorded = next((str(doc[k]) for k in _DATE_KEYS if doc.get(k)), None)
     if recorded:

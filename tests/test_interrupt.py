@@ -204,7 +204,7 @@ import subprocess, sys, time
 from fringecal import lifeline
 from fringecal.run import warmup as kernel_warmup
 kernel_warmup.cache_is_cold = lambda: True
-warm = kernel_warmup.start()
+(warm,) = kernel_warmup.start()
 child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
 lifeline.adopt(child)
 print(warm.pid, child.pid, flush=True)

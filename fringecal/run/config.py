@@ -48,6 +48,7 @@ from fringecal.dataset import DATASET_FILE, DatasetConfig
 from fringecal.fringe.decode import DecodeSettings
 from fringecal.simulate.settings import SimulationConfig
 from fringecal.spheres.settings import ControlPointConfig, ExtractionConfig
+from fringecal.threads import ThreadPolicy
 from fringecal.verification.settings import VerificationConfig
 
 __all__ = ["RunConfig", "RunnerConfig", "load_run_config", "default_run_config_path"]
@@ -59,9 +60,15 @@ def default_run_config_path() -> Path:
 
 
 class RunnerConfig(StrictModel):
-    """Where tasks run: bounded threads here, or a Dask cluster through prefect-dask."""
+    """Where tasks run: bounded threads here, or a Dask cluster through prefect-dask.
+
+    ``cores``: the cores the run may use (None: all the process may run on); with
+    ``max_workers`` (step instances at once, at most ``cores``) it sizes the worker
+    pool, numba's threads and BLAS together (:mod:`fringecal.threads`).
+    """
 
     kind: Literal["threads", "dask"] = "threads"
+    cores: Optional[int] = Field(None, ge=1)
     max_workers: int = Field(2, ge=1)
     dask_address: Optional[str] = None
     dask_workers: int = Field(2, ge=1)
@@ -100,6 +107,11 @@ class RunConfig(StrictModel):
             if data.get("simulate") is None and data.get("dataset") is None:
                 data = {**data, "simulate": {}}
         return data
+
+    def thread_policy(self, workers: int | None = None) -> ThreadPolicy:
+        """The run's :class:`~fringecal.threads.ThreadPolicy` (``workers``: instead of
+        ``runner.max_workers``, e.g. from ``--workers``)."""
+        return ThreadPolicy.of(self.runner.cores, workers or self.runner.max_workers)
 
     @property
     def source(self) -> str:

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from fringecal import compile_clock
+from fringecal import compile_clock, threads
 from fringecal.atomic import atomic_paths
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.bundle import bundle_adjust
@@ -82,7 +82,7 @@ class Bundle(Step):
         log.info("F RMS %.4f -> %.4f mm in %d iterations (start: %s)", result.before.rms_f_mm, result.after.rms_f_mm,
                  result.iterations, result.extra.get("start"))
         t1 = time.perf_counter()
-        bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed)
+        bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed, workers=threads.granted())
         timing = {"bundle_seconds": seconds, "bundle_compile_seconds": compile_seconds,
                   "bootstrap_draws": b.bootstrap_draws, "bootstrap_seconds": time.perf_counter() - t1}
         arrays = covariance_arrays(result)
