@@ -97,6 +97,8 @@ BUDGETS = {
 }
 NOMINAL_COVERAGE = math.erf(2 / math.sqrt(2))  # k = 2, normal: 0.9545
 CREDIBLE = (0.93, 0.97)
+#: what its result files called this benchmark before (benchmarks/results/coverage_*.json)
+FORMER_NAMES = ("coverage",)
 
 
 def write_small_config(d: Path, width: int, poses=(1, 2, 3, 5, 7, 9, 11, 12), positions=(1, 4, 9)) -> Path:

@@ -3,6 +3,8 @@ sphere fit against the fit along the camera's lines of sight (docs/acceptance.md
 
     PYTHONPATH=. python benchmarks/probing_size_bias.py [--draws 40] [--out FILE.json]
 
+``--smoke``: 192 px, the farthest position only, two draws.
+
 The default demo (``configs/run_thesis.yaml``, ideal profile, 512 px) as it planned its
 sphere positions before it stated a measuring volume: every scanner's whole calibrated
 volume, 2.4-3.65 m deep. Each sphere position deeper than ``--far-mm`` (3.3 m: the
@@ -27,29 +29,29 @@ the noise-free rendering, pixel by pixel).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import add_options, conditions, finish  # noqa: E402
 
 from fringecal.acceptance import measure as M  # noqa: E402
 from fringecal.acceptance.standards import load_standards  # noqa: E402
 from fringecal.frames import frames_from_rows  # noqa: E402
+from fringecal.rig import scaled_scanner  # noqa: E402
 from fringecal.run.config import load_run_config  # noqa: E402
+from fringecal.rundir import measurement_id  # noqa: E402
 from fringecal.simulate.config import AcquisitionConfig  # noqa: E402
 from fringecal.simulate.measurement import simulate_measurement  # noqa: E402
 from fringecal.simulate.scenes import ArtefactHardware, acceptance_scene  # noqa: E402
 from fringecal.simulate.source import acceptance_camera_width, load_simulated_rig  # noqa: E402
-from fringecal.rig import scaled_scanner  # noqa: E402
-from fringecal.rundir import measurement_id  # noqa: E402
 
 
 def measure(store, scanner, standard, centre_true) -> dict:
@@ -83,23 +85,28 @@ def noise_directions(free_store, noisy_store, scanner) -> tuple[float, float]:
     return float(np.sqrt(np.mean(a ** 2))), float(np.sqrt(np.mean(np.sum((d - a[:, None] * ray) ** 2, axis=1))))
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--draws", type=int, default=40)
     ap.add_argument("--far-mm", type=float, default=3300.0)
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args(argv)
+    args = add_options(ap).parse_args(argv)
+    if args.smoke:
+        args.draws = 2
+    head = conditions("probing_size_bias", argv, args.smoke)
     t0 = time.perf_counter()
-    load0 = list(os.getloadavg())
     cfg = load_run_config()
     sim = cfg.simulate
     sr = load_simulated_rig(sim, None)  # the whole calibrated volume, as the demo planned before
     standards = load_standards(sim.acceptance.standards_path())
     hardware = ArtefactHardware.from_materials(sim.rig_config().materials)
     acq = sim.acquisition
-    width = acceptance_camera_width(sim)
+    width = 192 if args.smoke else acceptance_camera_width(sim)
     plan = sr.acceptance[sr.acceptance["test"] == "sphere"]
     frames = frames_from_rows(plan)
+    if args.smoke:  # the farthest position only
+        depths = [float(sr.truth.scanner(r.scanner).camera.to_sensor(frames[r.measurement].t[None])[0, 2])
+                  for r in plan.itertuples(index=False)]
+        plan = plan.iloc[[int(np.argmax(depths))]]
     positions, farthest = [], None
     with tempfile.TemporaryDirectory() as tmp:
         def render(name, scanner, seed, render_cfg):
@@ -134,10 +141,7 @@ def main(argv=None) -> int:
         return {"mean_mm": float(v.mean()), "sd_mm": float(v.std(ddof=1)), "sem_mm": float(v.std(ddof=1) / np.sqrt(len(v)))}
 
     doc = {
-        "benchmark": "probing_size_bias",
-        "command": "PYTHONPATH=. python benchmarks/probing_size_bias.py --draws %d --out %s"
-                   % (args.draws, args.out or "FILE.json"),
-        "created_utc": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M"),
+        **head,
         "config": "configs/run_thesis.yaml (ideal profile), sphere positions over the whole calibrated volume",
         "camera_width_px": width or acq.camera_width_px,
         "far_mm": args.far_mm,
@@ -155,16 +159,10 @@ def main(argv=None) -> int:
         "noise_free_P_S_orthogonal_mm": free["P_S_orthogonal_mm"],
         "noise_free_P_S_along_rays_mm": free["P_S_along_rays_mm"],
         "positions": positions,
-        "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
-        "load_average_start": load0, "load_average_end": list(os.getloadavg()),
         "wall_seconds": time.perf_counter() - t0,
     }
-    text = json.dumps(doc, indent=1)
-    if args.out:
-        args.out.write_text(text + "\n")
-    print(text)
-    return 0
+    return finish(doc, args.out)
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

@@ -320,7 +320,11 @@ def _flatten_conditions(doc: dict) -> dict:
 def _script(doc: dict, name: str, bench_dir: Path, json_name: str) -> tuple[str | None, list[str]]:
     """The script writing benchmark ``name``, with notes when the recorded command names
     another script or writes another file than ``benchmarks/results/<json_name>``."""
-    tag = re.compile(r"""["']benchmark["']\s*:\s*["']""" + re.escape(name) + r"""["']""")
+    quoted = r"""["']""" + re.escape(name) + r"""["']"""
+    # the name as a JSON key, as the first argument of _common.conditions, or among the
+    # script's FORMER_NAMES (a renamed benchmark's older result files)
+    tag = re.compile(r"""["']benchmark["']\s*:\s*""" + quoted + r"|conditions\(\s*" + quoted
+                     + r"|^FORMER_NAMES\s*=\s*\([^)]*" + quoted, re.M)
     found = sorted(p for p in bench_dir.glob("*.py") if tag.search(p.read_text(encoding="utf-8")))
     if not found and (bench_dir / f"{name}.py").is_file():
         found = [bench_dir / f"{name}.py"]

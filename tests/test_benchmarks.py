@@ -94,6 +94,7 @@ CHECKS = {
     "labelling_rigs": lambda d: d["rigs"]["thesis"]["seeds"]["0"]["with_plan"]["wrong_labels"] == 0,
     "measure": lambda d: d["points"] > 0 and d["ply_bytes"] > 0,
     "noise_calibration": lambda d: d["measurements"][0]["n_pixels"] > 0 and d["unwrap"]["unwrap_errors"]["x"] == 0,
+    "probing_size_bias": lambda d: d["far_positions"] == 1 and abs(d["noise_free_P_S_along_rays_mm"]) < 0.5,
     "pointcloud": lambda d: d["labelling"]["labelled_groups"] == d["labelling"]["groups"] == 24,
     "render": lambda d: d["render_64"]["wall_s"] > 0 and d["frames_bytes"] == 98 * 64 * 64 * 2,
 }

@@ -400,7 +400,7 @@ def test_a_second_run_into_a_busy_run_directory_is_refused_at_once(small_config,
         raise AssertionError("the command went on to start Prefect")
 
     monkeypatch.setattr("fringecal.flows.cli_run.make_task_runner", trap)
-    monkeypatch.setattr("fringecal.run.warmup.start", lambda: None)
+    monkeypatch.setattr("fringecal.run.warmup.start", lambda *needed: [])
     rd = RunDir(tmp_path / "run").create()
     fd = os.open(rd.lock.path, os.O_RDWR | os.O_CREAT)
     try:
@@ -455,7 +455,7 @@ def test_a_full_disk_under_run(small_config, tmp_path, monkeypatch):
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.setattr("fringecal.flows.cli_run.make_task_runner", _enospc(work / "run" / "manifest.json"))
-    monkeypatch.setattr("fringecal.run.warmup.start", lambda: None)
+    monkeypatch.setattr("fringecal.run.warmup.start", lambda *needed: [])
     res = runner.invoke(app, ["run", "-c", str(small_config), "--out", str(work / "run")])
     line = one_line(res, 2, f"{work / 'run' / 'manifest.json'}: no space left on the device (")
     assert "the run needs roughly 91.8 MB in" in line  # 14 stores of 320 x 320 px x 64 bytes

@@ -397,9 +397,13 @@ def test_scanner_sections_show_maps_from_the_binned_residuals(rd):
 def test_uncertainty_map_is_the_propagated_covariance_at_each_depth(rd):
     """The map's value at a cell is the point's u from the covariance through the
     triangulation (a point straight ahead, checked against an independent Jacobian)."""
-    from fringecal.calibration.propagation import (frame_free_covariance, scanner_block, triangulate_mm,
-                                                   uncertainty_at_depth)
     from fringecal.calibration.file import read_calibration
+    from fringecal.calibration.propagation import (
+        frame_free_covariance,
+        scanner_block,
+        triangulate_mm,
+        uncertainty_at_depth,
+    )
 
     cal = read_calibration(rd.calibration.path)
     rig = cal.rig
