@@ -28,6 +28,7 @@ from fringecal.frames import Frame
 from fringecal.registration import kabsch
 from fringecal.schemas import LabelOutcomesTable, ScannerLinksTable, SphereCentresTable, SphereFitsTable, validate_table
 from fringecal.spheres.fit import SphereModel
+from fringecal.spheres.label_links import joint_placement, links_from_hypotheses
 from fringecal.spheres.label_consensus import frame_uncertainty, scanner_frame_from_plan
 from fringecal.spheres.label_scanners import estimate_scale, label_sphere_fits, label_with_prior
 from fringecal.spheres.labelling import Labelling, LabellingConfig
@@ -140,6 +141,10 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
     D = artefact.distance_matrix()
     tol = 0.5 * float(D[np.triu_indices(len(D), 1)].min()) if len(D) > 1 else np.inf
     found = []
+    guess = joint = None  # without a plan: links from the hypotheses alone, measurements placed jointly
+    if not planned and len(labelled):
+        joint = {}
+        guess = links_from_hypotheses(labelled, estimates, artefact, reference, config or LabellingConfig())
     for attempt in range(12):  # refuse contradicted labellings, label from the links, link again
         centres = centres_from_fits(validate_table(labelled, SphereFitsTable, source))
         if attempt:
@@ -148,10 +153,10 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
         links, links_error = _link(poses, reference, source)
         if attempt == 11:
             break
-        anchor = _anchor_links(poses, links, source)
+        anchor = _with_guess(_anchor_links(poses, links, source), guess)
         if anchor is None:
             break
-        bad = pose_contradictions(poses.poses, anchor, artefact.centres, tol, source)
+        bad = pose_contradictions(poses.poses, anchor, artefact.centres, tol, source) if len(poses.poses) else []
         if len(bad):
             found.append(bad)
             for r in bad.itertuples(index=False):
@@ -162,7 +167,7 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
                         f"inconsistent: {r.message} (it had labelled candidates {seen})")
             continue
         if not _label_from_poses(labelled, outcomes, poses.poses, anchor, estimates, artefact,
-                                 config or LabellingConfig(), allowed_ids, tol):
+                                 config or LabellingConfig(), allowed_ids, tol, joint):
             break
     if links is not None and planned:
         links = _check_links_against_plan(links, estimates, artefact, planned, tol)
@@ -222,6 +227,21 @@ def _anchor_links(poses: PoseResult, links: LinkResult | None, source: str) -> L
     return best
 
 
+def _with_guess(anchor: LinkResult | None, guess: LinkResult | None) -> LinkResult | None:
+    """The anchor's links, and for the scanners it lacks the links the hypotheses
+    alone gave (:func:`~fringecal.spheres.label_links.links_from_hypotheses`), when both
+    are in the reference's frame."""
+    if guess is None or (anchor is not None and anchor.reference != guess.reference):
+        return anchor
+    if anchor is None:
+        return guess if len(guess.links) > 1 else None
+    extra = {s: lk for s, lk in guess.links.items() if s not in anchor.links}
+    if not extra:
+        return anchor
+    return LinkResult(anchor.reference, {**anchor.links, **extra},
+                      {s: w for s, w in anchor.unlinked.items() if s not in extra})
+
+
 def _refuse(labelled: pd.DataFrame, outcomes: pd.DataFrame, measurement, scanner, message: str) -> None:
     key = (outcomes["measurement"] == measurement) & (outcomes["scanner"] == scanner)
     outcomes.loc[key, ["status", "reason", "n_labelled", "rms_mm"]] = ["refused", "inconsistent", 0, np.nan]
@@ -233,7 +253,7 @@ def _refuse(labelled: pd.DataFrame, outcomes: pd.DataFrame, measurement, scanner
 
 def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.DataFrame, links: LinkResult,
                       estimates: dict, artefact: Artefact, config: LabellingConfig, allowed_ids: dict | None,
-                      tol: float) -> int:
+                      tol: float, joint: dict | None = None) -> int:
     """Label the groups refused as ambiguous from the poses other scanners measured.
 
     The linked scanners' poses of a measurement, carried into the reference frame,
@@ -243,6 +263,12 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
     possible labellings), and its ambiguous measurements are labelled with the
     predicted pose (method ``linked pose``) if the labelling's own pose puts every
     sphere within ``tol`` of it. Returns how many groups were labelled.
+
+    ``joint`` (without a plan): a measurement no linked scanner has posed is placed by
+    all linked scanners' views together
+    (:func:`~fringecal.spheres.label_links.joint_placement`), and a scanner whose frame
+    the placed measurements do not single out is labelled through its link; the dict
+    is filled with measurement -> why it stays refused.
     """
     placed: dict[str, list] = {}
     for r in poses.itertuples(index=False):
@@ -257,10 +283,20 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
         placed.setdefault(str(r.measurement), []).append((r.scanner, links.links[r.scanner].frame.compose(T), sigma))
     world = {m: mean_frame([T for _, T, _ in v])[0] for m, v in placed.items()}
     sigma = {m: min(sg for _, _, sg in v) for m, v in placed.items()}
-    for m, (W, sg, names) in _poses_from_alternatives(labelled, outcomes, links, estimates, artefact, config,
-                                                      set(world)).items():
-        world[m], sigma[m] = W, sg
-        placed[m] = [(f"{', '.join(names)} (the only labelling on which they agree)", W, sg)]
+    if joint is None:
+        for m, (W, sg, names) in _poses_from_alternatives(labelled, outcomes, links, estimates, artefact, config,
+                                                          set(world)).items():
+            world[m], sigma[m] = W, sg
+            placed[m] = [(f"{', '.join(names)} (the only labelling on which they agree)", W, sg)]
+    else:
+        for m, jp in _joint_placements(labelled, outcomes, links, estimates, artefact, config, set(world),
+                                       tol).items():
+            if jp.frame is None:
+                joint[m] = jp.note
+                continue
+            joint.pop(m, None)
+            world[m], sigma[m] = jp.frame, jp.sigma
+            placed[m] = [(f"{', '.join(jp.scanners)} together ({jp.note})", jp.frame, jp.sigma)]
     todo = outcomes[(outcomes["status"] == "refused") & (outcomes["reason"] == "ambiguous")
                     & outcomes["measurement"].isin(list(world))]
     n_new = 0
@@ -274,6 +310,8 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
             if m in world and alts:
                 results[m] = (labelled.loc[rows, ["x_mm", "y_mm", "z_mm"]].to_numpy(float), alts)
         frame, _, _ = scanner_frame_from_plan(results, world, artefact, config, est.scale, sigma)
+        if frame is None and joint is not None and s in links.links:
+            frame = links.links[s].frame.inverse()
         if frame is None:
             continue
         for i, r in mine.iterrows():
@@ -298,6 +336,26 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
                 "labelled", "", "linked pose", res.n_labelled, res.rms_mm, "; ".join(notes)]
             n_new += 1
     return n_new
+
+
+def _joint_placements(labelled: pd.DataFrame, outcomes: pd.DataFrame, links: LinkResult, estimates: dict,
+                      artefact: Artefact, config: LabellingConfig, skip: set, tol: float) -> dict:
+    """measurement -> :class:`~fringecal.spheres.label_links.JointPlacement` of every
+    measurement still ambiguous that no linked scanner has posed."""
+    todo = outcomes[(outcomes["status"] == "refused") & (outcomes["reason"] == "ambiguous")
+                    & outcomes["scanner"].isin(list(links.links)) & ~outcomes["measurement"].isin(list(skip))]
+    out = {}
+    for m, g in todo.groupby("measurement", sort=False):
+        views = {}
+        for s in g["scanner"]:
+            est = estimates.get(s)
+            if est is None or not est.hypotheses.get(m):
+                continue
+            rows = (labelled["measurement"] == m) & (labelled["scanner"] == s)
+            views[s] = (labelled.loc[rows, ["x_mm", "y_mm", "z_mm"]].to_numpy(float) / est.scale, est.hypotheses[m])
+        frames = {s: links.links[s].frame for s in views}
+        out[m] = joint_placement(views, frames, artefact, tol, config)
+    return out
 
 
 def _poses_from_alternatives(labelled: pd.DataFrame, outcomes: pd.DataFrame, links: LinkResult, estimates: dict,
