@@ -141,10 +141,10 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
     D = artefact.distance_matrix()
     tol = 0.5 * float(D[np.triu_indices(len(D), 1)].min()) if len(D) > 1 else np.inf
     found = []
-    guess = joint = None  # without a plan: links from the hypotheses alone, measurements placed jointly
-    if not planned and len(labelled):
-        joint = {}
-        guess = links_from_hypotheses(labelled, estimates, artefact, reference, config or LabellingConfig())
+    # without a plan: links from the hypotheses alone (where no labelled pose links a scanner),
+    # and measurements placed by all linked scanners' views at once
+    joint = None if planned else {}
+    guess = None
     for attempt in range(12):  # refuse contradicted labellings, label from the links, link again
         centres = centres_from_fits(validate_table(labelled, SphereFitsTable, source))
         if attempt:
@@ -153,7 +153,10 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
         links, links_error = _link(poses, reference, source)
         if attempt == 11:
             break
-        anchor = _with_guess(_anchor_links(poses, links, source), guess)
+        anchor = _anchor_links(poses, links, source)
+        if joint is not None and guess is None and _lacks_links(anchor, estimates, reference):
+            guess = links_from_hypotheses(labelled, estimates, artefact, reference, config or LabellingConfig())
+        anchor = _with_guess(anchor, guess)
         if anchor is None:
             break
         bad = pose_contradictions(poses.poses, anchor, artefact.centres, tol, source) if len(poses.poses) else []
@@ -225,6 +228,13 @@ def _anchor_links(poses: PoseResult, links: LinkResult | None, source: str) -> L
         if n > n_best:
             best, n_best = cand, n
     return best
+
+
+def _lacks_links(anchor: LinkResult | None, estimates: dict, reference: str) -> bool:
+    """Does some scanner with hypotheses lack a link in the reference's frame?"""
+    if anchor is None or anchor.reference != reference:
+        return True
+    return any(s not in anchor.links and e.hypotheses and any(e.hypotheses.values()) for s, e in estimates.items())
 
 
 def _with_guess(anchor: LinkResult | None, guess: LinkResult | None) -> LinkResult | None:
