@@ -313,7 +313,7 @@ class JointPlacement:
 
 
 def joint_placement(views: dict, links: dict, artefact: Artefact, tol: float, config: LabellingConfig | None = None,
-                    max_combinations: int = 20_000) -> JointPlacement:
+                    free: dict | None = None, max_combinations: int = 20_000) -> JointPlacement:
     """Label one measurement with all its linked scanners' views together.
 
     ``views``: scanner -> (scale-corrected centres (n, 3) in its frame, hypotheses);
@@ -331,8 +331,14 @@ def joint_placement(views: dict, links: dict, artefact: Artefact, tol: float, co
     errors that blur every placement alike refuse rather than decide. A symmetry of
     everything the scanners see together passes this test only where the artefact's
     CMM shape departs from it by more than the links' and centres' errors.
+
+    ``free``: scanner -> scale-corrected centres of a linked scanner that sees too few
+    spheres to be labelled on its own (one or two): each joins a combination at the
+    sphere the placement puts nearest (within ``tol``), adding its residual and, if it
+    lands on a sphere, its support; its labels are in ``labels`` too.
     """
     cfg = config or LabellingConfig()
+    free_r = {s: links[s].to_world(X) for s, X in (free or {}).items() if s in links and len(X)}
     per = {}
     for s, (X, alts) in views.items():
         if s not in links:
@@ -347,9 +353,10 @@ def joint_placement(views: dict, links: dict, artefact: Artefact, tol: float, co
             hyps.append((tuple(alt), idx, artefact.centres @ M.T + t))
         if hyps:
             per[s] = (Xr, hyps)
-    if len(per) < 2:
+    if not per or len(per) + len(free_r) < 2:
         return JointPlacement(None, np.inf, tuple(per), {}, np.nan, np.nan,
-                              f"{len(per)} linked scanner(s) with a possible labelling; two or more are needed")
+                              f"{len(per)} linked scanner(s) with a possible labelling and {len(free_r)} with one "
+                              "or two spheres; two or more scanners are needed")
     names = sorted(per, key=lambda s: (len(per[s][1]), s))
     first, others = names[0], names[1:]
     combos: dict = {}
@@ -365,10 +372,14 @@ def joint_placement(views: dict, links: dict, artefact: Artefact, tol: float, co
             chosen = {first: h0, **{s: h for s, h in zip(others, rest) if h is not None}}
             key = tuple(sorted((s, h[0]) for s, h in chosen.items()))
             if key not in combos:
-                combos[key] = _joint_fit(chosen, per, artefact)
-    support = max(len(k) for k in combos)
-    top = sorted(((c[0], k, c) for k, c in combos.items() if len(k) == support), key=lambda x: x[0])
-    rss, key, (_, n, frame, Xall) = top[0]
+                fit = _joint_fit(chosen, per, artefact, free_r, tol)
+                combos[key + tuple(sorted(fit[4].items()))] = fit
+    def n_support(key):
+        return sum(1 for _, lab in key if any(x is not None for x in lab))
+
+    support = max(n_support(k) for k in combos)
+    top = sorted(((c[0], k, c) for k, c in combos.items() if n_support(k) == support), key=lambda x: x[0])
+    rss, key, (_, n, frame, Xall, _) = top[0]
     dof = max(3 * n - 6, 1)
     labels = dict(key)
     rivals = [r for r in top[1:] if any(dict(r[1]).get(s, lab) != lab for s, lab in labels.items())]
@@ -394,12 +405,25 @@ def _describe(labels: dict) -> str:
     return ", ".join(f"{s} {[x for x in lab if x]}" for s, lab in sorted(labels.items()))
 
 
-def _joint_fit(chosen: dict, per: dict, artefact: Artefact):
-    """(RSS, n, T_reference_artefact, points) of the rigid registration of every
-    chosen scanner's labelled centres (reference frame) at once."""
+def _joint_fit(chosen: dict, per: dict, artefact: Artefact, free: dict, tol: float):
+    """(RSS, n, T_reference_artefact, points, free scanners' labels) of the rigid
+    registration of every chosen scanner's labelled centres (reference frame) at once,
+    with each free scanner's centres at the sphere the first registration puts nearest
+    (within ``tol``)."""
     X = np.vstack([per[s][0][h[1]] for s, h in chosen.items()])
     ids = [sid for h in chosen.values() for sid in h[0] if sid is not None]
+    M, t = kabsch(artefact.centres_of(ids), X)
+    free_labels = {}
+    if free:
+        placed = artefact.centres @ M.T + t
+        for s, P in free.items():
+            d = np.linalg.norm(P[:, None] - placed[None], axis=2)
+            near = np.argmin(d, axis=1)
+            lab = tuple(artefact.ids[j] if d[i, j] <= tol else None for i, j in enumerate(near))
+            free_labels[s] = lab
+            X = np.vstack([X, P[[i for i, x in enumerate(lab) if x is not None]]])
+            ids += [x for x in lab if x is not None]
+        M, t = kabsch(artefact.centres_of(ids), X)
     Y = artefact.centres_of(ids)
-    M, t = kabsch(Y, X)
     rss = float(np.sum((Y @ M.T + t - X) ** 2))
-    return rss, len(X), Frame.from_matrix(M.T, t), X
+    return rss, len(X), Frame.from_matrix(M.T, t), X, free_labels

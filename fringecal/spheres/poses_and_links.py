@@ -351,20 +351,27 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
 def _joint_placements(labelled: pd.DataFrame, outcomes: pd.DataFrame, links: LinkResult, estimates: dict,
                       artefact: Artefact, config: LabellingConfig, skip: set, tol: float) -> dict:
     """measurement -> :class:`~fringecal.spheres.label_links.JointPlacement` of every
-    measurement still ambiguous that no linked scanner has posed."""
-    todo = outcomes[(outcomes["status"] == "refused") & (outcomes["reason"] == "ambiguous")
-                    & outcomes["scanner"].isin(list(links.links)) & ~outcomes["measurement"].isin(list(skip))]
+    measurement still ambiguous that no linked scanner has posed; linked scanners with
+    one or two spheres there join as free points."""
+    refused = outcomes[(outcomes["status"] == "refused") & outcomes["scanner"].isin(list(links.links))
+                       & ~outcomes["measurement"].isin(list(skip))]
     out = {}
-    for m, g in todo.groupby("measurement", sort=False):
-        views = {}
-        for s in g["scanner"]:
+    for m, g in refused.groupby("measurement", sort=False):
+        if not (g["reason"] == "ambiguous").any():
+            continue
+        views, free = {}, {}
+        for s, reason in zip(g["scanner"], g["reason"]):
             est = estimates.get(s)
-            if est is None or not est.hypotheses.get(m):
+            if est is None:
                 continue
             rows = (labelled["measurement"] == m) & (labelled["scanner"] == s)
-            views[s] = (labelled.loc[rows, ["x_mm", "y_mm", "z_mm"]].to_numpy(float) / est.scale, est.hypotheses[m])
-        frames = {s: links.links[s].frame for s in views}
-        out[m] = joint_placement(views, frames, artefact, tol, config)
+            X = labelled.loc[rows, ["x_mm", "y_mm", "z_mm"]].to_numpy(float) / est.scale
+            if reason == "ambiguous" and est.hypotheses.get(m):
+                views[s] = (X, est.hypotheses[m])
+            elif reason == "too_few_candidates" and len(X):
+                free[s] = X
+        frames = {s: links.links[s].frame for s in [*views, *free]}
+        out[m] = joint_placement(views, frames, artefact, tol, config, free)
     return out
 
 
