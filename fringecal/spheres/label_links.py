@@ -359,12 +359,13 @@ def joint_placement(views: dict, links: dict, artefact: Artefact, tol: float, co
                               "or two spheres; two or more scanners are needed")
     names = sorted(per, key=lambda s: (len(per[s][1]), s))
     first, others = names[0], names[1:]
+    placed = {s: np.stack([h[2] for h in per[s][1]]) for s in others}
     combos: dict = {}
     for h0 in per[first][1]:
         options = []
         for s in others:
-            near = [h for h in per[s][1] if np.sqrt(np.mean(np.sum((h[2] - h0[2]) ** 2, axis=1))) <= tol]
-            options.append(near or [None])
+            close = np.sqrt(np.mean(np.sum((placed[s] - h0[2]) ** 2, axis=2), axis=1)) <= tol
+            options.append([per[s][1][i] for i in np.flatnonzero(close)] or [None])
         if np.prod([len(o) for o in options]) > max_combinations:
             return JointPlacement(None, np.inf, (), {}, np.nan, np.nan,
                                   f"more than {max_combinations} combinations of the scanners' labellings agree")

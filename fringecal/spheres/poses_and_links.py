@@ -174,6 +174,8 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
             break
     if links is not None and planned:
         links = _check_links_against_plan(links, estimates, artefact, planned, tol)
+    if joint is not None:
+        links = _say_what_decides(outcomes, links, guess, joint, reference)
     labelled = validate_table(labelled, SphereFitsTable, source)
     outcomes = validate_table(outcomes, LabelOutcomesTable, "label outcomes")
     # groups refused by labelling never reach the pose step: say so in its skip list
@@ -230,6 +232,29 @@ def _anchor_links(poses: PoseResult, links: LinkResult | None, source: str) -> L
     return best
 
 
+def _say_what_decides(outcomes: pd.DataFrame, links: LinkResult | None, guess: LinkResult | None, joint: dict,
+                      reference: str) -> LinkResult | None:
+    """Without a plan: each view still ambiguous says what the other scanners' views gave
+    and what would decide it; each scanner left unlinked, why the hypotheses gave no link
+    (the reference is never unlinked)."""
+    rows = (outcomes["status"] == "refused") & (outcomes["reason"] == "ambiguous")
+    for i in np.flatnonzero(rows.to_numpy()):
+        m = outcomes.at[i, "measurement"]
+        others = joint.get(m, "no scanner linked to it sees this measurement")
+        outcomes.at[i, "message"] = (f"{outcomes.at[i, 'message']}; with the other scanners' views: {others}; "
+                                     "the planned poses (poses_planned.csv) or more spheres in the view would "
+                                     "decide it")
+    if guess is None:
+        return links
+    linked = links.links if links is not None else {}
+    unlinked = dict(links.unlinked) if links is not None else {}
+    for s, why in guess.unlinked.items():
+        if s not in linked and s != reference:
+            unlinked[s] = f"{unlinked[s]}; " if s in unlinked else ""
+            unlinked[s] += f"from its possible labellings: {why}"
+    return LinkResult(reference, dict(linked), unlinked) if links is not None or unlinked else links
+
+
 def _lacks_links(anchor: LinkResult | None, estimates: dict, reference: str) -> bool:
     """Does some scanner with hypotheses lack a link in the reference's frame?"""
     if anchor is None or anchor.reference != reference:
@@ -276,9 +301,9 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
 
     ``joint`` (without a plan): a measurement no linked scanner has posed is placed by
     all linked scanners' views together
-    (:func:`~fringecal.spheres.label_links.joint_placement`), and a scanner whose frame
-    the placed measurements do not single out is labelled through its link; the dict
-    is filled with measurement -> why it stays refused.
+    (:func:`~fringecal.spheres.label_links.joint_placement`), and each scanner's frame
+    is its link rather than a consensus; the dict is filled with measurement -> why
+    it stays refused.
     """
     placed: dict[str, list] = {}
     for r in poses.itertuples(index=False):
@@ -319,9 +344,10 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
             rows = (labelled["measurement"] == m) & (labelled["scanner"] == s)
             if m in world and alts:
                 results[m] = (labelled.loc[rows, ["x_mm", "y_mm", "z_mm"]].to_numpy(float), alts)
-        frame, _, _ = scanner_frame_from_plan(results, world, artefact, config, est.scale, sigma)
-        if frame is None and joint is not None and s in links.links:
+        if joint is not None and s in links.links:  # no plan: the link is the scanner's frame
             frame = links.links[s].frame.inverse()
+        else:
+            frame, _, _ = scanner_frame_from_plan(results, world, artefact, config, est.scale, sigma)
         if frame is None:
             continue
         for i, r in mine.iterrows():
@@ -341,7 +367,7 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
             notes = [f"candidate {cands[j]}: {w}" for j, w in res.unlabelled.items()]
             notes.append(f"distances alone: ambiguous; labelled with the pose of scanner(s) "
                          f"{', '.join(sc for sc, _, _ in placed[m])} carried by their links, {s}'s frame from "
-                         "the consensus of its measurements")
+                         + ("its link" if joint is not None else "the consensus of its measurements"))
             outcomes.loc[i, ["status", "reason", "method", "n_labelled", "rms_mm", "message"]] = [
                 "labelled", "", "linked pose", res.n_labelled, res.rms_mm, "; ".join(notes)]
             n_new += 1
