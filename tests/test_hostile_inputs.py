@@ -510,7 +510,7 @@ def test_a_scanner_that_never_sees_three_spheres_is_named(small_config, tmp_path
     before = listing(tmp_path)
     res = runner.invoke(app, ["step", "initialise", "--run", str(rd.root), "-c", str(small_config)])
     line = one_line(res, 2, f"{rd.root}: 1 scanner(s) cannot be placed in the frame of the reference scanner "
-                            "scanner1: scanner scanner2: labelled spheres per measurement, most first: ")
+                            "(scanner1): scanner scanner2: labelled spheres per measurement, most first: ")
     assert "A view needs three or more of the artefact's spheres" in line and "label_outcomes.csv" in line
     assert line.count("scanner2") == 1 and "scanner scanner1:" not in line
     assert listing(tmp_path) == before
@@ -533,7 +533,7 @@ def test_views_no_scanner_can_decide_without_a_plan_are_named_with_what_would(sm
     before = listing(tmp_path)
     res = runner.invoke(app, ["step", "initialise", "--run", str(rd.root), "-c", str(small_config)])
     line = one_line(res, 2, f"{rd.root}: 1 scanner(s) cannot be placed in the frame of the reference scanner "
-                            "scanner1: the reference scanner scanner1 itself has no labelled view (ambiguous")
+                            "(scanner1): the reference scanner scanner1 itself has no labelled view (ambiguous")
     assert "scanner scanner2: ambiguous" in line and line.count("scanner2") == 1
     assert "in measurement(s) 1, 2, 3, 4, 5, 6, ... (12 in all)" in line
     assert "The planned poses (poses_planned.csv in the data set) or views with more spheres" in line

@@ -81,7 +81,7 @@ def unlinked_message(rd: RunDir, scanners: list[str], reference: str, centres: p
         decide.append("a view needs three or more of the artefact's spheres, in a measurement a linked scanner "
                       "shares, to link its scanner")
     return (f"{rd.root}: {len(scanners)} scanner(s) cannot be placed in the frame of the reference scanner "
-            f"{reference}: {'. '.join(parts)}. {_first_upper('; '.join(decide))}; why each view was refused: "
+            f"({reference}): {'. '.join(parts)}. {_first_upper('; '.join(decide))}; why each view was refused: "
             f"{rd.label_outcomes.path}")
 
 
