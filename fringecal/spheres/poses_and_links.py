@@ -131,8 +131,14 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
     poses the linked scanners measured (:func:`_label_from_poses`, method ``linked
     pose``), and so on until nothing changes. With planned poses, a link that disagrees
     by as much with the link the plan implies (each scanner's consensus frame) is
-    refused too. Poses and links are those of the scale-corrected scanner frames (see
-    the module doc); ``estimates`` and the outcomes' ``scale`` hold each scanner's scale.
+    refused too. Without planned poses, a scanner that no labelled pose links is linked
+    by the transform its and another scanner's possible labellings agree on in their
+    shared measurements, and a measurement no scanner labelled alone is placed by all
+    linked scanners' views at once (:mod:`fringecal.spheres.label_links`); a view left
+    ambiguous says what the other scanners' views gave and what would decide it, and
+    ``links.unlinked`` says why a scanner has no link. Poses and links are those of the
+    scale-corrected scanner frames (see the module doc); ``estimates`` and the outcomes'
+    ``scale`` hold each scanner's scale.
     """
     fits = validate_table(fits, SphereFitsTable, source)
     estimates: dict = {}
