@@ -32,6 +32,8 @@ import yaml
 from typer.testing import CliRunner
 
 from fringecal.flows.cli import app
+from fringecal.frames import POSE_COLUMNS
+from fringecal.spheres.linking import LINK_COLUMNS
 
 ROOT = Path(__file__).resolve().parents[1]
 THESIS = ROOT / "configs" / "thesis"
@@ -39,9 +41,6 @@ ARTEFACT = THESIS / "artefact_cmm2.csv"
 CENTRES = THESIS / "centres_scanner1_table6-3.csv"
 SENSORS = THESIS / "sensors_refined_table6-8.csv"
 BALLBAR_CENTRES = THESIS / "ballbar_verification_table6-9.csv"
-
-from fringecal.frames import POSE_COLUMNS  # noqa: E402
-from fringecal.spheres.linking import LINK_COLUMNS  # noqa: E402
 
 runner = CliRunner()
 

@@ -53,7 +53,7 @@ the other scanners' poses of the same measurement, and labels the measurements s
 ambiguous from those poses; a scanner no labelled pose links is linked by the transform
 its and another scanner's hypotheses agree on in their shared measurements, and a
 measurement no scanner labelled alone by all linked scanners' views together
-(:mod:`fringecal.spheres.label_links`).
+(:mod:`fringecal.spheres.label_links`, :mod:`fringecal.spheres.label_joint`).
 """
 
 from __future__ import annotations

@@ -28,8 +28,9 @@ from fringecal.frames import Frame
 from fringecal.registration import kabsch
 from fringecal.schemas import LabelOutcomesTable, ScannerLinksTable, SphereCentresTable, SphereFitsTable, validate_table
 from fringecal.spheres.fit import SphereModel
-from fringecal.spheres.label_links import joint_placement, links_from_hypotheses
 from fringecal.spheres.label_consensus import frame_uncertainty, scanner_frame_from_plan
+from fringecal.spheres.label_joint import joint_placements
+from fringecal.spheres.label_links import links_from_hypotheses
 from fringecal.spheres.label_scanners import estimate_scale, label_sphere_fits, label_with_prior
 from fringecal.spheres.labelling import Labelling, LabellingConfig
 from fringecal.spheres.linking import LinkResult, link_scanners, mean_frame, pose_contradictions
@@ -134,7 +135,8 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
     refused too. Without planned poses, a scanner that no labelled pose links is linked
     by the transform its and another scanner's possible labellings agree on in their
     shared measurements, and a measurement no scanner labelled alone is placed by all
-    linked scanners' views at once (:mod:`fringecal.spheres.label_links`); a view left
+    linked scanners' views at once (:mod:`fringecal.spheres.label_links`,
+    :mod:`fringecal.spheres.label_joint`); a view left
     ambiguous says what the other scanners' views gave and what would decide it, and
     ``links.unlinked`` says why a scanner has no link. Poses and links are those of the
     scale-corrected scanner frames (see the module doc); ``estimates`` and the outcomes'
@@ -307,7 +309,7 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
 
     ``joint`` (without a plan): a measurement no linked scanner has posed is placed by
     all linked scanners' views together
-    (:func:`~fringecal.spheres.label_links.joint_placement`), and each scanner's frame
+    (:func:`~fringecal.spheres.label_joint.joint_placement`), and each scanner's frame
     is its link rather than a consensus; the dict is filled with measurement -> why
     it stays refused.
     """
@@ -330,8 +332,8 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
             world[m], sigma[m] = W, sg
             placed[m] = [(f"{', '.join(names)} (the only labelling on which they agree)", W, sg)]
     else:
-        for m, jp in _joint_placements(labelled, outcomes, links, estimates, artefact, config, set(world),
-                                       tol).items():
+        for m, jp in joint_placements(labelled, outcomes, links, estimates, artefact, config, set(world),
+                                      tol).items():
             if jp.frame is None:
                 joint[m] = jp.note
                 continue
@@ -378,33 +380,6 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
                 "labelled", "", "linked pose", res.n_labelled, res.rms_mm, "; ".join(notes)]
             n_new += 1
     return n_new
-
-
-def _joint_placements(labelled: pd.DataFrame, outcomes: pd.DataFrame, links: LinkResult, estimates: dict,
-                      artefact: Artefact, config: LabellingConfig, skip: set, tol: float) -> dict:
-    """measurement -> :class:`~fringecal.spheres.label_links.JointPlacement` of every
-    measurement still ambiguous that no linked scanner has posed; linked scanners with
-    one or two spheres there join as free points."""
-    refused = outcomes[(outcomes["status"] == "refused") & outcomes["scanner"].isin(list(links.links))
-                       & ~outcomes["measurement"].isin(list(skip))]
-    out = {}
-    for m, g in refused.groupby("measurement", sort=False):
-        if not (g["reason"] == "ambiguous").any():
-            continue
-        views, free = {}, {}
-        for s, reason in zip(g["scanner"], g["reason"]):
-            est = estimates.get(s)
-            if est is None:
-                continue
-            rows = (labelled["measurement"] == m) & (labelled["scanner"] == s)
-            X = labelled.loc[rows, ["x_mm", "y_mm", "z_mm"]].to_numpy(float) / est.scale
-            if reason == "ambiguous" and est.hypotheses.get(m):
-                views[s] = (X, est.hypotheses[m])
-            elif reason == "too_few_candidates" and len(X):
-                free[s] = X
-        frames = {s: links.links[s].frame for s in [*views, *free]}
-        out[m] = joint_placement(views, frames, artefact, tol, config, free)
-    return out
 
 
 def _poses_from_alternatives(labelled: pd.DataFrame, outcomes: pd.DataFrame, links: LinkResult, estimates: dict,
