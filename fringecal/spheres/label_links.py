@@ -93,19 +93,54 @@ class _Views:
 
 
 def _views(X: np.ndarray, alts: list, artefact: Artefact, scale: float, u: float) -> _Views | None:
-    Ms, ts, sg = [], [], []
+    """Every hypothesis's rigid registration and its uncertainty, in batches of the
+    hypotheses that label the same candidates (the same :func:`kabsch` and
+    :func:`~fringecal.spheres.label_consensus.frame_uncertainty`, vectorised)."""
+    groups: dict = {}
     for alt in alts:
-        idx, Y = _split(alt, artefact)
-        if len(idx) < 3:
-            continue
-        Xs = X[idx] / scale
-        M, t = kabsch(Y, Xs)
+        idx = tuple(i for i, s in enumerate(alt) if s is not None)
+        if len(idx) >= 3:
+            groups.setdefault(idx, []).append(artefact.index([alt[i] for i in idx]))
+    if not groups:
+        return None
+    Ms, ts, sg = [], [], []
+    for idx, rows in groups.items():
+        Xs = X[list(idx)] / scale  # (n, 3), the same for the batch
+        Y = artefact.centres[np.array(rows)]  # (h, n, 3)
+        a0, b0 = Y.mean(axis=1), Xs.mean(axis=0)
+        H = np.einsum("ni,hnj->hij", Xs - b0, Y - a0[:, None])
+        uu, _, vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(uu @ vt))
+        d[d == 0] = 1.0
+        M = uu @ (np.eye(3)[None] * np.stack([np.ones_like(d), np.ones_like(d), d], axis=1)[:, None]) @ vt
+        t = b0 - np.einsum("hij,hj->hi", M, a0)
         Ms.append(M)
         ts.append(t)
-        sg.append(frame_uncertainty(Xs, artefact.centres @ M.T + t, u))
-    if not Ms:
-        return None
-    return _Views(np.stack(Ms), np.stack(ts), np.array(sg))
+        probes = np.einsum("hij,qj->hqi", M, artefact.centres) + t[:, None]
+        sg.append(_sigmas(Xs, probes, u))
+    return _Views(np.concatenate(Ms), np.concatenate(ts), np.concatenate(sg))
+
+
+def _jacobian(P: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """d(point)/d(translation, small rotation) of points P (..., 3) about c: (..., 3, 6)."""
+    r = P - c
+    J = np.zeros((*P.shape[:-1], 3, 6))
+    J[..., :3] = np.eye(3)
+    J[..., 0, 4], J[..., 0, 5] = r[..., 2], -r[..., 1]
+    J[..., 1, 3], J[..., 1, 5] = -r[..., 2], r[..., 0]
+    J[..., 2, 3], J[..., 2, 4] = r[..., 1], -r[..., 0]
+    return J
+
+
+def _sigmas(Xs: np.ndarray, probes: np.ndarray, u: float) -> np.ndarray:
+    """:func:`~fringecal.spheres.label_consensus.frame_uncertainty` of the registration
+    of ``Xs`` at each of the probe sets ``probes`` (h, q, 3)."""
+    c = Xs.mean(axis=0)
+    J = _jacobian(Xs, c).reshape(-1, 6)
+    cov = np.linalg.pinv(J.T @ J)
+    Jp = _jacobian(probes, c)
+    var = np.einsum("hpij,jk,hpik->hp", Jp, cov, Jp)
+    return u * np.sqrt(np.mean(var, axis=1))
 
 
 def _candidates(a: _Views, b: _Views, probe_b: np.ndarray):
