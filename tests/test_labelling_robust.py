@@ -244,6 +244,37 @@ def test_a_plan_that_moves_along_a_symmetry_axis_is_refused_not_guessed(thesis_a
     assert estimates["s"].frame is None
 
 
+def test_without_a_plan_moves_along_a_symmetry_axis_are_refused_not_guessed(thesis_artefact):
+    """Two scanners, the artefact only slid along its column (no plan): A's triangle 1-2-3
+    with sphere 5 and B's 10-11-12 with 14, each with its layer one octahedron away, give
+    two links 1.6 m apart that every measurement fits alike. Nothing is linked or labelled;
+    each view says what the other scanners gave and what would decide it, and B why it has
+    no link."""
+    rng = np.random.default_rng(5)
+    base = Frame.from_params([100, -50, 2900, 1.2, 0.4, -0.3])
+    own = {"A": Frame(np.zeros(3), np.zeros(3)), "B": Frame.from_params([1500, 200, 100, 0.1, -0.3, 0.5])}
+    seen = {"A": ["1", "2", "3", "5"], "B": ["10", "11", "12", "14"]}
+    rows = []
+    for k in range(4):
+        T = base.compose(Frame([0.0, 60.0 * k, 0], [0, 0, 0]))
+        for s, ids in seen.items():
+            X = 0.996 * own[s].inverse().compose(T).to_world(thesis_artefact.centres_of(ids))
+            X += rng.normal(0, 0.2, X.shape)
+            rows += [{"measurement": str(k), "scanner": s, "candidate": f"c{j}", "sphere_id": "", "x_mm": x[0],
+                      "y_mm": x[1], "z_mm": x[2], "radius_mm": 25.0, "rms_mm": 0.01, "n_points": 1000,
+                      "u_x_mm": 0.01, "u_y_mm": 0.01, "u_z_mm": 0.01, "cap_angle_deg": 60.0, "coverage": 0.5,
+                      "n_rejected": 0} for j, x in enumerate(X)]
+    res = label_pose_link(pd.DataFrame(rows), thesis_artefact, "A")
+    out = res.labels
+    assert (out["status"] == "refused").all() and (out["reason"] == "ambiguous").all()
+    assert (res.fits["sphere_id"] == "").all()
+    assert list(res.links.unlinked) == ["B"] and "two links of B to A" in res.links.unlinked["B"]
+    assert "A" not in res.links.unlinked
+    msg = out.loc[0, "message"]
+    assert msg.startswith("ambiguous: measurement 0, scanner A, 4 candidate(s): ")
+    assert msg.endswith("the planned poses (poses_planned.csv) or more spheres in the view would decide it")
+
+
 def test_frame_uncertainty_and_bad_settings():
     """A rigid fit of n points with per-coordinate uncertainty u places their centroid to
     u sqrt(3 / n) (3-D); a point 1 m from a 600 mm triangle is placed far worse."""
