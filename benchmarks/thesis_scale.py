@@ -19,7 +19,6 @@ steps' outputs are their inputs). ``--smoke``: one decode, ``--steps initialise,
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
 import tempfile

@@ -44,8 +44,6 @@ from scipy.spatial import cKDTree
 
 from fringecal.artefact import Artefact
 from fringecal.frames import Frame
-from fringecal.registration import kabsch
-from fringecal.spheres.label_consensus import _split, frame_uncertainty
 from fringecal.spheres.labelling import LabellingConfig
 from fringecal.spheres.linking import FrameLink, LinkResult, mean_frame
 
