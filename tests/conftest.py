@@ -39,16 +39,30 @@ def pytest_sessionstart(session):
     Otherwise each xdist worker compiles every kernel it meets on its own (about 46 s of
     one core each: the renderer 24 s, the rest 22 s), twice the work on two cores; the
     run's own warm-up helpers (:mod:`fringecal.run.warmup`) compile them into the
-    checkout's cache side by side (about 24 s), and every worker then loads them."""
+    checkout's cache side by side (about 24 s), and every worker then loads them.
+
+    That is a first run's warm-up on a cold cache, so it is checked here, while the
+    renderer still compiles and before any test could compile a kernel into the same
+    cache: the result goes to the workers in ``FRINGECAL_TEST_WARMUP_CHECK``
+    (tests/test_kernel_warmup.py, which otherwise repeats it in a cache of its own)."""
     if os.environ.get("PYTEST_XDIST_WORKER") or not getattr(session.config.option, "numprocesses", None):
         return
+    import json
+
     from fringecal import lifeline
     from fringecal.run import warmup
 
     helpers = warmup.start(renderer=True, others=True)
-    for proc in helpers:
+    for proc in sorted(helpers, key=lambda p: "renderer" in p.args):  # the renderer's helper last
         try:
             proc.wait(300)
+            if "renderer" not in proc.args and proc.returncode is not None:
+                from test_kernel_warmup import SESSION_CHECK, check
+
+                result = check(dict(os.environ), Path(tempfile.mkdtemp(prefix="fringecal-warmup-")))
+                if proc.returncode != 0:
+                    result = {"step": "warm-up", "returncode": proc.returncode, "stderr": "(the session's warm-up)"}
+                os.environ[SESSION_CHECK] = json.dumps(result)
         finally:
             lifeline.stop(proc)
 
