@@ -1,0 +1,214 @@
+"""A black-box scanner's point cloud: reading, checking and writing its file.
+
+Most industrial 3-D scanners hand out point clouds in their own frame, not fringe
+images and not a sensor model. fringecal takes such a cloud as one PLY file per
+(measurement or position, scanner): a ``vertex`` element with ``x``, ``y``, ``z`` in mm
+in the scanner's own frame (float or double, binary or ASCII), optionally ``nx``,
+``ny``, ``nz`` and ``intensity``; other vertex properties and other elements (faces)
+are ignored. E57 files are read when the optional ``pye57`` is installed
+(``pip install fringecal[e57]``).
+
+Every problem raises one :class:`CloudFileError` (a ``ValueError``) whose message
+starts with the file:
+
+* not a PLY file, or a PLY without a vertex element or without ``x``, ``y``, ``z``;
+* an empty cloud;
+* points with a NaN or infinite coordinate (the count and the first point's index);
+* a cloud in metres: a header comment ``units: m`` (or any unit other than mm), or a
+  cloud whose extent is smaller than a sphere it should hold: a scanner that sees an
+  artefact sphere of diameter d mm sees at least a cap of it, so a cloud spanning less
+  than d / 2 units is in metres (or another unit 1000 times too large).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fringecal.atomic import atomic_paths
+
+__all__ = ["CLOUD_SUFFIXES", "CloudFileError", "ScannerCloud", "read_scanner_cloud", "write_scanner_cloud",
+           "check_cloud_header", "check_cloud_units"]
+
+#: suffixes of a cloud file in a data set (lower case)
+CLOUD_SUFFIXES = (".ply", ".e57")
+_UNITS = re.compile(r"^\s*units?\s*[:=]\s*(\S+)", re.IGNORECASE)
+_MM = {"mm", "millimeter", "millimeters", "millimetre", "millimetres"}
+
+
+class CloudFileError(ValueError):
+    """A cloud file that cannot be used; the message starts with the file."""
+
+
+@dataclass(frozen=True)
+class ScannerCloud:
+    """The points of one cloud file, in mm in the scanner's own frame.
+
+    Attributes
+    ----------
+    points : ndarray, shape (n, 3), float64
+    normals : ndarray, shape (n, 3), or None
+    intensity : ndarray, shape (n,), or None
+    path : Path
+    """
+
+    points: np.ndarray
+    normals: np.ndarray | None
+    intensity: np.ndarray | None
+    path: Path
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+
+def _ply(path: Path, mmap: bool = True):
+    from plyfile import PlyData, PlyParseError
+
+    try:
+        with open(path, "rb") as f:
+            if f.read(4) != b"ply\n" and not _is_ply_crlf(path):
+                raise CloudFileError(f"{path}: not a PLY file (it must start with the line 'ply')")
+        return PlyData.read(str(path), mmap="r" if mmap else False)
+    except CloudFileError:
+        raise
+    except (PlyParseError, ValueError, IndexError, EOFError, UnicodeDecodeError) as err:
+        raise CloudFileError(f"{path}: corrupt or truncated PLY file ({err})") from None
+
+
+def _is_ply_crlf(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(5) == b"ply\r\n"
+
+
+def _vertex(path: Path, data):
+    names = [e.name for e in data.elements]
+    if "vertex" not in names:
+        raise CloudFileError(f"{path}: no 'vertex' element (elements: {', '.join(names) or 'none'}); a cloud is "
+                             "a PLY vertex element with x, y, z in mm")
+    vertex = data["vertex"]
+    props = [p.name for p in vertex.properties]
+    missing = [c for c in "xyz" if c not in props]
+    if missing:
+        raise CloudFileError(f"{path}: vertex without {', '.join(missing)} (properties: {', '.join(props)}); a "
+                             "cloud's vertices need x, y, z in mm")
+    return vertex, props
+
+
+def _header_units(path: Path, comments) -> None:
+    for c in comments:
+        m = _UNITS.match(c)
+        if m and m.group(1).strip(".,;").lower() not in _MM:
+            raise CloudFileError(f"{path}: the header says 'units: {m.group(1)}'; fringecal reads clouds in mm "
+                                 "(multiply by 1000 for metres) in the scanner's own frame")
+
+
+def check_cloud_header(path) -> int:
+    """Check a cloud file's header only (PLY: the vertex element, x, y, z and a units
+    comment; cheap: no point is read). Returns the number of points."""
+    path = Path(path)
+    if path.suffix.lower() == ".e57":
+        return _e57(path).n_points
+    data = _ply(path)
+    vertex, _ = _vertex(path, data)
+    _header_units(path, data.comments + data.obj_info)
+    if vertex.count == 0:
+        raise CloudFileError(f"{path}: empty cloud (0 vertices)")
+    return int(vertex.count)
+
+
+def read_scanner_cloud(path, min_extent_mm: float = 0.0) -> ScannerCloud:
+    """Read and check a cloud file (see the module notes).
+
+    Parameters
+    ----------
+    path : path of a ``.ply`` (or, with pye57, ``.e57``) file
+    min_extent_mm : float
+        The cloud's bounding-box diagonal must reach this (half the artefact's smallest
+        sphere diameter); a smaller one is taken as a cloud in metres and refused.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".e57":
+        cloud = _e57(path)
+    else:
+        data = _ply(path)
+        vertex, props = _vertex(path, data)
+        _header_units(path, data.comments + data.obj_info)
+        v = vertex.data
+        try:
+            pts = np.empty((len(v), 3))
+            for i, c in enumerate("xyz"):
+                pts[:, i] = v[c]
+            normals = None
+            if all(c in props for c in ("nx", "ny", "nz")):
+                normals = np.empty((len(v), 3))
+                for i, c in enumerate(("nx", "ny", "nz")):
+                    normals[:, i] = v[c]
+            intensity = np.asarray(v["intensity"], float) if "intensity" in props else None
+        except (ValueError, TypeError, OSError) as err:
+            raise CloudFileError(f"{path}: corrupt or truncated PLY file ({err})") from None
+        cloud = ScannerCloud(pts, normals, intensity, path)
+    check_points(cloud.points, path, min_extent_mm)
+    return cloud
+
+
+def check_points(points: np.ndarray, path, min_extent_mm: float = 0.0) -> None:
+    """Refuse an empty cloud, non-finite coordinates and a cloud in metres."""
+    if points.shape[0] == 0:
+        raise CloudFileError(f"{path}: empty cloud (0 vertices)")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise CloudFileError(f"{path}: {int(bad.sum())} of {len(points)} points have a NaN or infinite coordinate "
+                             f"(the first is vertex {first}); remove them from the cloud")
+    check_cloud_units(points, path, min_extent_mm)
+
+
+def check_cloud_units(points: np.ndarray, path, min_extent_mm: float) -> None:
+    """A cloud spanning less than ``min_extent_mm`` units is refused as not in mm."""
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    if min_extent_mm > 0 and diagonal < min_extent_mm:
+        raise CloudFileError(f"{path}: the cloud spans {diagonal:.4g} units, less than half the artefact's "
+                             f"smallest sphere ({min_extent_mm:.4g} mm): in metres? x, y, z must be in mm in "
+                             "the scanner's own frame")
+
+
+def _e57(path: Path) -> ScannerCloud:
+    try:
+        import pye57  # lazy: an optional extra (fringecal[e57])
+    except ImportError:
+        raise CloudFileError(f"{path}: E57 needs the optional reader pye57 (pip install 'fringecal[e57]'), "
+                             "or convert the cloud to PLY") from None
+    try:
+        e57 = pye57.E57(str(path))
+        scans = [e57.read_scan(i, ignore_missing_fields=True) for i in range(e57.scan_count)]
+    except Exception as err:  # pye57 raises its library's own exception types
+        raise CloudFileError(f"{path}: corrupt E57 file ({err})") from None
+    pts = np.concatenate([np.column_stack([s["cartesianX"], s["cartesianY"], s["cartesianZ"]]) for s in scans]
+                         ) if scans else np.zeros((0, 3))
+    # E57 stores metres (ASTM E2807): fringecal works in mm
+    return ScannerCloud(1000.0 * pts, None, None, path)
+
+
+def write_scanner_cloud(path, points: np.ndarray, normals: np.ndarray | None = None, text: bool = False,
+                        comments: tuple = ("units: mm",)) -> Path:
+    """Write a cloud as a PLY vertex element (float32 x, y, z[, nx, ny, nz]), atomically."""
+    from plyfile import PlyData, PlyElement
+
+    path = Path(path)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    v = np.empty(len(points), fields)
+    for i, c in enumerate("xyz"):
+        v[c] = points[:, i]
+    if normals is not None:
+        for i, c in enumerate(("nx", "ny", "nz")):
+            v[c] = normals[:, i]
+    data = PlyData([PlyElement.describe(v, "vertex")], text=text, byte_order="<", comments=list(comments))
+    with atomic_paths([path]) as (tmp,):
+        data.write(str(tmp))
+    return path
