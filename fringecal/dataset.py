@@ -88,7 +88,8 @@ Black-box scanners (point clouds)
 ---------------------------------
 - A scanner whose files are clouds (``<scanner>.ply``, ``<scanner>.e57``) is a
   *black-box* scanner: it needs no row in ``sensors_prior.csv`` (which may be absent
-  when every scanner is a black box) and may be the reference scanner. A scanner of
+  when every scanner is a black box); it is the reference scanner only when every
+  scanner is a black box. A scanner of
   ``sensors_prior.csv`` gives image stacks or stores, never clouds; a scanner gives
   clouds everywhere or nowhere (both refused naming the file).
 - Clouds sit where stacks sit: in measurement folders, ball-bar position folders and
@@ -319,6 +320,9 @@ class DataSet:
         if config.reference_scanner not in rig.names:
             raise DataSetError(f"{root / DATASET_FILE}: reference_scanner {config.reference_scanner!r} is not a "
                                f"scanner of the data set (scanners: {', '.join(rig.names)})")
+        if rig.modelled and config.reference_scanner not in rig.modelled:
+            raise DataSetError(f"{root / DATASET_FILE}: reference_scanner {config.reference_scanner!r} is a black "
+                               f"box; with modelled scanners ({', '.join(rig.modelled)}) the reference is one of them")
         measurements = _open_measurements(root / MEASUREMENTS_DIR, rig, rig.prior)
         poses = _optional_file(root / POSES_PLANNED_FILE)
         if poses is not None:

@@ -551,6 +551,19 @@ class RunDir:
         return self._at(JsonFile, "bundle_summary.json")
 
     @property
+    def black_boxes(self) -> JsonFile:
+        """The black-box scanners' calibration: each one's transform, scale and
+        covariance (:meth:`fringecal.calibration.blackbox.BlackBoxResult.to_dict`);
+        absent without black boxes."""
+        return self._at(JsonFile, "black_boxes.json", optional=True)
+
+    @property
+    def black_boxes_export(self) -> TableFile:
+        """The simple export: scale and 4x4 T_world_scanner per black-box scanner
+        (:func:`fringecal.calibration.blackbox.export_table`); absent without black boxes."""
+        return self._table("scanner_transforms.csv", None, optional=True)
+
+    @property
     def covariance(self) -> ArraysFile:
         """The adjustment's covariance and its sensitivity to the artefact
         (:func:`fringecal.calibration.results.covariance_arrays`)."""

@@ -27,11 +27,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import xarray as xr
 
 from fringecal.atomic import atomic_paths
+from fringecal.store import open_store, store_attributes, write_store
 
 __all__ = ["CLOUD_SUFFIXES", "CloudFileError", "ScannerCloud", "read_scanner_cloud", "write_scanner_cloud",
-           "check_cloud_header", "check_cloud_units"]
+           "check_cloud_header", "check_cloud_units", "check_points", "CLOUD_ATTR", "write_cloud_store",
+           "is_cloud_store", "read_cloud_store", "cloud_store_from_file"]
 
 #: suffixes of a cloud file in a data set (lower case)
 CLOUD_SUFFIXES = (".ply", ".e57")
@@ -212,3 +215,37 @@ def write_scanner_cloud(path, points: np.ndarray, normals: np.ndarray | None = N
     with atomic_paths([path]) as (tmp,):
         data.write(str(tmp))
     return path
+
+
+# -- the run's store of a cloud ---------------------------------------------------
+
+#: attribute that marks a run's measurement store as a black-box scanner's cloud
+CLOUD_ATTR = "black_box_cloud"
+
+
+def write_cloud_store(path, points: np.ndarray, normals: np.ndarray | None = None, attrs: dict | None = None) -> Path:
+    """A run's measurement store of a cloud: ``points`` (n, 3) float32 mm in the
+    scanner's own frame (and ``normals``), marked by :data:`CLOUD_ATTR`."""
+
+    data = {"points": (("point", "xyz"), np.asarray(points, np.float32))}
+    if normals is not None:
+        data["normals"] = (("point", "xyz"), np.asarray(normals, np.float32))
+    return write_store(path, xr.Dataset(data, attrs={**(attrs or {}), CLOUD_ATTR: True, "units": "mm"}))
+
+
+def is_cloud_store(path) -> bool:
+    """Whether the run's store at ``path`` holds a cloud (else decoded phase maps)."""
+    return bool(store_attributes(path).get(CLOUD_ATTR, False))
+
+
+def read_cloud_store(path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (n, 3) float64 and normals (or None) of a cloud store."""
+    with open_store(path) as ds:
+        normals = ds["normals"].values.astype(float) if "normals" in ds else None
+        return ds["points"].values.astype(float), normals
+
+
+def cloud_store_from_file(source, out, min_extent_mm: float = 0.0, attrs: dict | None = None) -> Path:
+    """Read and check a cloud file and write it as a run's cloud store."""
+    cloud = read_scanner_cloud(source, min_extent_mm)
+    return write_cloud_store(out, cloud.points, cloud.normals, attrs)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from fringecal.schemas import SphereFitsTable
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.poses_and_links import sphere_fit_row
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
@@ -144,5 +145,18 @@ def cloud_sphere_fits(points: np.ndarray, measurement: str, scanner: str, radius
                                                           f"{radius:.2f} mm"})
             continue
         rows.append(sphere_fit_row(measurement, scanner, name, fit))
-    fits = pd.DataFrame(rows)
+    rows = _distinct(rows, radius)
+    columns = list(SphereFitsTable.to_schema().columns)
+    fits = pd.DataFrame(rows) if rows else pd.DataFrame(columns=columns)
     return fits, pd.DataFrame(failures, columns=["candidate", "reason"])
+
+
+def _distinct(rows: list[dict], radius: float) -> list[dict]:
+    """One fit per sphere: of fits whose centres lie within half a radius, the one with
+    the most points."""
+    kept: list[dict] = []
+    for row in sorted(rows, key=lambda r: -r["n_points"]):
+        c = np.array([row["x_mm"], row["y_mm"], row["z_mm"]])
+        if all(np.linalg.norm(c - [k["x_mm"], k["y_mm"], k["z_mm"]]) > radius / 2 for k in kept):
+            kept.append(row)
+    return sorted(kept, key=lambda r: int(r["candidate"][1:]))

@@ -16,10 +16,11 @@ import numpy as np
 
 from fringecal import compile_clock
 from fringecal.atomic import atomic_paths
+from fringecal.calibration.blackbox import adjust_black_boxes, export_table
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.bundle import bundle_adjust
 from fringecal.calibration.file import rig_to_dict, xml_text
-from fringecal.calibration.model import BundleProblem
+from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
 from fringecal.calibration.results import covariance_arrays, residual_tables, summary
 from fringecal.config import ConfigError
@@ -27,7 +28,8 @@ from fringecal.digests import digest_path, digest_value
 from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
-from fringecal.steps.base import Settings, Step
+from fringecal.frames import Frame
+from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners
 
 __all__ = ["Bundle", "load_problem"]
 
@@ -62,12 +64,13 @@ class Bundle(Step):
     modules = ("fringecal.calibration",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial]
+        boxes = [rd.sphere_fits_labelled, rd.scanner_links, rd.acquisition] if black_box_scanners(rd) else []
+        return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.calibration, rd.calibration.xml, rd.sensors_calibrated, rd.poses_calibrated,
                 rd.residuals_per_sphere, rd.residuals_per_measurement, rd.histogram("eps1"), rd.histogram("eps2"),
-                rd.bundle_summary, rd.covariance]
+                rd.bundle_summary, rd.covariance, rd.black_boxes, rd.black_boxes_export]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         b = cfg.bundle
@@ -90,8 +93,19 @@ class Bundle(Step):
         u = cfg.verification.uncertainty
         covariances = parameter_covariances(arrays, abs(u.artefact_cte_per_c) * u.artefact_temperature_u_c,
                                             u.artefact_u_factor)
-        write_outputs(rd, result, {**summary(result, b.volume_diagonal_mm), **timing}, arrays, covariances,
-                      self.provenance(rd, cfg, item))
+        boxes = black_box_adjustment(rd, result, cfg.reference_scanner, b.black_box_scale)
+        doc = {**summary(result, b.volume_diagonal_mm), **timing}
+        if boxes is not None:
+            doc["black_boxes"] = {"s0": boxes.s0, "dof": boxes.dof,
+                                  "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()}}
+        write_outputs(rd, result, doc, arrays, covariances, self.provenance(rd, cfg, item),
+                      None if boxes is None else boxes.to_dict())
+        if boxes is None:
+            rd.black_boxes.remove()
+            rd.black_boxes_export.remove()
+        else:
+            rd.black_boxes.save(boxes.to_dict())
+            rd.black_boxes_export.save(export_table(boxes.scanners.values()))
 
     def provenance(self, rd: RunDir, cfg: Settings, item: str) -> dict:
         """What the calibration was computed from: its input files' digests, its
@@ -101,7 +115,34 @@ class Bundle(Step):
                 "settings": settings, "settings_digest": digest_value(settings), "versions": package_versions()}
 
 
-def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict) -> list:
+def black_box_adjustment(rd: RunDir, result, reference: str, scale: bool):
+    """Each black-box scanner's transform (and scale) with every artefact pose, on the
+    poses the bundle adjustment found with their covariance
+    (:func:`fringecal.calibration.blackbox.adjust_black_boxes`); None without black boxes."""
+    boxes = black_box_scanners(rd)
+    if not boxes:
+        return None
+    links = {str(r.scanner): Frame.from_params([getattr(r, c) for c in POSE_COLUMNS])
+             for r in rd.scanner_links.load().itertuples()}
+    unlinked = [s for s in boxes if s not in links]
+    if unlinked:
+        raise DataProblem(f"{rd.scanner_links.path}: black-box scanner(s) {', '.join(unlinked)} not linked to the "
+                          f"reference scanner {reference}: each needs three labelled spheres in a measurement "
+                          f"another linked scanner saw (why spheres were not labelled: {rd.label_outcomes.path})")
+    fits = rd.sphere_fits_labelled.load()
+    fits = fits[fits["scanner"].astype(str).isin(boxes)]
+    idx = result.layout.pose_index
+    cov = result.uncertainty.covariance
+    pose_cov = np.zeros((len(idx), 6, 6))
+    for m, ix in enumerate(idx):
+        free = ix >= 0
+        pose_cov[m][np.ix_(free, free)] = cov[np.ix_(ix[free], ix[free])]
+    return adjust_black_boxes(fits, result.problem.artefact, reference, {s: (links[s], 1.0) for s in boxes},
+                              scale=scale, pose_prior=(result.poses_frame(), pose_cov))
+
+
+def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict,
+                  black_boxes: dict | None = None) -> list:
     """Write the calibration of ``result`` (a :class:`~fringecal.calibration.bundle.BundleResult`)
     into ``rd``, all or nothing: ``calibration.json`` (with ``covariances``, the
     :class:`~fringecal.calibration.propagation.ParameterCovariances`, and ``provenance``)
@@ -122,8 +163,10 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary, rd.covariance]
     with atomic_paths([f.path for f in files]) as tmps:
         tmp = dict(zip([f.rel for f in files], tmps))
-        tmp[rd.calibration.rel].write_text(json.dumps(rig_to_dict(result.rig, meta, covariances, provenance),
-                                                      indent=2) + "\n")
+        calibration = rig_to_dict(result.rig, meta, covariances, provenance)
+        if black_boxes is not None:
+            calibration["black_boxes"] = black_boxes
+        tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")
         tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta))
         for f, df in tables.items():
             df.to_csv(tmp[f.rel], index=False, float_format="%.10g")

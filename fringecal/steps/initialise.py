@@ -11,7 +11,7 @@ import pandas as pd
 from fringecal.calibration.initial import UnlinkedScanners, initial_calibration
 from fringecal.rundir import RunDir
 from fringecal.steps.base import DataProblem, Settings, Step
-from fringecal.steps.spheres_first import artefact_items
+from fringecal.steps.spheres_first import modelled_items
 
 __all__ = ["Initialise"]
 
@@ -24,7 +24,7 @@ class Initialise(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.sensors_prior, rd.sphere_centres, rd.poses, rd.scanner_links, rd.artefact] + \
-            [rd.control_points_of(m) for m in artefact_items(rd)]
+            [rd.control_points_of(m) for m in modelled_items(rd)]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.control_points, rd.poses_initial, rd.sensors_initial, rd.dlt]
@@ -36,7 +36,7 @@ class Initialise(Step):
                                        rd.poses.load(), rd.scanner_links.load(), rd.artefact.load())
         except UnlinkedScanners as err:
             raise DataProblem(unlinked_message(rd, err.scanners, cfg.reference_scanner, centres)) from None
-        cps = [rd.control_points_of(m).load() for m in artefact_items(rd)]
+        cps = [rd.control_points_of(m).load() for m in modelled_items(rd)]
         rd.control_points.save(pd.concat([c for c in cps if len(c)], ignore_index=True))
         rd.poses_initial.save(init.poses)
         rd.sensors_initial.save(init.rig)

@@ -14,7 +14,7 @@ from fringecal.rundir import RunDir
 from fringecal.spheres.passes import second_pass
 from fringecal.spheres.robust import RejectionConfig
 from fringecal.steps.base import Rows, Settings, Step, store_fields, store_row
-from fringecal.steps.spheres_first import artefact_items
+from fringecal.steps.spheres_first import modelled_items
 
 __all__ = ["SpheresSecond"]
 
@@ -26,7 +26,7 @@ class SpheresSecond(Step):
     modules = ("fringecal.spheres.passes",)
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
-        return artefact_items(rd)
+        return modelled_items(rd)
 
     def _own(self, rd: RunDir, item: str) -> dict:
         row = store_fields(rd, item)

@@ -1,0 +1,358 @@
+"""Black-box scanners in the adjustment: a scanner known only by the clouds it delivers.
+
+A black-box scanner ``s`` measures sphere centres ``c`` in its own frame; it enters
+with its exterior ``T_world_s`` (origin ``t_s``, angles ``omega, phi, kappa``: the
+:class:`fringecal.frames.Frame` convention) and, by the setting ``scale``, a scale
+factor ``k_s`` of its coordinates::
+
+    x_world = R_s^T (k_s c) + t_s
+
+Every labelled centre of measurement ``m`` and artefact sphere ``j`` observes the
+sphere where the artefact's pose puts it::
+
+    r = R_s^T (k_s c) + t_s - (R_m^T S_j + t_m)
+
+weighted by the inverse of its covariance: the centre's, from the residuals of its
+sphere fit (the scanner's measured noise, the fit's ``u_x_mm``, ``u_y_mm``,
+``u_z_mm``), carried into the world frame, plus the CMM's ``u_mm`` of the sphere.
+:func:`adjust_black_boxes` minimises the sum of the squared whitened residuals over
+every black-box exterior and scale and every artefact pose at once:
+
+* a rig of black boxes only: the reference scanner's frame is the world (its exterior
+  fixed, its scale free with ``scale``), the poses are free;
+* next to model-based scanners: the poses the bundle adjustment found enter as
+  observations with their covariance (``pose_prior``), so each black box is placed on
+  the same poses, weighted by what the bundle knows of them.
+
+Uncertainties: the covariance of every estimate is ``s0^2 (J^T J)^-1`` with ``J`` the
+whitened Jacobian and ``s0^2 = sum r_w^2 / (n - p)`` the a-posteriori variance factor
+(reported: above 1 the sphere fits' uncertainties were too small for the scatter
+between measurements).
+
+:func:`pairwise_svd` is the baseline: each scanner registered on its own by its sphere
+centres (the SVD pose of the artefact in each measurement, chained to the reference
+scanner's pose of the same measurement, averaged over the measurements).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+import scipy.optimize
+
+from fringecal.artefact import Artefact
+from fringecal.frames import Frame
+from fringecal.registration import kabsch
+from fringecal.rotation import angles_from_matrix, rotation_matrix
+
+__all__ = ["BlackBoxResult", "BlackBoxScanner", "adjust_black_boxes", "pairwise_svd", "start_poses",
+           "transform_points", "EXPORT_COLUMNS", "export_table"]
+
+#: columns of the simple export: one row per scanner, the 4x4 T_world_scanner row by row and the scale
+EXPORT_COLUMNS = ("scanner", "scale", *(f"m{i}{j}" for i in range(4) for j in range(4)))
+
+
+@dataclass(frozen=True)
+class BlackBoxScanner:
+    """One black-box scanner's calibration: ``x_world = R^T (scale c) + t``.
+
+    ``params`` (tx, ty, tz, omega, phi, kappa, scale) and their covariance (7, 7), zero
+    rows and columns for what was fixed (the reference's exterior; the scale without
+    ``scale``). ``rms_mm``: RMS distance between its centres and the adjusted spheres;
+    ``n_centres``: centres it contributed."""
+
+    name: str
+    params: np.ndarray
+    covariance: np.ndarray
+    rms_mm: float
+    n_centres: int
+
+    @property
+    def frame(self) -> Frame:
+        return Frame.from_params(self.params[:6])
+
+    @property
+    def scale(self) -> float:
+        return float(self.params[6])
+
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous ``T_world_scanner`` (scale included): world = M @ [c, 1]."""
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.frame.R.T
+        M[:3, 3] = self.params[:3]
+        return M
+
+    def to_dict(self) -> dict:
+        names = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad", "scale")
+        return {"scanner": self.name, **{n: float(v) for n, v in zip(names, self.params)},
+                "std": {n: float(np.sqrt(max(self.covariance[i, i], 0.0))) for i, n in enumerate(names)},
+                "covariance": self.covariance.tolist(), "matrix": self.matrix().tolist(),
+                "rms_mm": self.rms_mm, "n_centres": self.n_centres}
+
+
+@dataclass(frozen=True)
+class BlackBoxResult:
+    """What :func:`adjust_black_boxes` found: every black-box scanner, every pose
+    (``poses``: PosePlanTable frame, ``pose_std``: their standard uncertainties), the
+    a-posteriori variance factor ``s0`` and the redundancy ``dof``."""
+
+    scanners: dict
+    poses: pd.DataFrame
+    pose_std: np.ndarray
+    s0: float
+    dof: int
+    reference: str
+    scale: bool
+    residuals: pd.DataFrame = field(repr=False)
+
+    def to_dict(self) -> dict:
+        return {"reference": self.reference, "scale": self.scale, "s0": self.s0, "dof": self.dof,
+                "scanners": [s.to_dict() for s in self.scanners.values()]}
+
+
+def transform_points(scanner: BlackBoxScanner, points: np.ndarray) -> np.ndarray:
+    """Points (n, 3) of ``scanner``'s frame in the world."""
+    return np.asarray(points, float) @ scanner.matrix()[:3, :3].T + scanner.params[:3]
+
+
+def export_table(scanners) -> pd.DataFrame:
+    """The simple export: one row per scanner, scale and the 4x4 ``T_world_scanner``
+    (``m00`` ... ``m33``, row by row; the scale is inside the upper 3x3)."""
+    rows = []
+    for s in scanners:
+        M = s.matrix()
+        rows.append({"scanner": s.name, "scale": s.scale, **{f"m{i}{j}": float(M[i, j]) for i in range(4)
+                                                             for j in range(4)}})
+    return pd.DataFrame(rows, columns=list(EXPORT_COLUMNS))
+
+
+def _centres(centres: pd.DataFrame, artefact: Artefact) -> dict:
+    c = centres[centres["sphere_id"].astype(str) != ""]
+    u = np.column_stack([c[k].to_numpy(float) if k in c else np.full(len(c), np.nan)
+                         for k in ("u_x_mm", "u_y_mm", "u_z_mm")])
+    return {"measurement": c["measurement"].astype(str).to_numpy(), "scanner": c["scanner"].astype(str).to_numpy(),
+            "sphere": c["sphere_id"].astype(str).map({s: i for i, s in enumerate(artefact.ids)}).to_numpy(),
+            "xyz": c[["x_mm", "y_mm", "z_mm"]].to_numpy(float), "u": u}
+
+
+def start_poses(centres: pd.DataFrame, artefact: Artefact, frames: dict) -> dict:
+    """``T_world_artefact`` per measurement from the first scanner of ``frames`` (name ->
+    (Frame, scale)) that saw at least three spheres of it, by SVD."""
+    obs = _centres(centres, artefact)
+    out = {}
+    for m in dict.fromkeys(obs["measurement"]):
+        for s, (frame, k) in frames.items():
+            sel = (obs["measurement"] == m) & (obs["scanner"] == s)
+            if sel.sum() >= 3:
+                world = frame.to_world(k * obs["xyz"][sel])
+                R, t = kabsch(artefact.centres[obs["sphere"][sel]], world)
+                out[m] = Frame.from_matrix(R.T, t)
+                break
+    return out
+
+
+def pairwise_svd(centres: pd.DataFrame, artefact: Artefact, reference: str) -> dict:
+    """Each scanner registered on its own by its sphere centres: per measurement it shares
+    with the reference, ``T_world_s = T_world_artefact(ref) o T_s_artefact^-1`` (both by
+    SVD of the centres), averaged over the measurements (chordal mean rotation, mean
+    origin). Returns scanner -> :class:`BlackBoxScanner` (scale 1, no covariance)."""
+    obs = _centres(centres, artefact)
+    poses = {}
+    for (m, s) in dict.fromkeys(zip(obs["measurement"], obs["scanner"])):
+        sel = (obs["measurement"] == m) & (obs["scanner"] == s)
+        if sel.sum() >= 3:
+            R, t = kabsch(artefact.centres[obs["sphere"][sel]], obs["xyz"][sel])
+            poses[(m, s)] = Frame.from_matrix(R.T, t)
+    out = {reference: BlackBoxScanner(reference, np.r_[np.zeros(6), 1.0], np.zeros((7, 7)), float("nan"), 0)}
+    for s in dict.fromkeys(obs["scanner"]):
+        if s == reference:
+            continue
+        links = [poses[(m, reference)].compose(poses[(m, s)].inverse()) for (m, ss) in poses
+                 if ss == s and (m, reference) in poses]
+        if links:
+            mean = _mean_frame(links)
+            out[s] = BlackBoxScanner(s, np.r_[mean.params, 1.0], np.zeros((7, 7)), float("nan"), 0)
+    return out
+
+
+def _mean_frame(frames) -> Frame:
+    """Chordal mean rotation (the nearest rotation to the mean matrix) and mean origin."""
+    u, _, vt = np.linalg.svd(np.mean([f.R for f in frames], axis=0))
+    R = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
+    return Frame.from_matrix(R, np.mean([f.t for f in frames], axis=0), near=frames[0].angles)
+
+
+class _Layout:
+    """Where each free parameter sits: black-box scanners (6 exterior + scale), then poses."""
+
+    def __init__(self, scanners, reference, measurements, scale, modelled_reference):
+        self.scanners, self.measurements = list(scanners), list(measurements)
+        self.free = {}
+        k = 0
+        for s in self.scanners:
+            ext = [] if (s == reference and not modelled_reference) else list(range(6))
+            idx = ext + ([6] if scale else [])
+            self.free[s] = (np.array(idx, int), np.arange(k, k + len(idx)))
+            k += len(idx)
+        self.pose0 = k
+        self.n = k + 6 * len(self.measurements)
+
+    def unpack(self, x, base):
+        params = {}
+        for s in self.scanners:
+            p = base[s].copy()
+            idx, pos = self.free[s]
+            p[idx] = x[pos]
+            params[s] = p
+        poses = x[self.pose0:].reshape(-1, 6)
+        return params, poses
+
+    def pack(self, base, poses):
+        x = np.empty(self.n)
+        for s in self.scanners:
+            idx, pos = self.free[s]
+            x[pos] = base[s][idx]
+        x[self.pose0:] = np.asarray(poses, float).ravel()
+        return x
+
+    def names(self):
+        names7 = ("tx", "ty", "tz", "omega", "phi", "kappa", "scale")
+        out = [f"{s}.{names7[i]}" for s in self.scanners for i in self.free[s][0]]
+        return out + [f"pose[{m}].{n}" for m in self.measurements for n in names7[:6]]
+
+
+def adjust_black_boxes(centres: pd.DataFrame, artefact: Artefact, reference: str, start: dict,
+                       scale: bool = False, pose_prior: tuple | None = None,
+                       measurements: list | None = None) -> BlackBoxResult:
+    """Adjust every black-box scanner's exterior (and scale) and every artefact pose at once.
+
+    Parameters
+    ----------
+    centres : DataFrame
+        Labelled sphere fits of the black-box scanners (SphereFitsTable columns:
+        ``measurement``, ``scanner``, ``sphere_id``, ``x_mm``..``z_mm``, ``u_x_mm``..``u_z_mm``).
+    artefact : Artefact
+    reference : str
+        The world's scanner: a black box (its exterior fixed) or a modelled scanner
+        (then ``pose_prior`` is required and every black box is free).
+    start : dict
+        scanner -> (Frame T_world_scanner, scale) start values, one per black box.
+    scale : bool
+        Adjust a scale factor per black-box scanner.
+    pose_prior : (DataFrame, ndarray), optional
+        Poses from the bundle adjustment (PosePlanTable) and their covariances (n, 6, 6).
+    measurements : list, optional
+        Measurements to adjust (default: every one with a centre or a prior pose).
+    """
+    obs = _centres(centres, artefact)
+    if not len(obs["xyz"]):
+        raise ValueError("no labelled sphere centre of a black-box scanner")
+    modelled_reference = reference not in start
+    if modelled_reference and pose_prior is None:
+        raise ValueError(f"reference scanner {reference!r} is not a black box: the bundle's poses are needed")
+    scanners = list(start)
+    prior_poses = None
+    if pose_prior is not None:
+        table, cov = pose_prior
+        prior_poses = {str(m): (np.asarray(p, float), np.asarray(c, float))
+                       for m, p, c in zip(table["measurement"], table[list(Frame_COLUMNS)].to_numpy(float), cov)}
+    meas = measurements or list(dict.fromkeys(list(obs["measurement"]) + list(prior_poses or {})))
+    keep = np.isin(obs["measurement"], meas) & np.isin(obs["scanner"], scanners)
+    obs = {k: v[keep] for k, v in obs.items()}
+    lay = _Layout(scanners, reference, meas, scale, modelled_reference)
+    base = {s: np.r_[f.params, k] for s, (f, k) in start.items()}
+    frames0 = {s: (start[s][0], start[s][1]) for s in scanners}
+    poses0 = start_poses(centres[np.isin(centres["scanner"].astype(str), scanners)], artefact, frames0)
+    p0 = []
+    for m in meas:
+        if prior_poses is not None and m in prior_poses:
+            p0.append(prior_poses[m][0])
+        elif m in poses0:
+            p0.append(poses0[m].params)
+        else:
+            raise ValueError(f"measurement {m!r}: no pose (fewer than three labelled spheres in every scanner)")
+    x0 = lay.pack(base, np.array(p0))
+    s_idx = np.array([scanners.index(s) for s in obs["scanner"]])
+    m_idx = np.array([meas.index(m) for m in obs["measurement"]])
+    u = obs["u"]
+    u = np.where(np.isfinite(u) & (u > 0), u, np.nanmedian(u[np.isfinite(u) & (u > 0)]) if np.any(u > 0) else 0.01)
+    u_cmm = np.asarray(artefact.u, float)[obs["sphere"]]
+    # whitening of each centre: its covariance in the world at the start rotation (fixed)
+    Rs0 = {s: start[s][0].R for s in scanners}
+    W = np.empty((len(s_idx), 3, 3))
+    for i, s in enumerate(obs["scanner"]):
+        k = start[s][1]
+        C = k**2 * Rs0[s].T @ np.diag(u[i] ** 2) @ Rs0[s] + u_cmm[i] ** 2 * np.eye(3)
+        W[i] = np.linalg.inv(np.linalg.cholesky(C))
+    prior_w = None
+    if prior_poses is not None:
+        prior_w = []
+        for j, m in enumerate(meas):
+            if m in prior_poses:
+                C = prior_poses[m][1] + 1e-18 * np.eye(6)
+                prior_w.append((j, prior_poses[m][0], np.linalg.inv(np.linalg.cholesky(C))))
+
+    def residuals(x):
+        params, poses = lay.unpack(x, base)
+        P = np.array([params[s] for s in scanners])
+        Rs = rotation_matrix(P[:, 3], P[:, 4], P[:, 5])
+        Rm = rotation_matrix(poses[:, 3], poses[:, 4], poses[:, 5])
+        ks = P[s_idx, 6]
+        world = np.einsum("nji,nj->ni", Rs[s_idx], ks[:, None] * obs["xyz"]) + P[s_idx, :3]
+        target = np.einsum("nji,nj->ni", Rm[m_idx], artefact.centres[obs["sphere"]]) + poses[m_idx, :3]
+        r = np.einsum("nij,nj->ni", W, world - target).ravel()
+        if prior_w:
+            r = np.concatenate([r] + [L @ (poses[j] - p) for j, p, L in prior_w])
+        return r
+
+    sol = scipy.optimize.least_squares(residuals, x0, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                                       max_nfev=200 * (lay.n + 1))
+    x = sol.x
+    J = _jacobian(residuals, x)
+    r = residuals(x)
+    dof = len(r) - lay.n
+    s0 = float(np.sqrt(r @ r / dof)) if dof > 0 else float("nan")
+    try:
+        cov = np.linalg.inv(J.T @ J) * (s0**2 if dof > 0 else 1.0)
+    except np.linalg.LinAlgError:
+        cov = np.full((lay.n, lay.n), np.nan)
+    params, poses = lay.unpack(x, base)
+    # raw (unwhitened) distances per centre, for each scanner's RMS
+    P = np.array([params[s] for s in scanners])
+    Rs = rotation_matrix(P[:, 3], P[:, 4], P[:, 5])
+    Rm = rotation_matrix(poses[:, 3], poses[:, 4], poses[:, 5])
+    world = np.einsum("nji,nj->ni", Rs[s_idx], P[s_idx, 6][:, None] * obs["xyz"]) + P[s_idx, :3]
+    target = np.einsum("nji,nj->ni", Rm[m_idx], artefact.centres[obs["sphere"]]) + poses[m_idx, :3]
+    d = world - target
+    out = {}
+    for s in scanners:
+        idx, pos = lay.free[s]
+        C = np.zeros((7, 7))
+        C[np.ix_(idx, idx)] = cov[np.ix_(pos, pos)]
+        sel = obs["scanner"] == s
+        out[s] = BlackBoxScanner(s, params[s], C, float(np.sqrt(np.mean(np.sum(d[sel] ** 2, axis=1)))),
+                                 int(sel.sum()))
+    pose_df = pd.DataFrame(poses, columns=list(Frame_COLUMNS))
+    pose_df.insert(0, "measurement", meas)
+    pose_std = np.sqrt(np.clip(np.diag(cov)[lay.pose0:], 0, None)).reshape(-1, 6)
+    res = pd.DataFrame({"measurement": obs["measurement"], "scanner": obs["scanner"],
+                        "sphere_id": np.asarray(artefact.ids)[obs["sphere"]],
+                        "dx_mm": d[:, 0], "dy_mm": d[:, 1], "dz_mm": d[:, 2]})
+    return BlackBoxResult(out, pose_df, pose_std, s0, int(dof), reference, bool(scale), res)
+
+
+Frame_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
+
+
+def _jacobian(fun, x, step: float = 1e-6) -> np.ndarray:
+    """Central-difference Jacobian (angles in rad and lengths in mm take the same step)."""
+    r0 = fun(x)
+    J = np.empty((len(r0), len(x)))
+    for i in range(len(x)):
+        h = step * max(1.0, abs(x[i]))
+        e = np.zeros_like(x)
+        e[i] = h
+        J[:, i] = (fun(x + e) - fun(x - e)) / (2 * h)
+    return J
