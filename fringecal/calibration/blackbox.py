@@ -13,8 +13,10 @@ sphere where the artefact's pose puts it::
     r = R_s^T (k_s c) + t_s - (R_m^T S_j + t_m)
 
 weighted by the inverse of its covariance: the centre's, from the residuals of its
-sphere fit (the scanner's measured noise, the fit's ``u_x_mm``, ``u_y_mm``,
-``u_z_mm``), carried into the world frame, plus the CMM's ``u_mm`` of the sphere.
+sphere fit (the fit's ``u_x_mm``, ``u_y_mm``, ``u_z_mm``) combined with the scanner's
+measured noise between spheres (:func:`registration_noise`: the scatter of its
+centres about the artefact registered on each of its views), carried into the world
+frame, plus the CMM's ``u_mm`` of the sphere.
 :func:`adjust_black_boxes` minimises the sum of the squared whitened residuals over
 every black-box exterior and scale and every artefact pose at once:
 
@@ -47,7 +49,7 @@ from fringecal.frames import Frame
 from fringecal.registration import kabsch
 from fringecal.rotation import angles_from_matrix, rotation_matrix
 
-__all__ = ["BlackBoxResult", "BlackBoxScanner", "adjust_black_boxes", "pairwise_svd", "start_poses",
+__all__ = ["BlackBoxResult", "BlackBoxScanner", "ModelPrior", "adjust_black_boxes", "pairwise_svd", "start_poses",
            "transform_points", "EXPORT_COLUMNS", "export_table"]
 
 #: columns of the simple export: one row per scanner, the 4x4 T_world_scanner row by row and the scale
@@ -106,10 +108,14 @@ class BlackBoxResult:
     reference: str
     scale: bool
     residuals: pd.DataFrame = field(repr=False)
+    joint: dict | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
-        return {"reference": self.reference, "scale": self.scale, "s0": self.s0, "dof": self.dof,
-                "scanners": [s.to_dict() for s in self.scanners.values()]}
+        out = {"reference": self.reference, "scale": self.scale, "s0": self.s0, "dof": self.dof,
+               "scanners": [s.to_dict() for s in self.scanners.values()]}
+        if self.joint is not None:
+            out["modelled_shift_max_sigma"] = self.joint["max_shift_sigma"]
+        return out
 
 
 def transform_points(scanner: BlackBoxScanner, points: np.ndarray) -> np.ndarray:
@@ -177,6 +183,29 @@ def pairwise_svd(centres: pd.DataFrame, artefact: Artefact, reference: str) -> d
     return out
 
 
+def registration_noise(obs: dict, artefact: Artefact) -> dict:
+    """Each scanner's measured centre noise: the RMS per coordinate of its centres about
+    the artefact registered onto each of its views by SVD (redundancy 3 n - 6 per view
+    of n >= 3 spheres). Unlike a sphere fit's own uncertainty it holds what differs
+    from sphere to sphere in one view (a rod's shadow, a partly seen cap), which repeats
+    from pose to pose when the artefact only translates."""
+    out = {}
+    for s in dict.fromkeys(obs["scanner"]):
+        ss, dof = 0.0, 0
+        for m in dict.fromkeys(obs["measurement"][obs["scanner"] == s]):
+            sel = (obs["scanner"] == s) & (obs["measurement"] == m)
+            n = int(sel.sum())
+            if n < 3:
+                continue
+            src = artefact.centres[obs["sphere"][sel]]
+            R, t = kabsch(src, obs["xyz"][sel])
+            ss += float(np.sum((src @ R.T + t - obs["xyz"][sel]) ** 2))
+            dof += 3 * n - 6
+        if dof > 0:
+            out[s] = float(np.sqrt(ss / dof))
+    return out
+
+
 def _mean_frame(frames) -> Frame:
     """Chordal mean rotation (the nearest rotation to the mean matrix) and mean origin."""
     u, _, vt = np.linalg.svd(np.mean([f.R for f in frames], axis=0))
@@ -184,19 +213,38 @@ def _mean_frame(frames) -> Frame:
     return Frame.from_matrix(R, np.mean([f.t for f in frames], axis=0), near=frames[0].angles)
 
 
-class _Layout:
-    """Where each free parameter sits: black-box scanners (6 exterior + scale), then poses."""
+@dataclass(frozen=True)
+class ModelPrior:
+    """The bundle adjustment's solution as a Gaussian prior on its free parameters:
+    ``x`` (p,) and their ``covariance`` (p, p) in the bundle's layout (``names``),
+    ``pose_index`` (n_meas, 6) the place of each pose parameter in ``x`` (-1: fixed at
+    ``poses``), ``poses`` (n_meas, 6) and their ``measurements``. With it the black
+    boxes are adjusted together with every modelled parameter: to first order the one
+    adjustment of all of them (the bundle's F is quadratic about its minimum with this
+    covariance)."""
 
-    def __init__(self, scanners, reference, measurements, scale, modelled_reference):
-        self.scanners, self.measurements = list(scanners), list(measurements)
+    x: np.ndarray
+    covariance: np.ndarray
+    pose_index: np.ndarray
+    poses: np.ndarray
+    measurements: tuple
+    names: tuple
+
+
+class _Layout:
+    """Where each free parameter sits: black-box scanners (6 exterior + scale), then the
+    poses (6 each)."""
+
+    def __init__(self, scanners, reference, measurements, scale, prior: ModelPrior | None):
+        self.scanners, self.measurements, self.prior = list(scanners), list(measurements), prior
         self.free = {}
         k = 0
         for s in self.scanners:
-            ext = [] if (s == reference and not modelled_reference) else list(range(6))
+            ext = [] if (s == reference and prior is None) else list(range(6))
             idx = ext + ([6] if scale else [])
             self.free[s] = (np.array(idx, int), np.arange(k, k + len(idx)))
             k += len(idx)
-        self.pose0 = k
+        self.n_boxes = k
         self.n = k + 6 * len(self.measurements)
 
     def unpack(self, x, base):
@@ -206,15 +254,14 @@ class _Layout:
             idx, pos = self.free[s]
             p[idx] = x[pos]
             params[s] = p
-        poses = x[self.pose0:].reshape(-1, 6)
-        return params, poses
+        return params, x[self.n_boxes:].reshape(-1, 6)
 
     def pack(self, base, poses):
         x = np.empty(self.n)
         for s in self.scanners:
             idx, pos = self.free[s]
             x[pos] = base[s][idx]
-        x[self.pose0:] = np.asarray(poses, float).ravel()
+        x[self.n_boxes:] = np.asarray(poses, float).ravel()
         return x
 
     def names(self):
@@ -223,9 +270,18 @@ class _Layout:
         return out + [f"pose[{m}].{n}" for m in self.measurements for n in names7[:6]]
 
 
+def _whitener(C: np.ndarray) -> np.ndarray:
+    """W with W C W^T = I on C's range: C scaled to a unit diagonal first (parameters of
+    mm, rad and mm^-6 differ by 20 orders), its eigenvalues below 1e-12 of the largest
+    dropped."""
+    d = np.sqrt(np.clip(np.diag(C), 1e-300, None))
+    w, V = np.linalg.eigh((C + C.T) / 2 / np.outer(d, d))
+    keep = w > 1e-12 * w.max()
+    return (V[:, keep] / np.sqrt(w[keep])).T / d[None, :]
+
+
 def adjust_black_boxes(centres: pd.DataFrame, artefact: Artefact, reference: str, start: dict,
-                       scale: bool = False, pose_prior: tuple | None = None,
-                       measurements: list | None = None) -> BlackBoxResult:
+                       scale: bool = False, prior: ModelPrior | None = None) -> BlackBoxResult:
     """Adjust every black-box scanner's exterior (and scale) and every artefact pose at once.
 
     Parameters
@@ -235,76 +291,73 @@ def adjust_black_boxes(centres: pd.DataFrame, artefact: Artefact, reference: str
         ``measurement``, ``scanner``, ``sphere_id``, ``x_mm``..``z_mm``, ``u_x_mm``..``u_z_mm``).
     artefact : Artefact
     reference : str
-        The world's scanner: a black box (its exterior fixed) or a modelled scanner
-        (then ``pose_prior`` is required and every black box is free).
+        The world's scanner: a black box (its exterior fixed; black boxes only) or a
+        modelled scanner (then ``prior`` is required and every black box is free).
     start : dict
         scanner -> (Frame T_world_scanner, scale) start values, one per black box.
     scale : bool
         Adjust a scale factor per black-box scanner.
-    pose_prior : (DataFrame, ndarray), optional
-        Poses from the bundle adjustment (PosePlanTable) and their covariances (n, 6, 6).
-    measurements : list, optional
-        Measurements to adjust (default: every one with a centre or a prior pose).
+    prior : ModelPrior, optional
+        The bundle adjustment's solution (rigs with modelled scanners).
     """
     obs = _centres(centres, artefact)
     if not len(obs["xyz"]):
         raise ValueError("no labelled sphere centre of a black-box scanner")
-    modelled_reference = reference not in start
-    if modelled_reference and pose_prior is None:
-        raise ValueError(f"reference scanner {reference!r} is not a black box: the bundle's poses are needed")
+    if reference not in start and prior is None:
+        raise ValueError(f"reference scanner {reference!r} is not a black box: the bundle's solution is needed")
     scanners = list(start)
-    prior_poses = None
-    if pose_prior is not None:
-        table, cov = pose_prior
-        prior_poses = {str(m): (np.asarray(p, float), np.asarray(c, float))
-                       for m, p, c in zip(table["measurement"], table[list(Frame_COLUMNS)].to_numpy(float), cov)}
-    meas = measurements or list(dict.fromkeys(list(obs["measurement"]) + list(prior_poses or {})))
+    if prior is not None:
+        meas = [str(m) for m in prior.measurements]
+    else:
+        meas = list(dict.fromkeys(obs["measurement"]))
     keep = np.isin(obs["measurement"], meas) & np.isin(obs["scanner"], scanners)
     obs = {k: v[keep] for k, v in obs.items()}
-    lay = _Layout(scanners, reference, meas, scale, modelled_reference)
+    lay = _Layout(scanners, reference, meas, scale, prior)
     base = {s: np.r_[f.params, k] for s, (f, k) in start.items()}
-    frames0 = {s: (start[s][0], start[s][1]) for s in scanners}
-    poses0 = start_poses(centres[np.isin(centres["scanner"].astype(str), scanners)], artefact, frames0)
-    p0 = []
-    for m in meas:
-        if prior_poses is not None and m in prior_poses:
-            p0.append(prior_poses[m][0])
-        elif m in poses0:
-            p0.append(poses0[m].params)
-        else:
-            raise ValueError(f"measurement {m!r}: no pose (fewer than three labelled spheres in every scanner)")
-    x0 = lay.pack(base, np.array(p0))
+    if prior is None:
+        poses0 = start_poses(centres[np.isin(centres["scanner"].astype(str), scanners)], artefact, start)
+        missing = [m for m in meas if m not in poses0]
+        if missing:
+            raise ValueError(f"measurement(s) {missing}: no pose (fewer than three labelled spheres in every "
+                             "scanner)")
+        p0 = np.array([poses0[m].params for m in meas])
+    else:
+        p0 = np.asarray(prior.poses, float)
+        pose_free = (prior.pose_index >= 0).ravel()
+        pose_at = prior.pose_index.ravel()[pose_free]
+        pose_hat = prior.x[pose_at]
+    x0 = lay.pack(base, p0)
     s_idx = np.array([scanners.index(s) for s in obs["scanner"]])
     m_idx = np.array([meas.index(m) for m in obs["measurement"]])
     u = obs["u"]
-    u = np.where(np.isfinite(u) & (u > 0), u, np.nanmedian(u[np.isfinite(u) & (u > 0)]) if np.any(u > 0) else 0.01)
+    good = np.isfinite(u) & (u > 0)
+    u = np.where(good, u, np.median(u[good]) if good.any() else 0.01)
+    floor = registration_noise(obs, artefact)
+    u = np.sqrt(u**2 + np.array([floor.get(s, 0.0) for s in obs["scanner"]])[:, None] ** 2)
     u_cmm = np.asarray(artefact.u, float)[obs["sphere"]]
     # whitening of each centre: its covariance in the world at the start rotation (fixed)
-    Rs0 = {s: start[s][0].R for s in scanners}
     W = np.empty((len(s_idx), 3, 3))
     for i, s in enumerate(obs["scanner"]):
-        k = start[s][1]
-        C = k**2 * Rs0[s].T @ np.diag(u[i] ** 2) @ Rs0[s] + u_cmm[i] ** 2 * np.eye(3)
+        R, k = start[s][0].R, start[s][1]
+        C = k**2 * R.T @ np.diag(u[i] ** 2) @ R + u_cmm[i] ** 2 * np.eye(3)
         W[i] = np.linalg.inv(np.linalg.cholesky(C))
-    prior_w = None
-    if prior_poses is not None:
-        prior_w = []
-        for j, m in enumerate(meas):
-            if m in prior_poses:
-                C = prior_poses[m][1] + 1e-18 * np.eye(6)
-                prior_w.append((j, prior_poses[m][0], np.linalg.inv(np.linalg.cholesky(C))))
+    # the bundle's knowledge of the poses: the pose block of its covariance, cross-pose
+    # correlations included (the sensors follow by conditioning, :func:`joint_covariance`)
+    prior_W = _whitener(prior.covariance[np.ix_(pose_at, pose_at)]) if prior is not None else None
 
-    def residuals(x):
+    def geometry(x):
         params, poses = lay.unpack(x, base)
         P = np.array([params[s] for s in scanners])
         Rs = rotation_matrix(P[:, 3], P[:, 4], P[:, 5])
         Rm = rotation_matrix(poses[:, 3], poses[:, 4], poses[:, 5])
-        ks = P[s_idx, 6]
-        world = np.einsum("nji,nj->ni", Rs[s_idx], ks[:, None] * obs["xyz"]) + P[s_idx, :3]
+        world = np.einsum("nji,nj->ni", Rs[s_idx], P[s_idx, 6][:, None] * obs["xyz"]) + P[s_idx, :3]
         target = np.einsum("nji,nj->ni", Rm[m_idx], artefact.centres[obs["sphere"]]) + poses[m_idx, :3]
-        r = np.einsum("nij,nj->ni", W, world - target).ravel()
-        if prior_w:
-            r = np.concatenate([r] + [L @ (poses[j] - p) for j, p, L in prior_w])
+        return params, poses, world - target
+
+    def residuals(x):
+        r = np.einsum("nij,nj->ni", W, geometry(x)[2]).ravel()
+        if prior_W is not None:
+            r = np.concatenate([r, prior_W @ (x[lay.n_boxes:][pose_free] - pose_hat)])
         return r
 
     sol = scipy.optimize.least_squares(residuals, x0, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12,
@@ -314,18 +367,8 @@ def adjust_black_boxes(centres: pd.DataFrame, artefact: Artefact, reference: str
     r = residuals(x)
     dof = len(r) - lay.n
     s0 = float(np.sqrt(r @ r / dof)) if dof > 0 else float("nan")
-    try:
-        cov = np.linalg.inv(J.T @ J) * (s0**2 if dof > 0 else 1.0)
-    except np.linalg.LinAlgError:
-        cov = np.full((lay.n, lay.n), np.nan)
-    params, poses = lay.unpack(x, base)
-    # raw (unwhitened) distances per centre, for each scanner's RMS
-    P = np.array([params[s] for s in scanners])
-    Rs = rotation_matrix(P[:, 3], P[:, 4], P[:, 5])
-    Rm = rotation_matrix(poses[:, 3], poses[:, 4], poses[:, 5])
-    world = np.einsum("nji,nj->ni", Rs[s_idx], P[s_idx, 6][:, None] * obs["xyz"]) + P[s_idx, :3]
-    target = np.einsum("nji,nj->ni", Rm[m_idx], artefact.centres[obs["sphere"]]) + poses[m_idx, :3]
-    d = world - target
+    cov = _scaled_inverse(J.T @ J) * (max(s0, 1.0) ** 2 if dof > 0 else 1.0)
+    params, poses, d = geometry(x)
     out = {}
     for s in scanners:
         idx, pos = lay.free[s]
@@ -336,11 +379,44 @@ def adjust_black_boxes(centres: pd.DataFrame, artefact: Artefact, reference: str
                                  int(sel.sum()))
     pose_df = pd.DataFrame(poses, columns=list(Frame_COLUMNS))
     pose_df.insert(0, "measurement", meas)
-    pose_std = np.sqrt(np.clip(np.diag(cov)[lay.pose0:], 0, None)).reshape(-1, 6)
+    pose_std = np.sqrt(np.clip(np.diag(cov)[lay.n_boxes:], 0, None)).reshape(-1, 6)
     res = pd.DataFrame({"measurement": obs["measurement"], "scanner": obs["scanner"],
                         "sphere_id": np.asarray(artefact.ids)[obs["sphere"]],
                         "dx_mm": d[:, 0], "dy_mm": d[:, 1], "dz_mm": d[:, 2]})
-    return BlackBoxResult(out, pose_df, pose_std, s0, int(dof), reference, bool(scale), res)
+    joint = None
+    if prior is not None:
+        joint = _conditioned(prior, cov, x, lay, pose_free, pose_at)
+        joint["free"] = {s: lay.free[s] for s in scanners}
+    return BlackBoxResult(out, pose_df, pose_std, s0, int(dof), reference, bool(scale), res, joint)
+
+
+def _scaled_inverse(N: np.ndarray) -> np.ndarray:
+    """N^-1 through its unit-diagonal scaling (parameters of very different units)."""
+    d = np.sqrt(np.clip(np.diag(N), 1e-300, None))
+    return np.linalg.pinv(N / np.outer(d, d), rcond=1e-13, hermitian=True) / np.outer(d, d)
+
+
+def _conditioned(prior: ModelPrior, cov: np.ndarray, x: np.ndarray, lay: "_Layout", pose_free, pose_at) -> dict:
+    """The bundle's parameters given what the black boxes added to its poses (Gaussian
+    conditioning, exact for the linearised problem): with P the prior pose covariance,
+    K = C_(all, poses) P^-1, the update is K (p - p_hat), the covariance
+    C - K (P - P') K^T, and the cross-covariance with the black boxes K C'_(poses, boxes).
+    Returns the covariance of [the bundle's free parameters, the black boxes' free
+    parameters], the updated bundle parameters and their largest shift in standard
+    uncertainties."""
+    C = prior.covariance
+    P = C[np.ix_(pose_at, pose_at)]
+    K = C[:, pose_at] @ _scaled_inverse(P)
+    nb = lay.n_boxes
+    pose_cols = nb + np.flatnonzero(pose_free)
+    P_post = cov[np.ix_(pose_cols, pose_cols)]
+    cross = K @ cov[np.ix_(pose_cols, np.arange(nb))]
+    C_mb = C - K @ (P - P_post) @ K.T
+    out = np.block([[C_mb, cross], [cross.T, cov[:nb, :nb]]])
+    update = K @ (x[pose_cols] - prior.x[pose_at])
+    shift = update / np.sqrt(np.clip(np.diag(C), 1e-300, None))
+    return {"covariance": out, "n_model": len(prior.x), "x": prior.x + update,
+            "max_shift_sigma": float(np.max(np.abs(shift))) if len(shift) else 0.0}
 
 
 Frame_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")

@@ -28,7 +28,7 @@ from fringecal.spheres.fit import FitError
 from fringecal.spheres.poses_and_links import sphere_fit_row
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
-__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "vote_centres"]
+__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "vote_centres", "refit_cloud_sphere"]
 
 
 @dataclass(frozen=True)
@@ -160,3 +160,37 @@ def _distinct(rows: list[dict], radius: float) -> list[dict]:
         if all(np.linalg.norm(c - [k["x_mm"], k["y_mm"], k["z_mm"]]) > radius / 2 for k in kept):
             kept.append(row)
     return sorted(kept, key=lambda r: int(r["candidate"][1:]))
+
+
+#: a second-pass fit whose points cover less of the sphere (:func:`fringecal.spheres.fit.angular_coverage`'s
+#: occupied fraction; a whole cap to 60 degrees covers about 0.19-0.28) is a sliver at the edge of the
+#: field or behind a rod, whose centre errs sideways by several times its fit's uncertainty: left out
+MIN_COVERAGE = 0.15
+
+
+def refit_cloud_sphere(points: np.ndarray, centre: np.ndarray, radius: float, rod_axes: np.ndarray | None = None,
+                       rejection: RejectionConfig | None = None, max_incidence_deg: float | None = 60.0,
+                       search_radii: float = 1.25):
+    """Second pass of one labelled sphere in a cloud, as the point maps' second pass
+    and control points treat it: the points within ``search_radii`` radii of the first
+    fit's ``centre``, the rim left out (the surface seen at more than
+    ``max_incidence_deg`` from the scanner's line of sight, where a fringe scanner's
+    pixel integrates across the edge), cones about ``rod_axes`` (unit directions from
+    the centre, the scanner's frame) masked, and the ``radius`` (the CMM's) fixed.
+    Returns the :class:`fringecal.spheres.robust.RobustSphereFit`; a fit covering less
+    than :data:`MIN_COVERAGE` of the sphere raises :class:`FitError`."""
+    reach = search_radii * radius
+    near = np.all(np.abs(points - centre) <= reach, axis=1)
+    sel = points[near]
+    sel = sel[np.linalg.norm(sel - centre, axis=1) <= reach]
+    flags = {}
+    if max_incidence_deg is not None:
+        normal = (sel - centre) / np.linalg.norm(sel - centre, axis=1, keepdims=True)
+        sight = -sel / np.linalg.norm(sel, axis=1, keepdims=True)
+        flags["edge"] = np.einsum("ij,ij->i", normal, sight) < np.cos(np.radians(max_incidence_deg))
+    fit = fit_sphere_robust(sel, radius, expected_radius=radius, flags=flags, viewpoints=np.zeros((1, 3)),
+                            rod_axes=rod_axes, config=rejection)
+    if fit.model.coverage < MIN_COVERAGE:
+        raise FitError(f"sphere: its points cover {fit.model.coverage:.2f} of it, less than {MIN_COVERAGE} (a "
+                       "sliver at the edge of the field or behind a rod)")
+    return fit

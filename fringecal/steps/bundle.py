@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import io
 import json
+from dataclasses import replace
 import logging
 import time
 
 import numpy as np
+import pandas as pd
 
 from fringecal import compile_clock
 from fringecal.atomic import atomic_paths
-from fringecal.calibration.blackbox import adjust_black_boxes, export_table
+from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.bundle import bundle_adjust
 from fringecal.calibration.file import rig_to_dict, xml_text
@@ -29,7 +31,7 @@ from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
 from fringecal.frames import Frame
-from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners
+from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners, stores_of
 
 __all__ = ["Bundle", "load_problem"]
 
@@ -64,7 +66,8 @@ class Bundle(Step):
     modules = ("fringecal.calibration",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        boxes = [rd.sphere_fits_labelled, rd.scanner_links, rd.acquisition] if black_box_scanners(rd) else []
+        boxes = [rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
+            [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)] if black_box_scanners(rd) else []
         return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
@@ -97,14 +100,16 @@ class Bundle(Step):
         doc = {**summary(result, b.volume_diagonal_mm), **timing}
         if boxes is not None:
             doc["black_boxes"] = {"s0": boxes.s0, "dof": boxes.dof,
-                                  "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()}}
+                                  "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()},
+                                  "modelled_shift_max_sigma": boxes.joint["max_shift_sigma"]}
+            result = with_black_box_update(result, boxes)
         write_outputs(rd, result, doc, arrays, covariances, self.provenance(rd, cfg, item),
                       None if boxes is None else boxes.to_dict())
         if boxes is None:
             rd.black_boxes.remove()
             rd.black_boxes_export.remove()
         else:
-            rd.black_boxes.save(boxes.to_dict())
+            rd.black_boxes.save({**boxes.to_dict(), "joint_covariance": joint_covariance(result, boxes)})
             rd.black_boxes_export.save(export_table(boxes.scanners.values()))
 
     def provenance(self, rd: RunDir, cfg: Settings, item: str) -> dict:
@@ -129,16 +134,48 @@ def black_box_adjustment(rd: RunDir, result, reference: str, scale: bool):
         raise DataProblem(f"{rd.scanner_links.path}: black-box scanner(s) {', '.join(unlinked)} not linked to the "
                           f"reference scanner {reference}: each needs three labelled spheres in a measurement "
                           f"another linked scanner saw (why spheres were not labelled: {rd.label_outcomes.path})")
-    fits = rd.sphere_fits_labelled.load()
-    fits = fits[fits["scanner"].astype(str).isin(boxes)]
-    idx = result.layout.pose_index
-    cov = result.uncertainty.covariance
-    pose_cov = np.zeros((len(idx), 6, 6))
-    for m, ix in enumerate(idx):
-        free = ix >= 0
-        pose_cov[m][np.ix_(free, free)] = cov[np.ix_(ix[free], ix[free])]
+    finals = [rd.fits_final(m).load() for m in stores_of(rd, "artefact", black_box=True)]
+    fits = pd.concat([f for f in finals if len(f)], ignore_index=True)
+    lay = result.layout
+    prior = ModelPrior(result.x, result.uncertainty.covariance, lay.pose_index, result.poses,
+                       result.problem.measurements, lay.names)
     return adjust_black_boxes(fits, result.problem.artefact, reference, {s: (links[s], 1.0) for s in boxes},
-                              scale=scale, pose_prior=(result.poses_frame(), pose_cov))
+                              scale=scale, prior=prior)
+
+
+def with_black_box_update(result, boxes):
+    """The bundle's result with its sensors and poses as the joint adjustment with the
+    black boxes moved them (:func:`fringecal.calibration.blackbox._conditioned`): the
+    calibration written is the one adjustment's. Its covariance arrays, bootstrap and
+    residual tables stay the bundle's own."""
+    lay = result.layout
+    x = boxes.joint["x"]
+    sp, po = lay.unpack(x, result.rig.params, result.poses)
+    C = boxes.joint["covariance"][:lay.n, :lay.n]
+    std = np.sqrt(np.clip(np.diag(C), 0, None))
+    std_s = np.zeros_like(sp)
+    free = lay.sensor_index >= 0
+    std_s[free] = std[lay.sensor_index[free]]
+    return replace(result, x=x, rig=result.rig.with_params(sp, uncertainty=std_s), poses=po)
+
+
+def joint_covariance(result, boxes) -> dict:
+    """The covariance of every sensor parameter (n_sensors * 14, rig order, fixed ones
+    zero) and every black box's 7 parameters together, from the joint adjustment
+    (what a length measured by a modelled and a black-box scanner needs)."""
+    idx = result.layout.sensor_index.reshape(-1)
+    n_s = idx.size
+    names = list(boxes.scanners)
+    C = boxes.joint["covariance"]  # [bundle's free parameters, black boxes' free parameters]
+    pos = np.full(n_s + 7 * len(names), -1)
+    pos[:n_s] = idx
+    for b, name in enumerate(names):
+        free_idx, free_pos = boxes.joint["free"][name]
+        pos[n_s + 7 * b + free_idx] = boxes.joint["n_model"] + free_pos
+    out = np.zeros((pos.size, pos.size))
+    ok = pos >= 0
+    out[np.ix_(ok, ok)] = C[np.ix_(pos[ok], pos[ok])]
+    return {"n_sensor_parameters": int(n_s), "black_boxes": names, "matrix": out.tolist()}
 
 
 def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict,

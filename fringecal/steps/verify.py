@@ -14,7 +14,7 @@ import logging
 
 from fringecal.rundir import RunDir
 from fringecal.steps.base import Settings, Step, black_box_scanners, stores_of_kind
-from fringecal.verification.black_box import black_box_scanners_of, verify_with_black_boxes
+from fringecal.verification.black_box import verify_with_black_boxes
 from fringecal.verification.verify import verify_ballbar
 
 __all__ = ["Verify", "ballbar_stores"]
@@ -34,7 +34,7 @@ def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
 class Verify(Step):
     name = "verify"
     title = "verification"
-    settings = ("verification", "extraction.rejection")
+    settings = ("verification", "extraction.rejection", "control_points.max_incidence_deg")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
@@ -73,8 +73,8 @@ class Verify(Step):
     def run_black_boxes(self, rd: RunDir, cfg: Settings, diagonal: float) -> None:
         """Modelled and black-box scanners together (:mod:`fringecal.verification.black_box`)."""
         centres, failures, result, budget = verify_with_black_boxes(
-            ballbar_stores(rd), rd.calibration.load(), black_box_scanners_of(rd.black_boxes.load()), rd.ballbar.load(),
-            cfg.extraction.rejection, cfg.verification, diagonal)
+            ballbar_stores(rd), rd.calibration.load(), rd.black_boxes.load(), rd.ballbar.load(),
+            cfg.extraction.rejection, cfg.verification, diagonal, cfg.control_points.max_incidence_deg)
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner or "-", f.reason)
         rd.ballbar_centres.save(centres)

@@ -9,19 +9,18 @@ by centre distance (closer than the bar's radius: one sphere); exactly two clust
 make a position, and every pair of sightings of the two spheres one length (as
 :func:`.lengths.ballbar_lengths` pairs them).
 
-Each length's uncertainty (k = 2 with the verification's coverage factor) is
-propagated to first order from:
+A modelled scanner's sighting is refitted as the modelled-only verification refits it
+(certified radius, rod masked: :func:`.ballbar.refit_sighting`).
 
-* each black-box centre's covariance (its sphere fit's residuals) carried into the
-  world frame;
-* each black-box scanner's transform and scale covariance
-  (:class:`fringecal.calibration.blackbox.BlackBoxScanner`), once per scanner (a scanner
-  seeing both spheres contributes only through its rotation and scale);
-* a modelled scanner's sighting: its fit scatter, ``2 rms / sqrt(n)`` per coordinate
-  (a cap's centre is about twice as uncertain as the mean of its points); the
-  calibrated sensors' own covariance is not propagated here (the modelled-only
-  verification, :mod:`.uncertainty`, does that pixel by pixel);
-* the certificate's standard uncertainty.
+Each length's uncertainty (k: the verification's coverage factor) is propagated to
+first order through the joint covariance of every sensor parameter and every black
+box's transform and scale (``black_boxes.json`` ``joint_covariance``: the adjustment
+of the black boxes together with the bundle's parameters), with each modelled
+sighting's centre linearised in its scanner's 28 parameters
+(:func:`.budget.sighting_model`) and each black-box centre in its scanner's 7; plus
+each sphere fit's own covariance (the black box's carried into the world) and the
+certificate's standard uncertainty. A scanner seeing both spheres contributes once
+(its translation cancels).
 """
 
 from __future__ import annotations
@@ -33,11 +32,14 @@ from fringecal.artefact import Artefact
 from fringecal.calibration.blackbox import BlackBoxScanner, transform_points
 from fringecal.rig import Rig
 from fringecal.scancloud import read_cloud_store
-from fringecal.spheres.cloud_spheres import cloud_sphere_fits
+from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere
 from fringecal.spheres.robust import RejectionConfig
 from fringecal.verification.lengths import evaluate_ballbar
+from fringecal.spheres.fit import FitError
+from fringecal.verification.ballbar import refit_sighting
+from fringecal.verification.budget import sighting_model
 from fringecal.verification.measure import store_sightings
-from fringecal.verification.uncertainty import iso14253_verdict
+from fringecal.verification.uncertainty import iso14253_verdict, sighting_points
 
 __all__ = ["black_box_scanners_of", "verify_with_black_boxes"]
 
@@ -79,18 +81,45 @@ def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Arte
                 c = np.array([f.x_mm, f.y_mm, f.z_mm])
                 M = box.matrix()[:3, :3]
                 out.append({"scanner": scanner, "centre": transform_points(box, c[None])[0],
-                            "cov": M @ np.diag([f.u_x_mm, f.u_y_mm, f.u_z_mm]) ** 2 @ M.T,
+                            "C_fit": M @ np.diag([f.u_x_mm, f.u_y_mm, f.u_z_mm]) ** 2 @ M.T,
                             "box": box, "local": c, "radius_mm": f.radius_mm, "rms_mm": f.rms_mm,
-                            "n_points": int(f.n_points)})
+                            "n_points": int(f.n_points), "points": points})
         else:
             found, problems = store_sightings(store, rig.scanner(scanner), ballbar, rejection)
             failures += [{"position": position, "scanner": scanner, "sphere_id": "", "reason": p} for p in problems]
-            for s in found:
-                u = 2 * s.rms_mm / np.sqrt(max(s.n_points, 1))
-                out.append({"scanner": scanner, "centre": np.asarray(s.centre, float), "cov": u**2 * np.eye(3),
-                            "box": None, "local": None, "radius_mm": s.radius_mm, "rms_mm": s.rms_mm,
-                            "n_points": int(s.n_points)})
+            out += [{"scanner": scanner, "centre": np.asarray(x.centre, float), "sighting": x, "store": store,
+                     "box": None} for x in found]
     return out, failures
+
+
+def _refit_box(sighting: dict, other: np.ndarray, radius: float, rejection: RejectionConfig,
+               max_incidence_deg: float | None) -> dict:
+    """A black box's sighting refitted in its cloud (certified radius, rod toward the
+    other sphere masked, rim left out: :func:`fringecal.spheres.cloud_spheres.refit_cloud_sphere`)."""
+    box = sighting["box"]
+    M = box.matrix()[:3, :3]
+    axis = np.linalg.solve(M, other - sighting["centre"])
+    fit = refit_cloud_sphere(sighting["points"], sighting["local"], radius, (axis / np.linalg.norm(axis))[None],
+                             rejection, max_incidence_deg)
+    m = fit.model
+    c = np.asarray(m.centre, float)
+    return {**sighting, "local": c, "centre": transform_points(box, c[None])[0],
+            "C_fit": M @ m.covariance[:3, :3] @ M.T, "radius_mm": m.radius, "rms_mm": m.rms,
+            "n_points": int(m.n_points)}
+
+
+def _refit_modelled(sighting: dict, other: np.ndarray, radius: float, rig: Rig, std: np.ndarray,
+                    rejection: RejectionConfig) -> dict:
+    """A modelled sighting refitted (certified radius, rod masked) with its linear model."""
+    axis = other - sighting["centre"]
+    m = refit_sighting(sighting["sighting"], radius, axis / np.linalg.norm(axis), rejection)
+    points = sighting_points(sighting["store"], rig, sighting["scanner"], m.pixels, m.centre, m.radius_mm,
+                             m.rms_mm)
+    block = points.block
+    model = sighting_model(points, np.where(std[28 * block:28 * block + 28] > 0, std[28 * block:28 * block + 28],
+                                            1e-6))
+    return {**sighting, "centre": np.asarray(m.centre, float), "C_fit": model.C_fit, "J": model.J, "block": block,
+            "radius_mm": m.radius_mm, "rms_mm": m.rms_mm, "n_points": int(m.n_points)}
 
 
 def _clusters(sightings: list[dict], radius: float) -> list[list[int]]:
@@ -107,28 +136,36 @@ def _clusters(sightings: list[dict], radius: float) -> list[list[int]]:
     return list(groups.values())
 
 
-def _length_u(a: dict, b: dict, u_certificate: float) -> tuple[float, float]:
-    """Length and its combined standard uncertainty (first order)."""
+def _length_u(a: dict, b: dict, joint: dict, u_certificate: float) -> tuple[float, float]:
+    """Length and its combined standard uncertainty (first order, see the module notes)."""
     d = b["centre"] - a["centre"]
     L = float(np.linalg.norm(d))
-    g = d / L
-    var = g @ (a["cov"] + b["cov"]) @ g + u_certificate**2
-    grads: dict = {}  # a scanner seeing both spheres: one gradient, its translation cancels
+    e = d / L
+    n_s, names, C = joint["n_sensor_parameters"], joint["black_boxes"], joint["matrix"]
+    grad = np.zeros(C.shape[0])
     for s, sign in ((a, -1.0), (b, 1.0)):
         if s["box"] is not None:
-            box, acc = grads.get(s["scanner"], (s["box"], np.zeros(7)))
-            grads[s["scanner"]] = (box, acc + sign * g @ _world_jacobian(s["box"], s["local"]))
-    for box, J in grads.values():
-        var += J @ box.covariance @ J
-    return L, float(np.sqrt(var))
+            k = n_s + 7 * names.index(s["scanner"])
+            grad[k:k + 7] += sign * e @ _world_jacobian(s["box"], s["local"])
+        else:
+            grad[28 * s["block"]:28 * s["block"] + 28] += sign * e @ s["J"]
+    var = grad @ C @ grad + e @ (a["C_fit"] + b["C_fit"]) @ e + u_certificate**2
+    return L, float(np.sqrt(max(var, 0.0)))
 
 
-def verify_with_black_boxes(stores: dict, rig: Rig, boxes: dict, ballbar: Artefact, rejection: dict, settings,
-                            diagonal_mm: float) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
+def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: Artefact, rejection: dict, settings,
+                            diagonal_mm: float, max_incidence_deg: float | None = 60.0
+                            ) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
     """Centres, failures, the evaluated lengths (:func:`.lengths.evaluate_ballbar`
     as a dict) and the lengths' budgets of every position (``stores``: position ->
-    scanner -> store path), modelled and black-box scanners together."""
+    scanner -> store path), modelled and black-box scanners together
+    (``black_boxes``: the document of ``black_boxes.json``)."""
     rejection = RejectionConfig(**rejection)
+    boxes = black_box_scanners_of(black_boxes)
+    joint = dict(black_boxes["joint_covariance"])
+    joint["matrix"] = np.asarray(joint["matrix"], float)
+    std = np.sqrt(np.clip(np.diag(joint["matrix"])[:joint["n_sensor_parameters"]], 0, None))
+    radii = dict(zip(ballbar.ids[:2], ballbar.radii[:2]))
     radius = float(np.min(ballbar.radii[:2]))
     u_cert = settings.certificate_u_mm / settings.certificate_k
     reference = float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0]))
@@ -142,16 +179,30 @@ def verify_with_black_boxes(stores: dict, rig: Rig, boxes: dict, ballbar: Artefa
             failures.append({"position": position, "scanner": "", "sphere_id": "",
                              "reason": f"{len(groups)} bar sphere(s) found (scanners: {seen}); a length needs 2"})
             continue
-        for sid, g in zip(ballbar.ids[:2], groups):
+        means = [np.mean([sightings[i]["centre"] for i in g], axis=0) for g in groups]
+        for k, (sid, g) in enumerate(zip(ballbar.ids[:2], groups)):
             for i in g:
+                try:
+                    if sightings[i]["box"] is None:
+                        sightings[i] = _refit_modelled(sightings[i], means[1 - k], float(radii[sid]), rig, std,
+                                                       rejection)
+                    else:
+                        sightings[i] = _refit_box(sightings[i], means[1 - k], float(radii[sid]), rejection,
+                                                  max_incidence_deg)
+                except (FitError, ValueError) as err:
+                    failures.append({"position": position, "scanner": sightings[i]["scanner"],
+                                     "sphere_id": sid, "reason": str(err)})
+                    sightings[i] = None
+                    continue
                 s = sightings[i]
                 rows.append({"position": position, "scanner": s["scanner"], "sphere_id": sid,
                              "x_mm": s["centre"][0], "y_mm": s["centre"][1], "z_mm": s["centre"][2],
                              "radius_mm": s["radius_mm"], "rms_mm": s["rms_mm"], "n_points": s["n_points"]})
-        pairs = [(i, j) for i in groups[0] for j in groups[1]]
+        pairs = [(i, j) for i in groups[0] for j in groups[1]
+                 if sightings[i] is not None and sightings[j] is not None]
         for i, j in pairs:
             a, b = sightings[i], sightings[j]
-            L, u = _length_u(a, b, u_cert)
+            L, u = _length_u(a, b, joint, u_cert)
             name = position if len(pairs) == 1 else f"{position}:{a['scanner']}/{b['scanner']}"
             lengths.append({"measurement": name, "position": position, "scanner_a": a["scanner"],
                             "scanner_b": b["scanner"], "length_mm": L, "u_mm": u})
