@@ -34,7 +34,7 @@ from fringecal.store import open_store, store_attributes, write_store
 
 __all__ = ["CLOUD_SUFFIXES", "CloudFileError", "ScannerCloud", "read_scanner_cloud", "write_scanner_cloud",
            "check_cloud_header", "check_cloud_units", "check_points", "CLOUD_ATTR", "write_cloud_store",
-           "is_cloud_store", "read_cloud_store", "cloud_store_from_file"]
+           "is_cloud_store", "read_cloud_store", "cloud_store_from_file", "load_points"]
 
 #: suffixes of a cloud file in a data set (lower case)
 CLOUD_SUFFIXES = (".ply", ".e57")
@@ -249,3 +249,12 @@ def cloud_store_from_file(source, out, min_extent_mm: float = 0.0, attrs: dict |
     """Read and check a cloud file and write it as a run's cloud store."""
     cloud = read_scanner_cloud(source, min_extent_mm)
     return write_cloud_store(out, cloud.points, cloud.normals, attrs)
+
+
+def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points and normals of a cloud file (``.ply``, ``.e57``) or of a run's cloud store."""
+    path = Path(path)
+    if path.suffix.lower() in CLOUD_SUFFIXES:
+        cloud = read_scanner_cloud(path)
+        return cloud.points, cloud.normals
+    return read_cloud_store(path)

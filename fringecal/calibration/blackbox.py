@@ -46,7 +46,7 @@ import scipy.optimize
 
 from fringecal.artefact import Artefact
 from fringecal.frames import Frame
-from fringecal.registration import kabsch
+from fringecal.registration import kabsch, umeyama
 from fringecal.rotation import angles_from_matrix, rotation_matrix
 
 __all__ = ["BlackBoxResult", "BlackBoxScanner", "ModelPrior", "adjust_black_boxes", "pairwise_svd", "start_poses",
@@ -183,12 +183,13 @@ def pairwise_svd(centres: pd.DataFrame, artefact: Artefact, reference: str) -> d
     return out
 
 
-def registration_noise(obs: dict, artefact: Artefact) -> dict:
+def registration_noise(obs: dict, artefact: Artefact, similarity: bool = False) -> dict:
     """Each scanner's measured centre noise: the RMS per coordinate of its centres about
     the artefact registered onto each of its views by SVD (redundancy 3 n - 6 per view
     of n >= 3 spheres). Unlike a sphere fit's own uncertainty it holds what differs
     from sphere to sphere in one view (a rod's shadow, a partly seen cap), which repeats
-    from pose to pose when the artefact only translates."""
+    from pose to pose when the artefact only translates. With ``similarity`` each view
+    is registered with a scale too (what a scanner's adjusted scale factor absorbs)."""
     out = {}
     for s in dict.fromkeys(obs["scanner"]):
         ss, dof = 0.0, 0
@@ -198,9 +199,14 @@ def registration_noise(obs: dict, artefact: Artefact) -> dict:
             if n < 3:
                 continue
             src = artefact.centres[obs["sphere"][sel]]
-            R, t = kabsch(src, obs["xyz"][sel])
-            ss += float(np.sum((src @ R.T + t - obs["xyz"][sel]) ** 2))
-            dof += 3 * n - 6
+            if similarity and n >= 4:
+                k, R, t = umeyama(src, obs["xyz"][sel])
+                ss += float(np.sum((k * src @ R.T + t - obs["xyz"][sel]) ** 2))
+                dof += 3 * n - 7
+            else:
+                R, t = kabsch(src, obs["xyz"][sel])
+                ss += float(np.sum((src @ R.T + t - obs["xyz"][sel]) ** 2))
+                dof += 3 * n - 6
         if dof > 0:
             out[s] = float(np.sqrt(ss / dof))
     return out
@@ -332,7 +338,7 @@ def adjust_black_boxes(centres: pd.DataFrame, artefact: Artefact, reference: str
     u = obs["u"]
     good = np.isfinite(u) & (u > 0)
     u = np.where(good, u, np.median(u[good]) if good.any() else 0.01)
-    floor = registration_noise(obs, artefact)
+    floor = registration_noise(obs, artefact, similarity=scale)
     u = np.sqrt(u**2 + np.array([floor.get(s, 0.0) for s in obs["scanner"]])[:, None] ** 2)
     u_cmm = np.asarray(artefact.u, float)[obs["sphere"]]
     # whitening of each centre: its covariance in the world at the start rotation (fixed)

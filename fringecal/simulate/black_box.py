@@ -36,10 +36,12 @@ def black_box_points(scanner: Scanner, tau_x, tau_y, valid) -> np.ndarray:
     return own_frame(scanner).to_local(xyz).astype(np.float32)
 
 
-def without_black_boxes(rig: Rig, outputs: dict) -> Rig:
+def without_black_boxes(rig: Rig, outputs: dict) -> Rig | None:
     """The prior calibrations of the scanners that deliver images: a black box
-    (``simulate.outputs``: ``cloud``) has none."""
+    (``simulate.outputs``: ``cloud``) has none (None: every scanner is a black box)."""
     keep = [i for i, s in enumerate(rig.scanners) if outputs.get(s.name) != "cloud"]
+    if not keep:
+        return None
     if rig.reference not in [rig.scanners[i].name for i in keep]:
         raise ConfigError(f"simulate.outputs: the reference scanner {rig.reference!r} delivers a cloud; a rig with "
                           "modelled scanners needs one of them as its reference")

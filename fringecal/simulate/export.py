@@ -156,8 +156,9 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         if rc.rods is not None:
             write_table(read_table(rc.rods, RodsTable), tmp / layout.RODS_FILE)
         boxes = sim.black_boxes()
-        write_table(without_black_boxes(sr.prior, sim.outputs).to_frame(), tmp / layout.SENSORS_PRIOR_FILE,
-                    SensorParametersTable)
+        modelled = without_black_boxes(sr.prior, sim.outputs)
+        if modelled is not None:  # black boxes only: no prior calibration at all
+            write_table(modelled.to_frame(), tmp / layout.SENSORS_PRIOR_FILE, SensorParametersTable)
         write_table(frame_rows(sr.planned), tmp / layout.POSES_PLANNED_FILE)
         verification = tmp / layout.VERIFICATION_DIR
         write_table(sr.ballbar.to_frame(), verification / layout.BALLBAR_FILE, ArtefactTable)

@@ -31,7 +31,7 @@ import pandas as pd
 from fringecal.artefact import Artefact
 from fringecal.calibration.blackbox import BlackBoxScanner, transform_points
 from fringecal.rig import Rig
-from fringecal.scancloud import read_cloud_store
+from fringecal.scancloud import load_points
 from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere
 from fringecal.spheres.robust import RejectionConfig
 from fringecal.verification.lengths import evaluate_ballbar
@@ -73,7 +73,7 @@ def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Arte
     for scanner, store in stores.items():
         if scanner in boxes:
             box = boxes[scanner]
-            points, normals = read_cloud_store(store)
+            points, normals = load_points(store)
             fits, fails = cloud_sphere_fits(points, position, scanner, radius, rejection=rejection, normals=normals)
             failures += [{"position": position, "scanner": scanner, "sphere_id": "", "reason": f.reason}
                          for f in fails.itertuples()]
@@ -214,7 +214,8 @@ def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: 
     for r in table.itertuples():
         error = r.length_mm - reference
         U = k * r.u_mm
-        entries.append({"measurement": r.measurement, "length_mm": r.length_mm, "error_mm": error, "u_mm": r.u_mm,
+        entries.append({"measurement": r.measurement, "scanner_a": r.scanner_a, "scanner_b": r.scanner_b,
+                        "length_mm": r.length_mm, "error_mm": error, "u_mm": r.u_mm,
                         "U_mm": U, "covered": bool(abs(error) <= U),
                         "iso14253": iso14253_verdict(error, U, settings.mpe_mm)})
     budget = {"method": "first-order propagation of the black-box transforms' covariance and the sphere fits "

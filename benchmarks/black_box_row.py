@@ -1,0 +1,179 @@
+"""A row of black-box scanners: the joint adjustment against registering each scanner on
+its own by its sphere centres, on the ball-bar; prints one JSON object.
+
+    PYTHONPATH=. python -m fringecal.flows.cli simulate -c configs/run_row3_blackbox.yaml --out DS
+    PYTHONPATH=. python benchmarks/black_box_row.py DS [--out benchmarks/results/black_box_row.json]
+
+The data set (``configs/run_row3_blackbox.yaml``: the three-scanner row, every scanner a
+black box that delivers its triangulated points in its own frame, 768 px, ideal
+simulation profile) is calibrated with fringecal's own steps in-process: each cloud's
+sphere candidates (:func:`fringecal.spheres.cloud_spheres.cloud_sphere_fits`), labelled,
+posed and linked with the planned poses (:func:`fringecal.spheres.poses_and_links.label_pose_link`),
+each labelled sphere refitted in its cloud (:func:`fringecal.spheres.cloud_spheres.refit_cloud_sphere`),
+then
+
+* joint: every scanner's exterior and every artefact pose adjusted at once
+  (:func:`fringecal.calibration.blackbox.adjust_black_boxes`, reference scanner1);
+* pairwise SVD: each scanner registered on its own
+  (:func:`fringecal.calibration.blackbox.pairwise_svd`: per shared measurement the SVD
+  pose of the artefact in it and in the reference, averaged);
+* truth: the true transforms (each scanner's camera frame in scanner1's).
+
+Each is measured on the same ball-bar sightings
+(:func:`fringecal.verification.black_box.verify_with_black_boxes`), so the lengths
+differ only by the transforms. Reported: E_max of each, the joint's U and coverage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fringecal.artefact import load_artefact, load_rods  # noqa: E402
+from fringecal.calibration.blackbox import adjust_black_boxes, pairwise_svd  # noqa: E402
+from fringecal.calibration.initial import poses_from_table  # noqa: E402
+from fringecal.dataset import DataSet  # noqa: E402
+from fringecal.frames import Frame, frames_from_rows  # noqa: E402
+from fringecal.schemas import PosePlanTable, read_table  # noqa: E402
+from fringecal.scancloud import read_scanner_cloud  # noqa: E402
+from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere  # noqa: E402
+from fringecal.spheres.fit import FitError  # noqa: E402
+from fringecal.spheres.poses_and_links import label_pose_link, sphere_fit_row  # noqa: E402
+from fringecal.spheres.robust import rod_directions  # noqa: E402
+from fringecal.verification.black_box import verify_with_black_boxes  # noqa: E402
+from fringecal.verification.settings import VerificationConfig  # noqa: E402
+
+NAMES = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad", "scale")
+
+
+def doc_of(boxes: dict) -> dict:
+    """A ``black_boxes.json`` document of ``boxes`` (scanner -> BlackBoxScanner)."""
+    names = list(boxes)
+    C = np.zeros((7 * len(names), 7 * len(names)))
+    for i, b in enumerate(boxes.values()):
+        C[7 * i:7 * i + 7, 7 * i:7 * i + 7] = b.covariance
+    return {"scanners": [b.to_dict() for b in boxes.values()],
+            "joint_covariance": {"n_sensor_parameters": 0, "black_boxes": names, "matrix": C.tolist()}}
+
+
+def calibrate(ds: DataSet, reference: str) -> dict:
+    t0 = time.perf_counter()
+    artefact = load_artefact(ds.artefact)
+    rods = load_rods(ds.rods, artefact) if ds.rods else None
+    radius = float(np.median(artefact.radii))
+    clouds, fits = {}, []
+    for src in ds.measurements:
+        clouds[(src.group, src.scanner)] = read_scanner_cloud(src.path).points
+        f, _ = cloud_sphere_fits(clouds[(src.group, src.scanner)], src.group, src.scanner, radius)
+        fits.append(f)
+    t_fit = time.perf_counter() - t0
+    planned = frames_from_rows(read_table(ds.poses_planned, PosePlanTable)) if ds.poses_planned else None
+    res = label_pose_link(pd.concat(fits, ignore_index=True), artefact, reference, planned=planned)
+    poses = poses_from_table(res.poses.poses)
+    finals = []
+    for r in res.fits[res.fits["sphere_id"] != ""].itertuples():
+        T = poses.get((r.measurement, r.scanner))
+        axes = rod_directions(artefact, rods, r.sphere_id, T) if rods is not None else None
+        try:
+            fit = refit_cloud_sphere(clouds[(r.measurement, r.scanner)], np.array([r.x_mm, r.y_mm, r.z_mm]),
+                                     float(artefact.radii[artefact.ids.index(r.sphere_id)]), axes)
+        except (FitError, ValueError):
+            continue
+        finals.append(sphere_fit_row(r.measurement, r.scanner, r.candidate, fit, sphere_id=r.sphere_id))
+    finals = pd.DataFrame(finals)
+    links = {str(r.scanner): Frame.from_params([getattr(r, c) for c in NAMES[:6]])
+             for r in res.links_table().itertuples()}
+    joint = adjust_black_boxes(finals, artefact, reference, {s: (links[s], 1.0) for s in ds.black_boxes})
+    t_joint = time.perf_counter() - t0
+    return {"joint": joint, "svd": pairwise_svd(finals, artefact, reference), "centres": finals,
+            "labels": res.labels, "seconds": {"spheres": t_fit, "total": t_joint}}
+
+
+def truth_boxes(truth_dir: Path, reference: str, like: dict) -> dict:
+    from fringecal.calibration.blackbox import BlackBoxScanner
+
+    frames = frames_from_rows(pd.read_csv(truth_dir / "scanner_frames.csv"), key="scanner")
+    ref = frames[reference].inverse()
+    out = {}
+    for s, b in like.items():
+        T = ref.compose(frames[s])
+        T = Frame.from_matrix(T.R, T.t, near=b.params[3:6])
+        out[s] = BlackBoxScanner(s, np.r_[T.params, 1.0], np.zeros((7, 7)), 0.0, 0)
+    return out
+
+
+def ballbar(ds: DataSet, boxes: dict, settings: VerificationConfig) -> dict:
+    stores = {}
+    for src in ds.verification:
+        stores.setdefault(src.group, {})[src.scanner] = src.path
+    _, failures, result, budget = verify_with_black_boxes(stores, None, doc_of(boxes), load_artefact(ds.ballbar),
+                                                          {}, settings, float("nan"))
+    return {"max_abs_error_mm": result["max_abs_error_mm"],
+            "lengths": [{"measurement": e["measurement"], "scanners": [e["scanner_a"], e["scanner_b"]],
+                         "error_mm": e["error_mm"], "U_mm": e["U_mm"], "covered": e["covered"]}
+                        for e in budget["lengths"]],
+            "failures": failures.to_dict("records")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--truth", type=Path, help="the truth folder (default: DATASET-truth)")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    ds = DataSet.open(args.dataset)
+    reference = ds.config.reference_scanner
+    cal = calibrate(ds, reference)
+    settings = VerificationConfig(mpe_mm=0.1)
+    truth = truth_boxes(args.truth or Path(f"{args.dataset}-truth"), reference, cal["joint"].scanners)
+    out = {
+        "what": "three black-box scanners in a row (configs/run_row3_blackbox.yaml, 768 px, simulation profile "
+                "ideal): ball-bar lengths with the joint adjustment, with each scanner registered on its own "
+                "(pairwise SVD) and with the true transforms, on the same sightings",
+        "command": "PYTHONPATH=. python benchmarks/black_box_row.py DS (DS: fringecal simulate -c "
+                   "configs/run_row3_blackbox.yaml)",
+        "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
+        "views_labelled": int((cal["labels"]["status"] == "labelled").sum()), "views": len(cal["labels"]),
+        "centres": len(cal["centres"]), "s0": cal["joint"].s0, "seconds": cal["seconds"],
+        "joint": ballbar(ds, cal["joint"].scanners, settings),
+        "pairwise_svd": ballbar(ds, cal["svd"], settings),
+        "true_transforms": ballbar(ds, truth, settings),
+        "transform_errors": {},
+    }
+    for s, b in cal["joint"].scanners.items():
+        d = b.params - truth[s].params
+        e = cal["svd"][s].params - truth[s].params
+        out["transform_errors"][s] = {"joint_mm": float(np.linalg.norm(d[:3])), "joint_mrad": float(1e3 * np.abs(
+            d[3:6]).max()), "svd_mm": float(np.linalg.norm(e[:3])), "svd_mrad": float(1e3 * np.abs(e[3:6]).max())}
+    j, p, t = (out[k]["max_abs_error_mm"] for k in ("joint", "pairwise_svd", "true_transforms"))
+    # the lengths between two scanners test the transforms; a scanner's own lengths do not
+    true = {e["measurement"]: e["error_mm"] for e in out["true_transforms"]["lengths"]}
+    cross = {}
+    for k in ("joint", "pairwise_svd", "true_transforms"):
+        es = [e for e in out[k]["lengths"] if e["scanners"][0] != e["scanners"][1]]
+        cross[k] = {"n": len(es), "max_abs_error_um": 1e3 * max(abs(e["error_mm"]) for e in es),
+                    "rms_error_um": 1e3 * float(np.sqrt(np.mean([e["error_mm"] ** 2 for e in es]))),
+                    "rms_from_true_transforms_um": 1e3 * float(np.sqrt(np.mean(
+                        [(e["error_mm"] - true[e["measurement"]]) ** 2 for e in es])))}
+    out["lengths_across_scanners"] = cross
+    out["summary"] = {"E_max_joint_um": 1e3 * j, "E_max_pairwise_svd_um": 1e3 * p, "E_max_true_um": 1e3 * t,
+                      "joint_over_true": j / t, "svd_over_joint": p / j,
+                      "coverage_joint": float(np.mean([e["covered"] for e in out["joint"]["lengths"]]))}
+    text = json.dumps(out, indent=1, default=float)
+    if args.out:
+        args.out.write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
