@@ -224,12 +224,14 @@ CLOUD_ATTR = "black_box_cloud"
 
 
 def write_cloud_store(path, points: np.ndarray, normals: np.ndarray | None = None, attrs: dict | None = None) -> Path:
-    """A run's measurement store of a cloud: ``points`` (n, 3) float32 mm in the
-    scanner's own frame (and ``normals``), marked by :data:`CLOUD_ATTR`."""
-
-    data = {"points": (("point", "xyz"), np.asarray(points, np.float32))}
+    """A run's measurement store of a cloud: float32 ``x``, ``y``, ``z`` (and ``nx``,
+    ``ny``, ``nz``) on one dimension ``point``, mm in the scanner's own frame (1-D fields
+    are stored in chunks of 2**20 points), marked by :data:`CLOUD_ATTR`."""
+    points = np.asarray(points, np.float32)
+    data = {c: ("point", points[:, i]) for i, c in enumerate("xyz")}
     if normals is not None:
-        data["normals"] = (("point", "xyz"), np.asarray(normals, np.float32))
+        normals = np.asarray(normals, np.float32)
+        data.update({c: ("point", normals[:, i]) for i, c in enumerate(("nx", "ny", "nz"))})
     return write_store(path, xr.Dataset(data, attrs={**(attrs or {}), CLOUD_ATTR: True, "units": "mm"}))
 
 
@@ -241,8 +243,10 @@ def is_cloud_store(path) -> bool:
 def read_cloud_store(path) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (n, 3) float64 and normals (or None) of a cloud store."""
     with open_store(path) as ds:
-        normals = ds["normals"].values.astype(float) if "normals" in ds else None
-        return ds["points"].values.astype(float), normals
+        points = np.column_stack([ds[c].values for c in "xyz"]).astype(float)
+        normals = np.column_stack([ds[c].values for c in ("nx", "ny", "nz")]).astype(float) if "nx" in ds \
+            else None
+        return points, normals
 
 
 def cloud_store_from_file(source, out, min_extent_mm: float = 0.0, attrs: dict | None = None) -> Path:

@@ -143,3 +143,15 @@ def test_cloud_file_errors_name_the_file(tmp_path):
     path = write_scanner_cloud(tmp_path / "s.ply", np.array([[0.0, 0, 3000], [1, 0, 3000]]))
     with pytest.raises(CloudFileError, match=r"s\.ply: the cloud spans 1 units, less than half"):
         read_scanner_cloud(path, 25.0)
+
+
+def test_an_e57_cloud_is_read_in_mm(tmp_path):
+    pye57 = pytest.importorskip("pye57", reason="E57 needs the optional extra fringecal[e57] (pye57)")
+    rng = np.random.default_rng(5)
+    metres = rng.normal([0.1, -0.2, 3.6], 0.05, (500, 3))
+    path = tmp_path / "s.e57"
+    e57 = pye57.E57(str(path), mode="w")
+    e57.write_scan_raw({"cartesianX": metres[:, 0], "cartesianY": metres[:, 1], "cartesianZ": metres[:, 2]})
+    e57.close()
+    cloud = read_scanner_cloud(path, 25.0)
+    assert np.allclose(cloud.points, 1000 * metres, atol=1e-6)

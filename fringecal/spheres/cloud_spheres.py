@@ -2,11 +2,11 @@
 the same robust fit as the candidates of a point map.
 
 A point map's candidates come from its pixel neighbourhoods; a cloud has none, so they
-come from normal voting in space: the cloud is thinned to one point per cube of edge
-``radius / 4`` (the mean of its points), each thinned point's normal is the smallest
-principal direction of its 12 nearest neighbours, turned toward the scanner (the
-origin of the cloud's frame: the scanner sees the outside of a sphere), and the point
-votes for a centre one radius behind it. A sphere's votes pile up in the cube of its
+come from normal voting in space: the cloud is sorted into cubes of edge ``radius / 4``,
+each cube's normal is the smallest principal direction of the points of it and its 26
+neighbours, turned toward the scanner (the origin of the cloud's frame: the scanner
+sees the outside of a sphere), and the cube's mean point votes for a centre one radius
+behind it. A sphere's votes pile up in the cube of its
 centre, a plane's or a rod's spread over a surface; every cube holding at least
 ``min_votes`` votes and the most of its neighbourhood (within one radius) is a
 candidate. Each candidate's points -- every point of the full cloud within 1.25 radii
@@ -64,35 +64,85 @@ def _cube_means(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray
     return sums / counts[:, None], counts
 
 
-def _thin(points: np.ndarray, cell: float) -> np.ndarray:
-    """One point per occupied cube of edge ``cell``: the mean of its points."""
-    return _cube_means(points, cell)[0]
+_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
-def _normals(points: np.ndarray, k: int) -> np.ndarray:
-    """Unit normals (n, 3) from the k nearest neighbours, turned toward the origin."""
-    from scipy.spatial import cKDTree
+class _Cubes:
+    """A cloud sorted into cubes of edge ``cell``: each occupied cube's points (a slice
+    of the sorted cloud), their mean, and sums for local planes."""
 
-    k = min(k, len(points))
-    _, idx = cKDTree(points).query(points, k=k)
-    nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nb, nb)
-    _, vec = np.linalg.eigh(cov)
-    n = vec[:, :, 0]
-    flip = np.einsum("ni,ni->n", n, -points) < 0
-    n[flip] *= -1
-    return n
+    def __init__(self, points: np.ndarray, cell: float):
+        self.cell = cell
+        self.origin = np.floor(points.min(axis=0) / cell) - 1  # a margin of one cube for neighbours
+        keys = self._keys(np.floor(points / cell) - self.origin)
+        order = np.argsort(keys)
+        self.points = points[order]
+        sorted_keys = keys[order]
+        self.start = np.flatnonzero(np.r_[True, np.diff(sorted_keys) != 0])
+        self.keys = sorted_keys[self.start]
+        self.count = np.diff(np.r_[self.start, len(keys)])
+        centred = self.points - self.points.mean(axis=0)
+        self.shift = self.points.mean(axis=0)
+        self.s1 = np.add.reduceat(centred, self.start, axis=0)
+        self.s2 = np.add.reduceat(np.column_stack([centred[:, a] * centred[:, b] for a, b in _PAIRS]), self.start,
+                                  axis=0)
+
+    @staticmethod
+    def _keys(q: np.ndarray) -> np.ndarray:
+        q = q.astype(np.int64)
+        return (q[..., 0] << 42) | (q[..., 1] << 21) | q[..., 2]
+
+    def lookup(self, keys: np.ndarray) -> np.ndarray:
+        """Cube index of each key, -1 where no point lies."""
+        i = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        return np.where(self.keys[i] == keys, i, -1)
+
+    def means(self) -> np.ndarray:
+        return self.s1 / self.count[:, None] + self.shift
+
+    def normals(self) -> np.ndarray:
+        """Each cube's normal: the smallest principal direction of the points of it and
+        its 26 neighbours, turned toward the origin (the scanner)."""
+        n = self.count.astype(float).copy()
+        s1, s2 = self.s1.copy(), self.s2.copy()
+        for off in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
+            if not off.any():
+                continue
+            j = self.lookup(self.keys + int((off[0] << 42) + (off[1] << 21) + off[2]))
+            ok = j >= 0
+            n[ok] += self.count[j[ok]]
+            s1[ok] += self.s1[j[ok]]
+            s2[ok] += self.s2[j[ok]]
+        mean = s1 / n[:, None]
+        cov = np.empty((len(n), 3, 3))
+        for k, (a, b) in enumerate(_PAIRS):
+            cov[:, a, b] = cov[:, b, a] = s2[:, k] / n - mean[:, a] * mean[:, b]
+        normal = np.linalg.eigh(cov)[1][:, :, 0]
+        flip = np.einsum("ni,ni->n", normal, -self.means()) < 0
+        normal[flip] *= -1
+        return normal
+
+    def near(self, centre: np.ndarray, reach: float) -> np.ndarray:
+        """The points within ``reach`` of ``centre``."""
+        lo = np.floor((centre - reach) / self.cell) - self.origin
+        hi = np.floor((centre + reach) / self.cell) - self.origin
+        grid = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), axis=-1)
+        j = self.lookup(self._keys(grid.reshape(-1, 3)))
+        j = j[j >= 0]
+        if not len(j):
+            return np.zeros((0, 3))
+        p = np.concatenate([self.points[a:a + c] for a, c in zip(self.start[j], self.count[j])])
+        return p[np.linalg.norm(p - centre, axis=1) <= reach]
 
 
 def vote_centres(points: np.ndarray, radius: float, config: CloudCandidateConfig = CloudCandidateConfig(),
-                 normals: np.ndarray | None = None) -> np.ndarray:
+                 cubes: _Cubes | None = None) -> np.ndarray:
     """Candidate sphere centres (m, 3) of a cloud, most votes first."""
     cell = config.cell_fraction * radius
-    thin = _thin(points, cell)
-    if len(thin) < config.neighbours:
+    cubes = cubes or _Cubes(points, cell)
+    if len(cubes.keys) < config.neighbours:
         return np.zeros((0, 3))
-    n = _normals(thin, config.neighbours)
-    votes = thin - radius * n
+    votes = cubes.means() - radius * cubes.normals()
     centres, counts = _cube_means(votes, cell)
     # a cube and its 26 neighbours: a centre's votes straddle cube borders
     from scipy.spatial import cKDTree
@@ -129,10 +179,9 @@ def cloud_sphere_fits(points: np.ndarray, measurement: str, scanner: str, radius
     """
     rows, failures = [], []
     reach = config.search_radii * radius
-    for k, centre in enumerate(vote_centres(points, radius, config, normals)):
-        near = np.all(np.abs(points - centre) <= reach, axis=1)
-        sel = points[near]
-        sel = sel[np.linalg.norm(sel - centre, axis=1) <= reach]
+    cubes = _Cubes(np.asarray(points, float), config.cell_fraction * radius)
+    for k, centre in enumerate(vote_centres(points, radius, config, cubes)):
+        sel = cubes.near(centre, reach)
         name = f"c{k + 1}"
         try:
             fit = fit_sphere_robust(sel, expected_radius=radius, viewpoints=np.zeros((1, 3)), config=rejection)

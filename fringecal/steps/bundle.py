@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import io
 import json
-from dataclasses import replace
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -27,10 +27,10 @@ from fringecal.calibration.propagation import parameter_covariances
 from fringecal.calibration.results import covariance_arrays, residual_tables, summary
 from fringecal.config import ConfigError
 from fringecal.digests import digest_path, digest_value
+from fringecal.frames import Frame
 from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
-from fringecal.frames import Frame
 from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners, stores_of
 
 __all__ = ["Bundle", "load_problem"]

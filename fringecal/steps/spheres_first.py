@@ -82,7 +82,10 @@ class SpheresFirst(Step):
         radius = float(np.median(rd.artefact.load().radii))
         rows, failures = cloud_sphere_fits(points, row["pose"], row["scanner"], radius,
                                            rejection=RejectionConfig(**cfg.extraction.rejection), normals=normals)
+        # normal voting proposes rods, end caps and sphere edges too: their refusals are expected
         for f in failures.itertuples():
-            log.warning("measurement %s, black-box scanner %s, candidate %s: not fitted (%s)", row["pose"],
-                        row["scanner"], f.candidate, f.reason)
+            log.debug("measurement %s, black-box scanner %s, candidate %s: not fitted (%s)", row["pose"],
+                      row["scanner"], f.candidate, f.reason)
+        log.info("measurement %s, black-box scanner %s: %d sphere(s) fitted, %d candidate(s) refused", row["pose"],
+                 row["scanner"], len(rows), len(failures))
         rd.fits_first(item).save(rows)

@@ -86,9 +86,9 @@ class SpheresSecond(Step):
         fits = fits[fits["sphere_id"].astype(str) != ""]
         points, _ = read_cloud_store(rd.store(item).path)
         rows = []
+        cones = rods is not None and cfg.extraction.second_pass_rod_cones
         for f in fits.itertuples():
-            axes = rod_directions(artefact, rods, f.sphere_id, T) if rods is not None and cfg.extraction.second_pass_rod_cones \
-                else None
+            axes = rod_directions(artefact, rods, f.sphere_id, T) if cones else None
             radius = float(artefact.radii[artefact.ids.index(str(f.sphere_id))])
             try:
                 fit = refit_cloud_sphere(points, np.array([f.x_mm, f.y_mm, f.z_mm]), radius, axes,
@@ -98,5 +98,6 @@ class SpheresSecond(Step):
                 log.warning("measurement %s, black-box scanner %s, sphere %s: not refitted (%s)", own["measurement"],
                             own["scanner"], f.sphere_id, err)
                 continue
-            rows.append(sphere_fit_row(own["measurement"], own["scanner"], f.candidate, fit, sphere_id=str(f.sphere_id)))
+            rows.append(sphere_fit_row(own["measurement"], own["scanner"], f.candidate, fit,
+                                       sphere_id=str(f.sphere_id)))
         rd.fits_final(item).save(pd.DataFrame(rows) if rows else pd.DataFrame(columns=list(fits.columns)))
