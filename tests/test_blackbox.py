@@ -22,9 +22,10 @@ TRUE = {"a": Frame.from_params([0, 0, 0, 0, 0, 0]), "b": Frame.from_params([750,
 U = np.array([0.004, 0.004, 0.010])  # the sphere fits' uncertainty (x, y along the view's normal plane, z)
 
 
-def row_centres(seed: int, scales: dict | None = None, n_poses: int = 10) -> tuple[pd.DataFrame, dict]:
+def row_centres(seed: int, scales: dict | None = None, n_poses: int = 10, half_width: float = 700.0
+                ) -> tuple[pd.DataFrame, dict]:
     """Labelled centres of three scanners in a row seeing the artefact's parts within
-    700 mm of their axis, with Gaussian noise of U; and the true poses."""
+    ``half_width`` mm of their axis, with Gaussian noise of U; and the true poses."""
     rng = np.random.default_rng(seed)
     rows, poses = [], {}
     for m in range(n_poses):
@@ -34,7 +35,7 @@ def row_centres(seed: int, scales: dict | None = None, n_poses: int = 10) -> tup
         world = pose.to_world(ARTEFACT.centres)
         for s, frame in TRUE.items():
             local = frame.to_local(world) / (scales or {}).get(s, 1.0)
-            for j in np.flatnonzero(np.abs(local[:, 0]) < 700):
+            for j in np.flatnonzero(np.abs(local[:, 0]) < half_width):
                 c = local[j] + rng.normal(0, U)
                 rows.append({"measurement": str(m), "scanner": s, "sphere_id": ARTEFACT.ids[j], "x_mm": c[0],
                              "y_mm": c[1], "z_mm": c[2], "u_x_mm": U[0], "u_y_mm": U[1], "u_z_mm": U[2]})
@@ -118,3 +119,21 @@ def test_the_export_maps_points_like_the_transform():
         M = np.array([[getattr(row, f"m{i}{j}") for j in range(4)] for i in range(4)])
         assert np.allclose((M @ np.r_[p[0], 1.0])[:3], transform_points(b, p)[0], atol=1e-9)
         assert np.allclose(M[3], [0, 0, 0, 1]) and row.scale == pytest.approx(b.scale)
+
+
+def test_a_swapped_cloud_is_refused_by_the_labelling_consistency():
+    """Scanner b's and c's centres of measurement 3 exchanged (their files swapped):
+    both views are found inconsistent, never linked; the others are labelled."""
+    from fringecal.calibration.blackbox import inconsistent_views
+    from fringecal.spheres.poses_and_links import label_pose_link
+
+    centres, poses = row_centres(7, n_poses=8, half_width=450.0)  # 2-9 spheres a view: labelling in ~1 s
+    fits = centres.assign(sphere_id="", radius_mm=25.0, rms_mm=0.05, n_points=500, cap_angle_deg=60.0, coverage=0.25,
+                          n_rejected=0, candidate=[f"c{i}" for i in range(len(centres))])
+    swap = fits["measurement"] == "3"
+    fits.loc[swap, "scanner"] = fits.loc[swap, "scanner"].map({"a": "a", "b": "c", "c": "b"})
+    res = label_pose_link(fits, ARTEFACT, "a", planned=poses)
+    bad = inconsistent_views(res.labels, ["b", "c"])
+    assert sorted(zip(bad["measurement"], bad["scanner"])) == [("3", "b"), ("3", "c")]
+    refused = res.labels[res.labels["status"] == "refused"]
+    assert set(refused["reason"]) <= {"inconsistent", "too_few_candidates"}  # scanner a sees 2 spheres in view 5

@@ -50,7 +50,7 @@ from fringecal.registration import kabsch, umeyama
 from fringecal.rotation import angles_from_matrix, rotation_matrix
 
 __all__ = ["BlackBoxResult", "BlackBoxScanner", "ModelPrior", "adjust_black_boxes", "pairwise_svd", "start_poses",
-           "transform_points", "EXPORT_COLUMNS", "export_table"]
+           "transform_points", "EXPORT_COLUMNS", "export_table", "inconsistent_views", "registration_noise"]
 
 #: columns of the simple export: one row per scanner, the 4x4 T_world_scanner row by row and the scale
 EXPORT_COLUMNS = ("scanner", "scale", *(f"m{i}{j}" for i in range(4) for j in range(4)))
@@ -210,6 +210,18 @@ def registration_noise(obs: dict, artefact: Artefact, similarity: bool = False) 
         if dof > 0:
             out[s] = float(np.sqrt(ss / dof))
     return out
+
+
+def inconsistent_views(labels: pd.DataFrame, scanners) -> pd.DataFrame:
+    """The black boxes' views whose labelling the other scanners' poses contradicted
+    (``refused``, reason ``inconsistent`` in a LabelOutcomesTable): a cloud of another
+    scanner's frame (a swapped file) is one. A modelled scanner's such view is left out
+    and the run goes on; a black box's stops it, since only its file can be wrong."""
+    if labels is None or not len(labels):
+        return pd.DataFrame(columns=["measurement", "scanner", "message"])
+    bad = (labels["status"] == "refused") & (labels["reason"].astype(str) == "inconsistent") & \
+        labels["scanner"].astype(str).isin(list(scanners))
+    return labels.loc[bad, ["measurement", "scanner", "message"]].reset_index(drop=True)
 
 
 def _mean_frame(frames) -> Frame:

@@ -18,7 +18,7 @@ import pandas as pd
 
 from fringecal import compile_clock
 from fringecal.atomic import atomic_paths
-from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table
+from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.bundle import bundle_adjust
 from fringecal.calibration.file import rig_to_dict, xml_text
@@ -129,6 +129,16 @@ def black_box_adjustment(rd: RunDir, result, reference: str, scale: bool):
         return None
     links = {str(r.scanner): Frame.from_params([getattr(r, c) for c in POSE_COLUMNS])
              for r in rd.scanner_links.load().itertuples()}
+    swapped = inconsistent_views(rd.label_outcomes.load(), boxes)
+    if len(swapped):
+        table = rd.acquisition.load()
+        sources = {(str(r.pose), str(r.scanner)): str(r.source) for r in table.itertuples()}
+        first = swapped.iloc[0]
+        more = f" (and {len(swapped) - 1} more view(s): {rd.label_outcomes.path})" if len(swapped) > 1 else ""
+        raise DataProblem(f"{sources.get((str(first.measurement), str(first.scanner)), first.scanner)}: the cloud of "
+                          f"black-box scanner {first.scanner} in measurement {first.measurement} does not fit where "
+                          f"the other scanners put the artefact; a cloud of another scanner (a swapped file?): "
+                          f"{first.message}{more}")
     unlinked = [s for s in boxes if s not in links]
     if unlinked:
         raise DataProblem(f"{rd.scanner_links.path}: black-box scanner(s) {', '.join(unlinked)} not linked to the "
