@@ -155,3 +155,19 @@ def test_an_e57_cloud_is_read_in_mm(tmp_path):
     e57.close()
     cloud = read_scanner_cloud(path, 25.0)
     assert np.allclose(cloud.points, 1000 * metres, atol=1e-6)
+
+
+def test_measure_takes_a_black_box_s_cloud_beside_the_stacks(tmp_path):
+    """fringecal measure's folder: a black box's <scanner>.ply is its entry; a cloud of
+    a scanner the calibration does not hold as a black box is refused naming it."""
+    from fringecal.config import thesis_dir
+    from fringecal.measure.sources import MeasurementSourceError, measurement_entries
+    from fringecal.rig import load_rig
+
+    rig = load_rig(thesis_dir() / "sensors_refined_table6-8.csv")
+    folder = tmp_path / "m1"
+    folder.mkdir()
+    path = write_scanner_cloud(folder / "box.ply", np.array([[0.0, 0, 3000], [100, 0, 3000]]))
+    assert measurement_entries(folder, rig, "frames", ("box",)) == {"box": path}
+    with pytest.raises(MeasurementSourceError, match=r"box\.ply: a point cloud, but scanner 'box' is not a black-box"):
+        measurement_entries(folder, rig, "frames")

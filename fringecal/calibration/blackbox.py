@@ -47,10 +47,11 @@ import scipy.optimize
 from fringecal.artefact import Artefact
 from fringecal.frames import Frame
 from fringecal.registration import kabsch, umeyama
-from fringecal.rotation import angles_from_matrix, rotation_matrix
+from fringecal.rotation import angles_from_matrix, rotation_derivatives, rotation_matrix
 
 __all__ = ["BlackBoxResult", "BlackBoxScanner", "ModelPrior", "adjust_black_boxes", "pairwise_svd", "start_poses",
-           "transform_points", "EXPORT_COLUMNS", "export_table", "inconsistent_views", "registration_noise"]
+           "transform_points", "EXPORT_COLUMNS", "export_table", "inconsistent_views", "registration_noise",
+           "scanners_from_document", "point_uncertainty"]
 
 #: columns of the simple export: one row per scanner, the 4x4 T_world_scanner row by row and the scale
 EXPORT_COLUMNS = ("scanner", "scale", *(f"m{i}{j}" for i in range(4) for j in range(4)))
@@ -121,6 +122,31 @@ class BlackBoxResult:
 def transform_points(scanner: BlackBoxScanner, points: np.ndarray) -> np.ndarray:
     """Points (n, 3) of ``scanner``'s frame in the world."""
     return np.asarray(points, float) @ scanner.matrix()[:3, :3].T + scanner.params[:3]
+
+
+def scanners_from_document(doc: dict) -> dict[str, BlackBoxScanner]:
+    """The black-box scanners of ``black_boxes.json`` (or calibration.json's ``black_boxes``)."""
+    names = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad", "scale")
+    return {d["scanner"]: BlackBoxScanner(d["scanner"], np.array([d[n] for n in names], float),
+                                          np.array(d["covariance"], float), float(d["rms_mm"]), int(d["n_centres"]))
+            for d in doc["scanners"]}
+
+
+def point_uncertainty(scanner: BlackBoxScanner, points: np.ndarray) -> np.ndarray:
+    """Standard uncertainty (n,) in mm (sqrt of the covariance's trace) of points of
+    ``scanner``'s frame carried into the world, from its transform's covariance alone."""
+    p = np.asarray(points, float)
+    k = scanner.scale
+    om, ph, ka = scanner.params[3:6]
+    dR = rotation_derivatives(om, ph, ka)  # (3, 3, 3): d R / d angle
+    R = scanner.frame.R
+    J = np.empty((len(p), 3, 7))
+    J[:, :, :3] = np.eye(3)
+    for a in range(3):
+        J[:, :, 3 + a] = k * p @ dR[a]  # d(R^T k c)/d angle = k (dR^T) c
+    J[:, :, 6] = p @ R
+    JC = np.einsum("nij,jk->nik", J, scanner.covariance)
+    return np.sqrt(np.clip(np.einsum("nik,nik->n", JC, J), 0, None))
 
 
 def export_table(scanners) -> pd.DataFrame:

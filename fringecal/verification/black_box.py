@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 
 from fringecal.artefact import Artefact
-from fringecal.calibration.blackbox import BlackBoxScanner, transform_points
+from fringecal.calibration.blackbox import BlackBoxScanner, scanners_from_document, transform_points
 from fringecal.rig import Rig
 from fringecal.scancloud import load_points
 from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere
@@ -46,10 +46,7 @@ __all__ = ["black_box_scanners_of", "verify_with_black_boxes"]
 
 def black_box_scanners_of(doc: dict) -> dict[str, BlackBoxScanner]:
     """The black-box scanners of ``black_boxes.json`` (or calibration.json's ``black_boxes``)."""
-    names = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad", "scale")
-    return {d["scanner"]: BlackBoxScanner(d["scanner"], np.array([d[n] for n in names], float),
-                                          np.array(d["covariance"], float), float(d["rms_mm"]), int(d["n_centres"]))
-            for d in doc["scanners"]}
+    return scanners_from_document(doc)
 
 
 def _world_jacobian(box: BlackBoxScanner, c: np.ndarray, step: float = 1e-7) -> np.ndarray:
