@@ -17,7 +17,7 @@ import logging
 from fringecal.acceptance.document import acceptance_document
 from fringecal.acceptance.standards import AcceptanceStandards
 from fringecal.rundir import RunDir
-from fringecal.steps.base import Settings, Step, stores_of_kind
+from fringecal.steps.base import Settings, Step, black_box_scanners, stores_of_kind
 
 __all__ = ["Acceptance", "acceptance_stores", "ACCEPTANCE_KINDS"]
 
@@ -28,10 +28,12 @@ ACCEPTANCE_KINDS = ("sphere", "dumbbell", "flat")
 
 
 def acceptance_stores(rd: RunDir) -> dict[str, dict[str, dict[str, str]]]:
-    """kind -> position -> scanner -> store path of the run's acceptance measurements."""
+    """kind -> position -> scanner -> store path of the run's acceptance measurements
+    (a black-box scanner's clouds are not evaluated: the test measures with sensors)."""
     table = rd.acquisition.load()
+    boxes = black_box_scanners(rd)
     out: dict[str, dict[str, dict[str, str]]] = {k: {} for k in ACCEPTANCE_KINDS}
-    for r in table[table["kind"].isin(ACCEPTANCE_KINDS)].itertuples():
+    for r in table[table["kind"].isin(ACCEPTANCE_KINDS) & ~table["scanner"].isin(boxes)].itertuples():
         out[r.kind].setdefault(str(r.pose), {})[str(r.scanner)] = str(rd.store(r.measurement).path)
     return out
 
