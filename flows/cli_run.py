@@ -41,7 +41,12 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
     if cfg.source == "dataset":
         from fringecal.dataset import DataSet
 
-        DataSet.open(cfg.dataset).check_frames()  # every frame's header, and one frame per orientation decoded
+        ds = DataSet.open(cfg.dataset)
+        ds.check_frames()  # every frame's header, and one frame per orientation decoded
+        if ds.sensors_prior is None:
+            raise ConfigError(f"{ds.root}: every scanner is a black box ({', '.join(ds.black_boxes)}); a run "
+                              "calibrates rigs with at least one modelled scanner (sensors_prior.csv). A rig of "
+                              "black boxes only: python benchmarks/black_box_row.py DATASET (docs/blackbox.md)")
     else:
         check_simulation(cfg.simulate)
     return cfg
