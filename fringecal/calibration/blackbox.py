@@ -22,14 +22,15 @@ every black-box exterior and scale and every artefact pose at once:
 
 * a rig of black boxes only: the reference scanner's frame is the world (its exterior
   fixed, its scale free with ``scale``), the poses are free;
-* next to model-based scanners: the poses the bundle adjustment found enter as
-  observations with their covariance (``pose_prior``), so each black box is placed on
-  the same poses, weighted by what the bundle knows of them.
+* next to model-based scanners (:class:`ModelPrior`): the bundle adjustment's solution
+  is a Gaussian prior; its pose block, cross-pose correlations included, enters as
+  observations of the poses, and the modelled sensors follow the poses by Gaussian
+  conditioning (:func:`_conditioned`): to first order the one adjustment of all of them.
 
 Uncertainties: the covariance of every estimate is ``s0^2 (J^T J)^-1`` with ``J`` the
 whitened Jacobian and ``s0^2 = sum r_w^2 / (n - p)`` the a-posteriori variance factor
-(reported: above 1 the sphere fits' uncertainties were too small for the scatter
-between measurements).
+when it exceeds 1 (the stated weights were too small for the scatter), else
+``(J^T J)^-1`` (the stated weights alone).
 
 :func:`pairwise_svd` is the baseline: each scanner registered on its own by its sphere
 centres (the SVD pose of the artefact in each measurement, chained to the reference
@@ -280,7 +281,7 @@ class _Layout:
     poses (6 each)."""
 
     def __init__(self, scanners, reference, measurements, scale, prior: ModelPrior | None):
-        self.scanners, self.measurements, self.prior = list(scanners), list(measurements), prior
+        self.scanners, self.measurements = list(scanners), list(measurements)
         self.free = {}
         k = 0
         for s in self.scanners:
@@ -307,11 +308,6 @@ class _Layout:
             x[pos] = base[s][idx]
         x[self.n_boxes:] = np.asarray(poses, float).ravel()
         return x
-
-    def names(self):
-        names7 = ("tx", "ty", "tz", "omega", "phi", "kappa", "scale")
-        out = [f"{s}.{names7[i]}" for s in self.scanners for i in self.free[s][0]]
-        return out + [f"pose[{m}].{n}" for m in self.measurements for n in names7[:6]]
 
 
 def _whitener(C: np.ndarray) -> np.ndarray:
