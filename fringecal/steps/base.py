@@ -201,7 +201,10 @@ def stores_of_kind(rd: RunDir, kind: str) -> list[str]:
 
 def black_box_scanners(rd: RunDir) -> list[str]:
     """Scanners of the acquisition table without a prior calibration: the black boxes,
-    whose stores are point clouds (in table order)."""
+    whose stores are point clouds (in table order); none in a run directory without an
+    acquisition table (one written for ``fringecal calibrate`` from control points)."""
+    if not rd.acquisition.exists():
+        return []
     table = _raw_table(rd.acquisition.path)
     modelled = set(_raw_table(rd.sensors_prior.path)["scanner"]) if rd.sensors_prior.exists() else set()
     return [s for s in dict.fromkeys(table["scanner"]) if s not in modelled]

@@ -71,9 +71,10 @@ class Bundle(Step):
         return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
+        boxes = [rd.black_boxes, rd.black_boxes_export] if black_box_scanners(rd) else []
         return [rd.calibration, rd.calibration.xml, rd.sensors_calibrated, rd.poses_calibrated,
                 rd.residuals_per_sphere, rd.residuals_per_measurement, rd.histogram("eps1"), rd.histogram("eps2"),
-                rd.bundle_summary, rd.covariance, rd.black_boxes, rd.black_boxes_export]
+                rd.bundle_summary, rd.covariance] + boxes
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         b = cfg.bundle
