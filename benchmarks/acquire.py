@@ -7,7 +7,9 @@ peak memory of the process. Thesis scanner 1 at pose 1 of table 6-1, default
 configuration (configs/run_thesis.yaml), no hexapod (its moves cost no wall time
 with the simulated box).
 
-    PYTHONPATH=. python benchmarks/acquire.py [--widths 512,2048] [--repeats 3]
+    PYTHONPATH=. python benchmarks/acquire.py [--widths 512,2048] [--repeats 3] [--out FILE]
+
+``--smoke``: 64 px, one repeat.
 """
 
 from __future__ import annotations
@@ -18,26 +20,32 @@ import os
 import resource
 import shutil
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-from fringecal.run.config import load_run_config
-from fringecal.simulate.measurement import simulate_measurement
-from fringecal.simulate.scenes import artefact_scene
-from fringecal.simulate.source import load_simulated_rig
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
+
+from fringecal.run.config import load_run_config  # noqa: E402
+from fringecal.simulate.measurement import simulate_measurement  # noqa: E402
+from fringecal.simulate.scenes import artefact_scene  # noqa: E402
+from fringecal.simulate.source import load_simulated_rig  # noqa: E402
 
 
 def store_mb(path: Path) -> float:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 1e6
 
 
-def main():
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--widths", default="512,2048")
     ap.add_argument("--repeats", type=int, default=3)
-    args = ap.parse_args()
-    out = {"load_average": os.getloadavg(), "cpus": os.cpu_count(), "widths": {}}
+    args = add_options(ap).parse_args(argv)
+    if args.smoke:
+        args.widths, args.repeats = "64", 1
+    out = {**conditions("acquire", argv, args.smoke), "cpus": os.cpu_count(), "widths": {}}
     tmp = Path(tempfile.mkdtemp(prefix="fringecal-bench-acquire-"))
     try:
         for width in map(int, args.widths.split(",")):
@@ -66,11 +74,11 @@ def main():
                 shutil.rmtree(path.with_name("truth-" + path.name))
             med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
             out["widths"][width] = {"measurement": measurement, **med, "runs_wall_s": [r["wall_s"] for r in runs]}
-            print(json.dumps({width: out["widths"][width]}), flush=True)
+            print(json.dumps({width: out["widths"][width]}), file=sys.stderr, flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-    print(json.dumps(out, indent=2))
+    return finish(out, args.out)
 
 
 if __name__ == "__main__":

@@ -1,10 +1,14 @@
 """Bundle-adjustment benchmark: fringecal's solver against scipy.optimize.least_squares.
 
-Prints one JSON document. Cases (each in its own process, so its peak memory is its own):
+Prints (and with ``--out`` writes) one JSON document. Cases (``benchmarks/_cases.py``;
+each in its own process, so its peak memory is its own):
 
 * ``thesis``: the thesis-scale problem: table 6-8 rig (2 scanners = 4 sensors), the 12
   poses of table 6-1, control points every 10 px with a 75 degree rim limit (13,564
   points; the thesis had 13,604), from the DLT start of fringecal.simulate.control_points.
+* ``ring4``: four copies of the thesis scanners on a ring, 50 random poses, every 10 px
+  (two projectors near gimbal lock: the case that needs rotations stepped as rotations).
+* ``ring6``: the six-scanner ring of ``configs/run_ring6.yaml``, the 12 thesis poses.
 * ``large``: 8 scanners on a ring (copies of the thesis scanners), 50 random artefact
   poses, control points every 5 px: about 10^6 control points, from the DLT start.
 
@@ -13,51 +17,34 @@ Levenberg-Marquardt adjustment; the default start="auto", which would also adjus
 start values computed from the control points if the first minimum looked like a
 separate one, timed once), iterations, evaluations, and the same
 problem solved by scipy.optimize.least_squares (trf, exact dense Jacobian for the thesis
-case; for the large case a sparse Jacobian with lsmr and a wall-time cap, ``--scipy-cap``,
+case; for the others a sparse Jacobian with lsmr and a wall-time cap, ``--scipy-cap``,
 after which the best cost reached is reported). Numba compilation is excluded (a warm-up
 run first) and reported separately. Memory: the process's peak RSS after fringecal's runs
 (simulated tables included), the peak of numpy allocations during one adjustment
-(tracemalloc), and the peak RSS after scipy.
+(tracemalloc), and the peak RSS after scipy. ``--smoke``: the thesis and ring4 cases
+thinned (``_cases.py``), in this process, one repeat, scipy capped at 0.3 s.
 
-Usage: PYTHONPATH=. python benchmarks/bundle.py [--cases thesis,large] [--repeat 5]
+Usage: PYTHONPATH=. python benchmarks/bundle.py [--cases thesis,ring4,ring6,large] [--repeat 5] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
-import os
 import resource
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _cases import bundle_problem  # noqa: E402
+from _common import add_options, conditions, finish  # noqa: E402
 
-def _problem(case: str):
-    from fringecal.calibration.model import BundleProblem
-    from fringecal.simulate.control_points import (
-        dlt_start,
-        random_poses,
-        ring_truth,
-        simulate_control_points,
-        thesis_truth,
-    )
 
-    t0 = time.perf_counter()
-    if case == "thesis":
-        rig, art, poses = thesis_truth()
-        sim = simulate_control_points(rig, art, poses, rng=2, spacing_px=10, max_incidence_deg=75)
-    elif case == "large":
-        rig, art = ring_truth(8)
-        poses = random_poses(50, rng=1)
-        sim = simulate_control_points(rig, art, poses, rng=2, spacing_px=5, max_incidence_deg=75)
-    else:
-        raise ValueError(case)
-    start_rig, start_poses = dlt_start(sim, rng=2)
-    problem = BundleProblem.from_tables(start_rig, art, sim.control_points, start_poses)
-    truth = problem.with_start(rig, poses.set_index("measurement").loc[list(problem.measurements)].to_numpy(float)[:, -6:])
-    return problem, truth, time.perf_counter() - t0
+def _problem(case: str, smoke: bool = False):
+    return bundle_problem(case, smoke)
 
 
 def _rss_mb() -> float:
@@ -127,7 +114,7 @@ def _scipy(problem, cap_s: float, sparse: bool) -> dict:
             "rms_eps2_mm": float(np.sqrt(np.mean(res[:, 1] ** 2)))}
 
 
-def run_case(case: str, repeat: int, cap_s: float, with_scipy: bool) -> dict:
+def run_case(case: str, repeat: int, cap_s: float, with_scipy: bool, smoke: bool = False) -> dict:
     import numba
 
     from fringecal.calibration.bundle import BundleOptions, ResidualStatistics, bundle_adjust
@@ -136,7 +123,7 @@ def run_case(case: str, repeat: int, cap_s: float, with_scipy: bool) -> dict:
     t0 = time.perf_counter()
     from fringecal.calibration import kernels  # noqa: F401  (load compiled kernels)
 
-    problem, truth_problem, t_sim = _problem(case)
+    problem, truth_problem, t_sim = _problem(case, smoke)
     out = {"case": case, "n_control_points": problem.n_points, "n_scanners": len(problem.rig.scanners),
            "n_sensors": len(problem.rig.sensors), "n_measurements": len(problem.measurements),
            "simulation_s": t_sim, "numba_threads": numba.get_num_threads()}
@@ -169,7 +156,7 @@ def run_case(case: str, repeat: int, cap_s: float, with_scipy: bool) -> dict:
     out["fringecal_adjustment_peak_traced_mb"] = tracemalloc.get_traced_memory()[1] / 2**20
     tracemalloc.stop()
     if with_scipy:
-        out["scipy"] = _scipy(problem, cap_s, sparse=(case != "thesis"))
+        out["scipy"] = _scipy(problem, cap_s, sparse=(case not in ("thesis",)))
         out["scipy"]["cap_s"] = cap_s
         out["ratio_scipy_over_fringecal"] = out["scipy"]["wall_s"] / out["fringecal"]["median_s"]
     out["peak_rss_mb"] = _rss_mb()
@@ -177,22 +164,24 @@ def run_case(case: str, repeat: int, cap_s: float, with_scipy: bool) -> dict:
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="thesis,large")
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default="thesis,ring4,ring6,large")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--scipy-cap", type=float, default=120.0)
     ap.add_argument("--no-scipy", action="store_true")
-    a = ap.parse_args()
-    doc = {"machine": {"cpus": os.cpu_count(), "loadavg_start": os.getloadavg(),
-                       "note": "shared machine, loaded by other jobs while this ran: timings are medians under load"},
-           "cases": []}
+    a = add_options(ap).parse_args(argv)
+    doc = conditions("bundle", argv, a.smoke)
+    doc["cases"] = []
+    if a.smoke:  # in this process: no spawned interpreter, seconds in all
+        for case in ("thesis", "ring4"):
+            doc["cases"].append(run_case(case, 1, 0.3, not a.no_scipy, smoke=True))
+        return finish(doc, a.out)
     ctx = mp.get_context("spawn")
     for case in a.cases.split(","):
         with ctx.Pool(1) as pool:
             doc["cases"].append(pool.apply(run_case, (case, a.repeat, a.scipy_cap, not a.no_scipy)))
-    doc["machine"]["loadavg_end"] = os.getloadavg()
-    print(json.dumps(doc, indent=1, default=float))
+    return finish(doc, a.out)
 
 
 if __name__ == "__main__":

@@ -30,29 +30,29 @@ spread (``basin.flat_poses``: 30 mm) and each scanner limited to 4 spheres of it
 (``basin.independent_spheres``), the hard case of issue 12. ``--rig-config NAME=PATH``
 adds or replaces a rig from any rig YAML (NAME-flat for its flat variant).
 
-BLAS runs on one thread (``OPENBLAS_NUM_THREADS=1`` etc., unless set): the solver's dense
-systems are small (100-400 parameters), and on the shared 2-core machine a two-thread
-Cholesky factorisation spin-waits for the descheduled thread (46 ms instead of 0.1 ms
-measured at load average 10; one adjustment 5.7 s instead of 1.4 s).
+BLAS runs on one thread, as in a run (:func:`fringecal.threads.limit_blas`): the solver's
+dense systems are small (100-400 parameters), and on the shared 2-core machine a
+two-thread Cholesky factorisation spin-waits for the descheduled thread (46 ms instead
+of 0.1 ms measured at load average 10; one adjustment 5.7 s instead of 1.4 s).
 
 Usage: PYTHONPATH=. python benchmarks/convergence_basin.py [--rigs thesis,row3,row3-flat,ring6]
        [--starts 50] [--scales 1,2,4] [--points 6000] [--rig-config NAME=PATH] [--out FILE]
+
+``--smoke``: the thesis rig, 400 control points, two starts at scale 1.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import numpy as np
 
-import numpy as np  # after the thread settings
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_RIGS = "thesis,row3,row3-flat,ring6"
@@ -190,8 +190,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--rig-config", action="append", default=[], metavar="NAME=PATH",
                     help="a rig YAML (fringecal.config.RigConfig with artefact_poses) for rig NAME")
-    ap.add_argument("--out", type=Path, help="also write the JSON here")
-    args = ap.parse_args(argv)
+    args = add_options(ap).parse_args(argv)
+    if args.smoke:
+        args.rigs, args.starts, args.scales, args.points = "thesis", 2, "1", 400
+    from fringecal.threads import limit_blas
+
+    limit_blas()
     configs = dict(CONFIGS)
     for item in args.rig_config:
         name, _, path = item.partition("=")
@@ -206,21 +210,14 @@ def main(argv=None) -> dict:
 
     from fringecal.simulate.basin import ERRORS_1X
 
-    doc = {"benchmark": "convergence_basin", "command": "python benchmarks/convergence_basin.py " + " ".join(
-               argv if argv is not None else sys.argv[1:]),
-           "cpu_count": os.cpu_count(), "python": platform.python_version(), "load_average_start": _load(),
+    doc = {**conditions("convergence_basin", argv, args.smoke),
            "errors_1x": ERRORS_1X, "floor_criterion": "eps2 RMS <= 1.05 x eps2 RMS of the adjustment from the truth",
            "starts": args.starts, "scales": scales, "points_target": args.points, "rigs": {}}
     t0 = time.perf_counter()
     for name in rigs:
         doc["rigs"][name] = run_rig(name, configs, args.starts, scales, args.points, args.seed, log)
     doc["wall_seconds"] = time.perf_counter() - t0
-    doc["load_average_end"] = _load()
-    text = json.dumps(doc, indent=1)
-    if args.out:
-        args.out.write_text(text + "\n")
-    print(text)
-    return doc
+    return finish(doc, args.out)
 
 
 if __name__ == "__main__":

@@ -6,30 +6,78 @@ calibration's part), each against the budget's stated term (``sphere fits``,
 ``calibration``). A mean beyond its standard error (sd / sqrt(n)) is a bias the budget
 does not hold.
 
-    PYTHONPATH=. python benchmarks/coverage_split.py W [W2 ...]
+    PYTHONPATH=. python benchmarks/coverage_split.py W [W2 ...] [--out FILE]
+
+Each argument is a folder of ``*-seed*`` run directories, or a simulated run directory
+itself. A run without ``evaluation.json`` gets its ``evaluate`` step run first. Prints
+one line per position and the JSON (``--out``: also written there). ``--smoke``: as
+given (point it at one small run).
 """
-import json
-import subprocess
+
+from __future__ import annotations
+
+import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
-rows = []
-for d in sorted(Path(p) for a in sys.argv[1:] for p in Path(a).glob("*-seed*")):
-    if not (d / "verification.json").exists():
-        continue
-    if not (d / "evaluation.json").exists():
-        subprocess.run([str(Path(sys.executable).with_name("fringecal")), "step", "evaluate", "--run", str(d)], capture_output=True)
-    ev = json.loads((d / "evaluation.json").read_text())["verification_true_params"]
-    tr = {p["measurement"]: p["error_mm"] for p in ev["positions"]}
-    ver = json.loads((d / "verification.json").read_text())["uncertainty"]
-    for length in ver["lengths"]:
-        m = length["measurement"]
-        rows.append((d.name, m, length["error_mm"], tr.get(m, np.nan), length["u_mm"], length["budget_mm"].get("sphere fits", 0), length["budget_mm"].get("calibration", 0)))
-for m in sorted({r[1] for r in rows}):
-    R = np.array([r[2:] for r in rows if r[1] == m])
-    e, et, u, uf, uc = R.T
-    print(f"{m}: n={len(e)} calibrated err mean {1000*e.mean():+.1f} um rms z {np.sqrt(np.mean((e/u)**2)):.2f} | "
-          f"true-rig err mean {1000*np.nanmean(et):+.1f} sd {1000*np.nanstd(et):.1f} vs u_fits {1000*np.sqrt(np.mean(uf**2)):.1f} | "
-          f"calibration part (err - true-rig err) mean {1000*np.nanmean(e-et):+.1f} sd {1000*np.nanstd(e-et):.1f} vs u_cal {1000*np.sqrt(np.mean(uc**2)):.1f}")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
+
+
+def run_dirs(folders) -> list[Path]:
+    out = []
+    for a in map(Path, folders):
+        out += [a] if (a / "verification.json").exists() else sorted(a.glob("*-seed*"))
+    return [d for d in out if (d / "verification.json").exists()]
+
+
+def rows_of(d: Path) -> list[tuple]:
+    """(run, position, error, true-rig error, u, u of the sphere fits, u of the calibration)."""
+    import json
+
+    from fringecal.run.config import RunConfig
+    from fringecal.rundir import RunDir
+    from fringecal.steps import get_step, run_step
+
+    rd = RunDir(d)
+    if not rd.evaluation.exists():
+        run_step(get_step("evaluate"), rd, RunConfig.model_validate(rd.read_manifest()["config"]))
+    ev = json.loads(rd.evaluation.path.read_text())["verification_true_params"]
+    true_rig = {p["measurement"]: p["error_mm"] for p in ev["positions"]}
+    ver = json.loads(rd.verification.path.read_text())["uncertainty"]
+    return [(d.name, length["measurement"], length["error_mm"], true_rig.get(length["measurement"], np.nan),
+             length["u_mm"], length["budget_mm"].get("sphere fits", 0), length["budget_mm"].get("calibration", 0))
+            for length in ver["lengths"]]
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="+", help="folders of kept run directories, or run directories")
+    args = add_options(ap).parse_args(argv)
+    doc = conditions("coverage_split", argv, args.smoke)
+    rows = [r for d in run_dirs(args.folders) for r in rows_of(d)]
+    doc["runs"] = sorted({r[0] for r in rows})
+    doc["positions"] = {}
+    for m in sorted({r[1] for r in rows}):
+        e, et, u, uf, uc = np.array([r[2:] for r in rows if r[1] == m], float).T
+        entry = {"n": len(e), "calibrated_error_mean_um": 1000 * e.mean(),
+                 "rms_z": float(np.sqrt(np.mean((e / u) ** 2))),
+                 "true_rig_error_mean_um": 1000 * np.nanmean(et), "true_rig_error_sd_um": 1000 * np.nanstd(et),
+                 "u_sphere_fits_rms_um": 1000 * np.sqrt(np.mean(uf ** 2)),
+                 "calibration_part_mean_um": 1000 * np.nanmean(e - et),
+                 "calibration_part_sd_um": 1000 * np.nanstd(e - et),
+                 "u_calibration_rms_um": 1000 * np.sqrt(np.mean(uc ** 2))}
+        doc["positions"][m] = entry
+        print(f"{m}: n={entry['n']} calibrated err mean {entry['calibrated_error_mean_um']:+.1f} um rms z "
+              f"{entry['rms_z']:.2f} | true-rig err mean {entry['true_rig_error_mean_um']:+.1f} sd "
+              f"{entry['true_rig_error_sd_um']:.1f} vs u_fits {entry['u_sphere_fits_rms_um']:.1f} | calibration "
+              f"part mean {entry['calibration_part_mean_um']:+.1f} sd {entry['calibration_part_sd_um']:.1f} vs "
+              f"u_cal {entry['u_calibration_rms_um']:.1f}", file=sys.stderr)
+    return finish(doc, args.out)
+
+
+if __name__ == "__main__":
+    main()

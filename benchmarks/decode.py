@@ -5,7 +5,10 @@ Prints JSON: camera pixels decoded per second with the frames in memory (median 
 ``fringes`` package in the same run, the cost of reading the frames per file format
 (PNG, uncompressed TIFF, .npy; warm page cache) and the store write.
 
-    PYTHONPATH=. python benchmarks/decode.py [--size 2048] [--repeats 3] [--fringes-rows 256]
+    PYTHONPATH=. python benchmarks/decode.py [--size 2048] [--repeats 3] [--fringes-rows 256] [--out FILE]
+
+``--smoke``: 64 x 64 px, one repeat, 16 rows for ``fringes``, without the reference
+kernels of "where the time goes" (NaN there).
 
 The frames come from this script's own formula (the sequence contract), 12-bit with
 Gaussian noise, so the decoded tau is checked against the truth as well.
@@ -14,7 +17,6 @@ Gaussian noise, so the decoded tau is checked against the truth as well.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -27,11 +29,14 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from fringecal.fringe.decode import decode, tau_noise_theory
-from fringecal.fringe.importer import _frame_stats, read_frames, write_frames
-from fringecal.fringe.measurement import measurement_dataset
-from fringecal.fringe.sequence import FringeSequence
-from fringecal.store import write_store
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
+
+from fringecal.fringe.decode import decode, tau_noise_theory  # noqa: E402
+from fringecal.fringe.importer import _frame_stats, _lit_level, read_frames, write_frames  # noqa: E402
+from fringecal.fringe.measurement import measurement_dataset  # noqa: E402
+from fringecal.fringe.sequence import FringeSequence  # noqa: E402
+from fringecal.store import write_store  # noqa: E402
 
 SEQ = FringeSequence()
 A_DN, B_DN, NOISE_DN, BITS = 1500.0, 1000.0, 8.0, 12
@@ -139,7 +144,7 @@ def _nstep_sums_only(frames, n_k, cos_k, sin_k, out):
         out[r] = acc_c[0] + acc_s[n_k - 1] + total + top
 
 
-def bench_fringecal(frames, w, b, repeats):
+def bench_fringecal(frames, w, b, repeats, floors: bool = True):
     size = frames.shape[1]
     small = np.ascontiguousarray(frames[:, :16, :16])
     t0 = time.perf_counter()
@@ -154,13 +159,15 @@ def bench_fringecal(frames, w, b, repeats):
     med = statistics.median(times)
     cpu_med = statistics.median(cpu)
     out = np.empty((size, size), np.float32)
-    _read_once(small, np.empty((16, 16), np.float32))  # compile for the same types first
-    floor_cpu, sums_cpu = [], []
-    _, floor = timed(lambda: _read_once(frames, out), repeats, floor_cpu)
-    steps = SEQ.step_phases()
-    cos_k, sin_k = np.cos(steps).astype(np.float32), np.sin(steps).astype(np.float32)
-    _nstep_sums_only(small, 7, cos_k, sin_k, np.empty((16, 16), np.float32))
-    _, sums = timed(lambda: _nstep_sums_only(frames, 7, cos_k, sin_k, out), repeats, sums_cpu)
+    floor_cpu, sums_cpu, floor, sums = [np.nan], [np.nan], [np.nan], [np.nan]
+    if floors:  # this script's own reference kernels (a first run compiles them: not in --smoke)
+        _read_once(small, np.empty((16, 16), np.float32))  # compile for the same types first
+        floor_cpu, sums_cpu = [], []
+        _, floor = timed(lambda: _read_once(frames, out), repeats, floor_cpu)
+        steps = SEQ.step_phases()
+        cos_k, sin_k = np.cos(steps).astype(np.float32), np.sin(steps).astype(np.float32)
+        _nstep_sums_only(small, 7, cos_k, sin_k, np.empty((16, 16), np.float32))
+        _, sums = timed(lambda: _nstep_sums_only(frames, 7, cos_k, sin_k, out), repeats, sums_cpu)
     nb.set_num_threads(1)
     try:
         _, single = timed(lambda: decode(frames, SEQ, full_scale=2**BITS - 1), 1)
@@ -267,7 +274,7 @@ def bench_fringes(frames, w, ours, rows, repeats):
 
 
 def bench_formats(frames, repeats, formats):
-    _frame_stats(frames[:, :8, :8].copy(), 4095)  # load the importer's compiled check
+    _frame_stats(frames[:, :8, :8].copy(), 4095, _lit_level(4095))  # load the importer's compiled check
     out = {}
     root = Path(tempfile.mkdtemp(prefix="fringecal-bench-"))
     try:
@@ -311,22 +318,21 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--fringes-rows", type=int, default=256)
     p.add_argument("--formats", default="png,tif,npy")
-    args = p.parse_args(argv)
-    load0 = os.getloadavg()
+    args = add_options(p).parse_args(argv)
+    if args.smoke:
+        args.size, args.repeats, args.fringes_rows = 64, 1, 16
+    doc = conditions("decode", argv, args.smoke)
     t0 = time.perf_counter()
     frames, w, b = make_frames(args.size)
     gen_s = time.perf_counter() - t0
-    res, ours = bench_fringecal(frames, w, b, args.repeats)
+    res, ours = bench_fringecal(frames, w, b, args.repeats, floors=not args.smoke)
     theirs = bench_fringes(frames, w, res, min(args.fringes_rows, args.size), args.repeats)
     if "camera_px_per_s" in theirs:
         theirs["fringecal_speedup"] = round(ours["camera_px_per_s"] / theirs["camera_px_per_s"], 1)
     store = bench_store(res)
     formats = bench_formats(frames, args.repeats, [f for f in args.formats.split(",") if f])
-    doc = {
-        "machine": {"cpus": os.cpu_count(), "numba_threads": nb.get_num_threads(),
-                    "load_average_before": [round(x, 2) for x in load0],
-                    "load_average_after": [round(x, 2) for x in os.getloadavg()],
-                    "note": "shared 2-core machine, other jobs running: timings are medians under load"},
+    doc.update({
+        "machine": {"cpus": os.cpu_count(), "numba_threads": nb.get_num_threads()},
         "measurement": {"height_px": args.size, "width_px": args.size, "frames": SEQ.n_frames,
                         "sequence": SEQ.to_dict(), "dtype": "uint16", "bit_depth": BITS,
                         "A_dn": A_DN, "B_dn": B_DN, "noise_dn": NOISE_DN, "generate_s": round(gen_s, 2)},
@@ -334,9 +340,8 @@ def main(argv=None):
         "fringes": theirs,
         "store": store,
         "read_frames_per_format": formats,
-    }
-    json.dump(doc, sys.stdout, indent=2)
-    print()
+    })
+    return finish(doc, args.out)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,10 @@ variant, and an overlap probe (reading and decoding side by side against one aft
 the other: whether streaming the decode behind the reading could gain anything).
 
     PYTHONPATH=. python benchmarks/image_import.py [--size 2048] [--repeats 3] [--threads N]
-                                                   [--variants png16_vendor,tif_lzw,...]
+                                                   [--variants png16_vendor,tif_lzw,...] [--out FILE]
+
+``--smoke``: 64 x 64 px, one repeat, the variants png16_fringecal and tif_lzw, the
+memory probe (a fresh process) for the first only.
 
 The frames are ``benchmarks/decode.py``'s: 12-bit fringes (A 1500, B 1000 DN) with 8 DN
 Gaussian noise in uint16; the 8-bit variants hold the same frames shifted right by 4.
@@ -43,6 +46,7 @@ import tifffile
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
 from decode import make_frames  # noqa: E402 - benchmarks/decode.py, this script's sibling
 
 from fringecal.fringe.decode import decode  # noqa: E402
@@ -240,10 +244,10 @@ def peak_rss(folder, threads):
     /proc/self/clear_refs)."""
     code = (
         "import json, re, sys, numpy as np\n"
-        "from fringecal.fringe import importer as m\n"
+        "from fringecal.fringe import frame_files as f, importer as m\n"
         "for dt in (np.uint8, np.uint16):\n"
-        "    m._frame_stats(np.zeros((1, 1, 1), dt), 1); m._png_unfilter(np.zeros(3, np.uint8), np.zeros((1, 1), dt))\n"
-        "m._png_gather_idat(np.zeros(8, np.uint8), np.zeros(8, np.uint8))\n"
+        "    m._frame_stats(np.zeros((1, 1, 1), dt), 1, 1); f._png_unfilter(np.zeros(3, np.uint8), np.zeros((1, 1), dt))\n"
+        "f._png_gather_idat(np.zeros(8, np.uint8), np.zeros(8, np.uint8))\n"
         "def kib(key): return int(re.search(key + r':\\s+(\\d+)', open('/proc/self/status').read()).group(1))\n"
         "open('/proc/self/clear_refs', 'w').write('5')\n"
         "r0 = kib('VmRSS')\n"
@@ -260,7 +264,7 @@ def peak_rss(folder, threads):
             "beyond_the_stack_mb": round((r1 - r0) * mb - stack / 2**20, 1)}
 
 
-def bench_variant(folder, name, files, shape, dtype, threads, repeats, px):
+def bench_variant(folder, name, files, shape, dtype, threads, repeats, px, memory=True):
     desc, ext, _, _ = VARIANTS[name]
     load0 = os.getloadavg()
     size = sum(p.stat().st_size for p in files)
@@ -281,7 +285,7 @@ def bench_variant(folder, name, files, shape, dtype, threads, repeats, px):
     res["read_frames_cold_cache"] = {**rate(px, cw, cc), "times_s": [round(t, 3) for t in cwalls]}
     bw, _, _ = timed(lambda: [p.read_bytes() for p in files], repeats, before=lambda: evict(files))
     res["cold_file_bytes_only"] = {"median_s": round(bw, 3), "mb_per_s": round(size / 2**20 / bw, 1)}
-    res["memory"] = peak_rss(folder, threads)
+    res["memory"] = peak_rss(folder, threads) if memory else {"skipped": "--smoke: the first variant's only"}
     others = {}
     for cname, (version, reader) in candidates(ext).items():
         try:
@@ -338,12 +342,14 @@ def main(argv=None):
     p.add_argument("--no-overlap-probe", action="store_true")
     p.add_argument("--workdir", type=Path, help="write the variants here and keep them; a variant folder that "
                    "already holds its 98 files and sequence.yaml is reused (default: a temporary folder)")
-    args = p.parse_args(argv)
+    args = add_options(p).parse_args(argv)
+    if args.smoke:
+        args.size, args.repeats, args.variants = 64, 1, "png16_fringecal,tif_lzw"
     names = [v for v in args.variants.split(",") if v]
     unknown = set(names) - set(VARIANTS)
     if unknown:
         p.error(f"unknown variants {sorted(unknown)}; choose from {list(VARIANTS)}")
-    load0 = os.getloadavg()
+    head = conditions("image_import", argv, args.smoke)
     t0 = time.perf_counter()
     frames16, _, _ = make_frames(args.size)
     frames8 = (frames16 >> 4).astype(np.uint8)
@@ -351,8 +357,8 @@ def main(argv=None):
     shape = (args.size, args.size)
     px = SEQ.n_frames * args.size * args.size
     root = args.workdir or Path(tempfile.mkdtemp(prefix="fringecal-import-"))
-    doc = {"machine": {"cpus": os.cpu_count(), "threads": args.threads, "numba_threads": nb.get_num_threads(),
-                       "load_average_before": [round(x, 2) for x in load0],
+    doc = {**head,
+           "machine": {"cpus": os.cpu_count(), "threads": args.threads, "numba_threads": nb.get_num_threads(),
                        "note": "shared 2-core machine; warm = files in the page cache (read once before timing); "
                                "M px/s counts frame pixels (98 x H x W per measurement); CPU s are all threads'"},
            "measurement": {"frames": SEQ.n_frames, "height_px": args.size, "width_px": args.size,
@@ -383,14 +389,12 @@ def main(argv=None):
         for name in names:
             dtype = np.uint8 if VARIANTS[name][2] == 8 else np.uint16
             doc["variants"][name] = bench_variant(root / name, name, written[name], shape, dtype, args.threads,
-                                                  args.repeats, px)
+                                                  args.repeats, px, memory=not args.smoke or name == names[0])
             print(f"measured {name}", file=sys.stderr)
     finally:
         if args.workdir is None:
             shutil.rmtree(root, ignore_errors=True)
-    doc["machine"]["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
-    json.dump(doc, sys.stdout, indent=2)
-    print()
+    return finish(doc, args.out)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,8 @@ errors, with and without planned poses; prints one JSON object.
 
     PYTHONPATH=. python benchmarks/labelling_rigs.py [--seeds 0 1 2] [--out FILE]
 
+``--smoke``: the thesis rig, one seed.
+
 Rigs (``fringecal.simulate.sphere_centres``): the thesis's two scanners (six
 spheres per view), the three-scanner row (scanner1 sees only the triangle 1-2-3), a
 six-scanner ring with a narrow field (3-14 spheres per view). Each scanner's centres
@@ -23,8 +25,6 @@ the plan and why (docs/spheres.md).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
 from collections import Counter
@@ -33,6 +33,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
 
 from fringecal.simulate.sphere_centres import RIGS, PriorErrors, link_errors, observe_rig  # noqa: E402
 from fringecal.spheres.labelling import LabellingConfig, ambiguous_subsets  # noqa: E402
@@ -105,16 +107,17 @@ def summarise(views: list[dict]) -> dict:
     return by
 
 
-def main() -> None:
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--out", type=Path)
-    args = ap.parse_args()
+    args = add_options(ap).parse_args(argv)
+    rigs = list(RIGS)[:1] if args.smoke else list(RIGS)
+    if args.smoke:
+        args.seeds = args.seeds[:1]
     cfg = LabellingConfig()
-    report = {"command": "PYTHONPATH=. python benchmarks/labelling_rigs.py " + " ".join(sys.argv[1:]),
-              "load_average": os.getloadavg(), "prior_errors": asdict(PriorErrors()), "config": asdict(cfg),
-              "rigs": {}}
-    for name in RIGS:
+    report = {**conditions("labelling_rigs", argv, args.smoke), "prior_errors": asdict(PriorErrors()),
+              "config": asdict(cfg), "rigs": {}}
+    for name in rigs:
         r = report["rigs"][name] = {"seeds": {}}
         for seed in args.seeds:
             obs = observe_rig(name, seed=seed)
@@ -131,10 +134,7 @@ def main() -> None:
             print(f"{name} seed {seed}: with plan {with_plan['views_labelled']}/{with_plan['views']} "
                   f"(wrong {with_plan['wrong_labels']}), without {without['views_labelled']}/{without['views']} "
                   f"(wrong {without['wrong_labels']})", file=sys.stderr)
-    text = json.dumps(report, indent=1, default=str)
-    if args.out:
-        args.out.write_text(text)
-    print(text)
+    return finish(report, args.out)
 
 
 if __name__ == "__main__":

@@ -48,6 +48,9 @@ run side by side on the shared 2-core machine).
     PYTHONPATH=. python benchmarks/length_coverage.py --profile ideal --seeds 50 --width 320 \\
         --out benchmarks/results/coverage_ideal.json
 
+``--smoke``: one seed of the tests' small rig (poses 1, 5, 9, 12, ball-bar position 1,
+320 px, 4 bootstrap draws): the figures mean nothing, every path runs.
+
 The JSON (``--out``, rewritten after every seed with ``"complete": false`` until the
 last; a run stopped by SIGTERM or Ctrl-C says so in ``"stopped"``) holds the exact
 command, the load average at start and end, the wall time, the digest of fringecal's
@@ -82,6 +85,8 @@ import numpy as np  # after the thread settings
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(_HERE))
+from _common import add_options, conditions  # noqa: E402
 
 #: The budget of each profile (see the module notes).
 BUDGETS = {
@@ -92,6 +97,8 @@ BUDGETS = {
 }
 NOMINAL_COVERAGE = math.erf(2 / math.sqrt(2))  # k = 2, normal: 0.9545
 CREDIBLE = (0.93, 0.97)
+#: what its result files called this benchmark before (benchmarks/results/coverage_*.json)
+FORMER_NAMES = ("coverage",)
 
 
 def write_small_config(d: Path, width: int, poses=(1, 2, 3, 5, 7, 9, 11, 12), positions=(1, 4, 9)) -> Path:
@@ -113,11 +120,13 @@ def errors_wired() -> bool:
         return False
 
 
-def seed_overrides(profile: str, i: int, with_errors: bool) -> dict:
+def seed_overrides(profile: str, i: int, with_errors: bool, smoke: bool = False) -> dict:
     sim = {"acquisition": {"seed": 1000 + i}, "verification": {"seed": 2000 + i}, "prior": {"seed": 3000 + i}}
     if with_errors:
         sim["errors"] = {"profile": profile, "seed": 4000 + i}
     out = {"simulate": sim, "verification": {"uncertainty": {"monte_carlo_draws": 0}}}
+    if smoke:
+        out["bundle"] = {"bootstrap_draws": 4}
     from fringecal.config import deep_update
 
     return deep_update(out, BUDGETS[profile])
@@ -143,13 +152,14 @@ def true_length(rd, profile: str, ids) -> tuple[float, str]:
     return _bar_length(f.load(), ids), f.rel
 
 
-def run_seed(profile: str, i: int, config_path: Path, workdir: Path, with_errors: bool, keep: bool) -> dict:
+def run_seed(profile: str, i: int, config_path: Path, workdir: Path, with_errors: bool, keep: bool,
+             smoke: bool = False) -> dict:
     from fringecal.run.config import load_run_config
     from fringecal.run.summary import manifest
     from fringecal.rundir import RunDir
     from fringecal.steps import run_pipeline
 
-    overrides = seed_overrides(profile, i, with_errors)
+    overrides = seed_overrides(profile, i, with_errors, smoke)
     out = {"seed_index": i, "seeds": {"acquisition": 1000 + i, "verification": 2000 + i, "prior": 3000 + i,
                                       "errors": 4000 + i if with_errors else None}}
     t0 = time.perf_counter()
@@ -265,8 +275,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--positions", default="1,4,9", help="thesis table 6-9 ball-bar positions (default 1,4,9)")
     ap.add_argument("--workdir", type=Path, help="where the run directories go (default: a temporary folder)")
     ap.add_argument("--keep", action="store_true", help="keep each run directory")
-    ap.add_argument("--out", type=Path, help="also write the JSON here (rewritten after every seed)")
-    args = ap.parse_args(argv)
+    args = add_options(ap, "also write the JSON here (rewritten after every seed)").parse_args(argv)
+    if args.smoke:
+        args.seeds, args.width, args.poses, args.positions = 1, 320, "1,5,9,12", "1"
 
     with_errors = errors_wired()
     if args.profile != "ideal" and not with_errors:
@@ -274,7 +285,7 @@ def main(argv=None) -> dict:
     cmd = "PYTHONPATH=. python benchmarks/length_coverage.py " + " ".join(argv if argv is not None else sys.argv[1:])
     poses = [int(x) for x in args.poses.split(",") if x]
     positions = [int(x) for x in args.positions.split(",") if x]
-    doc = {"benchmark": "coverage", "command": cmd, "date": time.strftime("%Y-%m-%d %H:%M %Z"),
+    doc = {**conditions("length_coverage", argv, args.smoke), "command": cmd,
            "complete": False, "profile": args.profile,
            "width_px": args.width, "poses": poses, "ballbar_positions": positions,
            "simulate_errors_wired": with_errors,
@@ -282,7 +293,7 @@ def main(argv=None) -> dict:
            "seed_overrides_example": seed_overrides(args.profile, args.first_seed, with_errors),
            "cpu_count": os.cpu_count(), "python": platform.python_version(),
            "threads": {v: os.environ.get(v) for v in ("OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")},
-           "load_average_start": list(os.getloadavg()), "seeds": []}
+           "seeds": []}
     from fringecal.digests import code_digest
 
     doc["code_digest_start"] = code_digest()  # other engineers edit the tree: the code the run used
@@ -298,7 +309,16 @@ def main(argv=None) -> dict:
     def stop(signum, frame):  # SIGTERM: leave the results so far (marked) and no temporary folders
         raise SystemExit(f"stopped by signal {signum}")
 
-    signal.signal(signal.SIGTERM, stop)
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        return _run_seeds(args, doc, save, poses, positions, with_errors)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_seeds(args, doc, save, poses, positions, with_errors) -> dict:
+    from fringecal.digests import code_digest
+
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fringecal-coverage-") as tmp:
         tmp = Path(tmp)
@@ -307,10 +327,11 @@ def main(argv=None) -> dict:
         workdir.mkdir(parents=True, exist_ok=True)
         for i in range(args.first_seed, args.first_seed + args.seeds):
             try:
-                s = run_seed(args.profile, i, config_path, workdir, with_errors, args.keep)
+                s = run_seed(args.profile, i, config_path, workdir, with_errors, args.keep, args.smoke)
             except (SystemExit, KeyboardInterrupt) as err:
                 doc.update(stopped=f"{type(err).__name__}: {err} during seed {i}",
-                           wall_seconds=time.perf_counter() - t_start, load_average_end=list(os.getloadavg()))
+                           wall_seconds=time.perf_counter() - t_start)
+                doc["conditions"]["load_average_end"] = [round(v, 2) for v in os.getloadavg()]
                 save()
                 raise
             doc["seeds"].append(s)
@@ -323,7 +344,7 @@ def main(argv=None) -> dict:
             doc["wall_seconds"] = time.perf_counter() - t_start
             save()
     doc["wall_seconds"] = time.perf_counter() - t_start
-    doc["load_average_end"] = list(os.getloadavg())
+    doc["conditions"]["load_average_end"] = [round(v, 2) for v in os.getloadavg()]
     doc["code_digest_end"] = code_digest()
     doc["code_changed_during_run"] = doc["code_digest_end"] != doc["code_digest_start"]
     doc["summary"] = summarise(doc["seeds"])

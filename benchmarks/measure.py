@@ -3,6 +3,8 @@ poses x 2 scanners, 12 measurement folders) into one binary PLY, as a user runs 
 
     PYTHONPATH=. python benchmarks/measure.py [--width 2048] [--repeats 3] [--out FILE.json]
 
+``--smoke``: 64 px stores, one repeat.
+
 The stores are made first (not timed): every camera pixel's ray is intersected with the
 artefact's 15 spheres at the pose (thesis table 6-1, the thesis's refined sensors,
 table 6-8), the hit is projected into the projector and its phases written with
@@ -39,6 +41,8 @@ import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
 
 from fringecal.artefact import load_artefact  # noqa: E402
 from fringecal.calibration.file import write_calibration_json  # noqa: E402
@@ -116,12 +120,14 @@ def make_inputs(root: Path, width: int) -> tuple[Path, list[Path], dict]:
     return cal, folders, fractions
 
 
-def main() -> None:
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--width", type=int, default=2048)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--out", type=Path)
-    args = ap.parse_args()
+    args = add_options(ap).parse_args(argv)
+    if args.smoke:
+        args.width, args.repeats = 64, 1
+    head = conditions("measure", argv, args.smoke)
     import numba
 
     cache_dir = Path(numba.config.CACHE_DIR or ROOT / "fringecal" / "__pycache__")
@@ -144,7 +150,7 @@ def main() -> None:
             summary = json.loads(p.stdout)
             runs.append({"wall_s": wall, "phases_s": summary["seconds"], "points": summary["points"]})
         walls = [r["wall_s"] for r in runs]
-        doc = {"benchmark": "measure", "command": "PYTHONPATH=. python " + " ".join(sys.argv),
+        doc = {**head,
                "timed_command": "fringecal measure --calibration CAL " + " ".join(f"--stores {f.name}" for f in folders)
                + " --out cloud.ply --json",
                "width_px": args.width, "stores": 2 * len(folders), "valid_fraction_mean": float(np.mean(list(fractions.values()))),
@@ -152,14 +158,10 @@ def main() -> None:
                "numba_cache": "cold for the first repeat" if cold else "warm",
                "median_wall_s": float(np.median(walls if not cold or len(walls) < 2 else walls[1:])),
                "walls_s": walls, "runs": runs, "setup_s": setup, "cpu_count": os.cpu_count(),
-               "load_average_start": load_start, "load_average_end": os.getloadavg(),
-               "date": time.strftime("%Y-%m-%d %H:%M")}
+               "load_average_before_the_command": load_start}
     finally:
         shutil.rmtree(root, ignore_errors=True)
-    text = json.dumps(doc, indent=1)
-    if args.out:
-        args.out.write_text(text + "\n")
-    print(text)
+    return finish(doc, args.out)
 
 
 if __name__ == "__main__":

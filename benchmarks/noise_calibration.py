@@ -17,27 +17,34 @@ valid pure pixel (spheres, end caps, rods and a backdrop 3.5 m away) of all 24
 measurements at width N.
 
     PYTHONPATH=. python benchmarks/noise_calibration.py [--widths 512,2048] [--measurements 1-scanner1]
-        [--excess 0.0062] [--unwrap 512] [--all-poses 384]
+        [--excess 0.0062] [--unwrap 512] [--all-poses 384] [--out FILE]
+
+``--smoke``: one measurement at 64 px; the unwrapping count over two poses at 48 px.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from fringecal.artefact import load_artefact, load_rods
-from fringecal.config import thesis_dir
-from fringecal.frames import Frame
-from fringecal.fringe.decode import decode
-from fringecal.fringe.sequence import FringeSequence
-from fringecal.pointcloud import triangulate_maps
-from fringecal.rig import load_rig
-from fringecal.simulate import RenderConfig, artefact_scene, backdrop, phase_noise, render_measurement, scaled_scanner
-from fringecal.simulate.evaluation import pure_mask, tau_error_summary, tau_residuals
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
+
+from fringecal.artefact import load_artefact, load_rods  # noqa: E402
+from fringecal.config import thesis_dir  # noqa: E402
+from fringecal.frames import Frame  # noqa: E402
+from fringecal.fringe.decode import decode  # noqa: E402
+from fringecal.fringe.sequence import FringeSequence  # noqa: E402
+from fringecal.pointcloud import triangulate_maps  # noqa: E402
+from fringecal.rig import load_rig  # noqa: E402
+from fringecal.simulate import RenderConfig, artefact_scene, backdrop, phase_noise, render_measurement, scaled_scanner  # noqa: E402
+from fringecal.simulate.evaluation import pure_mask, tau_error_summary, tau_residuals  # noqa: E402
 
 SEQ = FringeSequence()
 COLS = ["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]
@@ -107,7 +114,7 @@ def unwrap_count(rig, art, rods, poses, width, cfg) -> dict:
             "rate_upper_95": (3.0 if sum(errors.values()) == 0 else float("nan")) / n}
 
 
-def main():
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--widths", default="512,2048")
     ap.add_argument("--measurements", default="1-scanner1", help="comma-separated <pose>-<scanner>")
@@ -115,16 +122,21 @@ def main():
     ap.add_argument("--unwrap", type=int, default=0, help="count unwrapping errors at this width (0: skip)")
     ap.add_argument("--all-poses", type=int, default=0,
                     help="pooled epsilon-1 over all 24 measurements at this width (0: skip)")
-    args = ap.parse_args()
+    args = add_options(ap).parse_args(argv)
+    if args.smoke:
+        args.widths, args.unwrap, args.all_poses = "64", 48, 0
     cfg = RenderConfig() if args.excess is None else RenderConfig(excess_noise=args.excess)
     rig, art, rods, poses = setup()
-    report = {"excess_noise": cfg.excess_noise, "measurements": []}
+    if args.smoke:
+        poses = dict(list(poses.items())[:2])
+    report = {**conditions("noise_calibration", argv, args.smoke), "excess_noise": cfg.excess_noise,
+              "measurements": []}
     for width in map(int, args.widths.split(",")):
         for mid in args.measurements.split(","):
             pose, scanner = mid.split("-", 1)
             row = measure(rig, art, rods, poses[pose], scanner, width, cfg)
             report["measurements"].append({"measurement": mid, **row})
-            print(json.dumps(report["measurements"][-1]), flush=True)
+            print(json.dumps(report["measurements"][-1]), file=sys.stderr, flush=True)
     if args.all_poses:
         rows = [measure(rig, art, rods, T, s.name, args.all_poses, cfg, seed=7)
                 for s in rig.scanners for T in poses.values()]
@@ -133,11 +145,11 @@ def main():
             k: float(np.sqrt(np.sum(w * np.array([r[k] for r in rows]) ** 2) / w.sum()))
             for k in ("eps1_total_um", "eps1_noise_um", "eps1_bias_um")},
             "eps1_noise_um_per_measurement": [round(r["eps1_noise_um"], 1) for r in rows]}
-        print(json.dumps(report["all_poses"]), flush=True)
+        print(json.dumps(report["all_poses"]), file=sys.stderr, flush=True)
     if args.unwrap:
         report["unwrap"] = unwrap_count(rig, art, rods, poses, args.unwrap, cfg)
-        print(json.dumps(report["unwrap"]), flush=True)
-    print(json.dumps(report, indent=2))
+        print(json.dumps(report["unwrap"]), file=sys.stderr, flush=True)
+    return finish(report, args.out)
 
 
 if __name__ == "__main__":

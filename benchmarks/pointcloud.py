@@ -1,6 +1,8 @@
 """Benchmarks of issue 4's hot paths; prints one JSON object.
 
-    PYTHONPATH=. python benchmarks/pointcloud.py [--quick]
+    PYTHONPATH=. python benchmarks/pointcloud.py [--quick] [--out FILE]
+
+``--smoke``: a 128 px camera, 2,000 sphere points, one repeat of each.
 
 * triangulation of a full 2048 x 2048 thesis measurement (every pixel valid), float32
   and float64 outputs, against a memory-bandwidth reference (numpy streaming the same
@@ -16,7 +18,7 @@ reported because the numbers are only comparable at similar load.
 
 from __future__ import annotations
 
-import json
+import argparse
 import os
 import sys
 import time
@@ -28,6 +30,8 @@ import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
 
 from fringecal.artefact import load_artefact  # noqa: E402
 from fringecal.frames import Frame  # noqa: E402
@@ -56,8 +60,12 @@ def timed(fn, repeats: int) -> dict:
             "repeats": repeats}
 
 
-def bench_triangulation(quick: bool) -> dict:
+def bench_triangulation(quick: bool, width: int | None = None) -> dict:
     s = load_rig(THESIS / "sensors_refined_table6-8.csv").scanners[0]
+    if width is not None:
+        from fringecal.simulate import scaled_scanner
+
+        s = scaled_scanner(s, width)
     cam, prj = s.camera, s.projector
     t0 = time.perf_counter()
     cache = camera_ray_cache(cam)
@@ -77,7 +85,7 @@ def bench_triangulation(quick: bool) -> dict:
     t0 = time.perf_counter()
     triangulate_maps(cam, prj, tx, ty, valid, cache=cache)  # compiles or loads the kernel
     first_s = time.perf_counter() - t0
-    reps = 5 if quick else 15
+    reps = 1 if width is not None else 5 if quick else 15
     out = {"pixels": n, "camera_cache_build_s": cache_s, "first_call_s": first_s,
            "numba_threads": numba.get_num_threads()}
     for dtype in (np.float32, np.float64):
@@ -102,12 +110,13 @@ def bench_triangulation(quick: bool) -> dict:
     return out
 
 
-def bench_sphere_fit(quick: bool) -> dict:
+def bench_sphere_fit(quick: bool, smoke: bool = False) -> dict:
     from scipy.optimize import least_squares
 
-    ds = sphere_reference_data([300.0, -200.0, 2400.0], 25.0, 10_000, 70.0, (0.1, -0.2, 1.0), 0.0, seed=1)
+    ds = sphere_reference_data([300.0, -200.0, 2400.0], 25.0, 2_000 if smoke else 10_000, 70.0, (0.1, -0.2, 1.0),
+                               0.0, seed=1)
     pts = ds.points + np.random.default_rng(0).normal(0, 0.02, ds.points.shape)
-    reps = 50 if quick else 300
+    reps = 1 if smoke else 50 if quick else 300
     free = timed(lambda: SphereModel.from_estimate(pts), reps)
     fixed = timed(lambda: SphereModel.from_estimate(pts, radius=25.0), reps)
 
@@ -115,17 +124,17 @@ def bench_sphere_fit(quick: bool) -> dict:
         least_squares(lambda x: np.linalg.norm(pts - x[:3], axis=1) - x[3], np.r_[ds.centre + 0.5, 24.5],
                       method="lm", xtol=1e-12, ftol=1e-12)
 
-    sp = timed(scipy_fit, 5 if quick else 20)
+    sp = timed(scipy_fit, 1 if smoke else 5 if quick else 20)
     cloud = sphere_node_cloud([0.0, 0.0, 0.0], 25.0, [[1, 0, 0.3], [-0.3, 1, 0.8]], n_glints=40, seed=2)
     robust = timed(lambda: fit_sphere_robust(cloud.points, expected_radius=25.0,
-                                             viewpoints=[cloud.camera, cloud.projector]), 3 if quick else 10)
+                                             viewpoints=[cloud.camera, cloud.projector]), 1 if smoke else 3 if quick else 10)
     return {"points": len(pts), "free_radius": free, "fixed_radius": fixed, "scipy_least_squares": sp,
             "ratio_free_to_scipy": free["median_s"] / sp["median_s"],
             "robust_node_fit": {**robust, "points": len(cloud.points), "rods": 2},
             "aim": "< 5 ms for 10,000 points"}
 
 
-def bench_labelling(quick: bool) -> dict:
+def bench_labelling(quick: bool, smoke: bool = False) -> dict:
     art = load_artefact(THESIS / "artefact_cmm2.csv")
     plan = read_table(THESIS / "poses_scanner1_table6-1.csv", PosePlanTable)
     rng = np.random.default_rng(3)
@@ -141,7 +150,7 @@ def bench_labelling(quick: bool) -> dict:
                              "x_mm": x[0], "y_mm": x[1], "z_mm": x[2], "radius_mm": 25.0})
     fits = pd.DataFrame(rows)
     cfg = LabellingConfig(centre_u_mm=0.01)
-    res = timed(lambda: label_sphere_fits(fits, art, cfg), 2 if quick else 5)
+    res = timed(lambda: label_sphere_fits(fits, art, cfg), 1 if smoke else 2 if quick else 5)
     labelled, outcomes = label_sphere_fits(fits, art, cfg)
     thesis = []
     for name in ("centres_scanner1_table6-3.csv", "centres_scanner2_table6-6.csv"):
@@ -152,23 +161,25 @@ def bench_labelling(quick: bool) -> dict:
     planned = {r.measurement: Frame([r.tx_mm, r.ty_mm, r.tz_mm], [r.omega_rad, r.phi_rad, r.kappa_rad])
                for r in plan.itertuples()}
     with_plan = timed(lambda: label_sphere_fits(thesis, art, LabellingConfig(centre_u_mm=0.15), planned=planned),
-                      1 if quick else 3)
+                      1 if quick or smoke else 3)
     return {"groups": int(outcomes.shape[0]), "candidates": len(fits), "labelled_groups":
             int((outcomes.status == "labelled").sum()), "all_groups": res, "per_group_s": res["median_s"] / 24,
             "thesis_centres_with_plan": with_plan}
 
 
-def main():
-    quick = "--quick" in sys.argv
-    load_before = os.getloadavg()
-    out = {"machine": {"cpus": os.cpu_count(), "load_average_before": load_before}}
-    out["triangulation_2048x2048"] = bench_triangulation(quick)
-    out["sphere_fit"] = bench_sphere_fit(quick)
-    out["labelling"] = bench_labelling(quick)
-    out["machine"]["load_average_after"] = os.getloadavg()
-    out["machine"]["note"] = ("shared 2-core machine; a load average above the core count means the numbers "
-                              "are slower than on an idle machine (compare the cpu_median_s)")
-    print(json.dumps(out, indent=2))
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repeats")
+    args = add_options(ap).parse_args(argv)
+    out = conditions("pointcloud", argv, args.smoke)
+    out["machine"] = {"cpus": os.cpu_count(),
+                      "note": "shared 2-core machine; a load average above the core count means the numbers "
+                              "are slower than on an idle machine (compare the cpu_median_s)"}
+    out["triangulation_2048x2048" if not args.smoke else "triangulation_128x128"] = bench_triangulation(
+        args.quick, 128 if args.smoke else None)
+    out["sphere_fit"] = bench_sphere_fit(args.quick, args.smoke)
+    out["labelling"] = bench_labelling(args.quick, args.smoke)
+    return finish(out, args.out)
 
 
 if __name__ == "__main__":

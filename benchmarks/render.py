@@ -8,29 +8,35 @@ the time goes (at 1024 x 1024); and, as a reference in the same run, numpy
 evaluating the bare sequence contract with Gaussian noise for the same frame count
 (no geometry, no pixel integration).
 
-    PYTHONPATH=. python benchmarks/render.py [--size 2048] [--small 512] [--repeats 3] [--no-backdrop]
+    PYTHONPATH=. python benchmarks/render.py [--size 2048] [--small 512] [--repeats 3] [--no-backdrop] [--out FILE]
+
+``--smoke``: 64 and 32 px, 48 px for where the time goes, one repeat.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import statistics
+import sys
 import time
 import tracemalloc
+from pathlib import Path
 
 import numba
 import numpy as np
 import pandas as pd
 
-from fringecal.artefact import load_artefact, load_rods
-from fringecal.config import thesis_dir
-from fringecal.frames import Frame
-from fringecal.fringe.sequence import FringeSequence
-from fringecal.rig import load_rig
-from fringecal.simulate import RenderConfig, artefact_scene, backdrop, render_measurement, scaled_scanner
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_options, conditions, finish  # noqa: E402
+
+from fringecal.artefact import load_artefact, load_rods  # noqa: E402
+from fringecal.config import thesis_dir  # noqa: E402
+from fringecal.frames import Frame  # noqa: E402
+from fringecal.fringe.sequence import FringeSequence  # noqa: E402
+from fringecal.rig import load_rig  # noqa: E402
+from fringecal.simulate import RenderConfig, artefact_scene, backdrop, render_measurement, scaled_scanner  # noqa: E402
 
 SEQ = FringeSequence()
 
@@ -72,13 +78,17 @@ def numpy_reference(size: int, seed: int = 0) -> np.ndarray:
     return frames
 
 
-def main():
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, default=2048)
     ap.add_argument("--small", type=int, default=512)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-backdrop", action="store_true")
-    args = ap.parse_args()
+    args = add_options(ap).parse_args(argv)
+    mid = 1024
+    if args.smoke:
+        args.size, args.small, args.repeats, mid = 64, 32, 1, 48
+    head = conditions("render", argv, args.smoke)
 
     scanner, scene = thesis_setup(not args.no_backdrop)
     cfg = RenderConfig()
@@ -91,17 +101,16 @@ def main():
         return render_measurement(scaled_scanner(scanner, size), scene, config, rng)
 
     result = {
+        **head,
         "scene": "thesis scanner1, table 6-1 pose 1" + ("" if args.no_backdrop else ", backdrop at 3500 mm"),
         "frames": SEQ.n_frames,
         "supersampling": cfg.supersampling,
         "threads": numba.get_num_threads(),
         "cpu_count": os.cpu_count(),
-        "load_average_before": os.getloadavg(),
         "warmup_s": warmup,
     }
     result[f"render_{args.small}"] = timed(lambda: render(args.small), args.repeats)
 
-    mid = 1024
     breakdown = {
         "1x1_noise_free": timed(lambda: render(mid, cfg.noise_free().model_copy(update={"supersampling": 1})), 1),
         "3x3_noise_free": timed(lambda: render(mid, cfg.noise_free()), 1),
@@ -125,8 +134,7 @@ def main():
     ref = timed(lambda: numpy_reference(args.size), 1)
     result["reference_numpy_contract_plus_noise"] = ref
     result["ratio_render_to_reference_wall"] = result[f"render_{args.size}"]["wall_s"] / ref["wall_s"]
-    result["load_average_after"] = os.getloadavg()
-    print(json.dumps(result, indent=2))
+    return finish(result, args.out)
 
 
 if __name__ == "__main__":

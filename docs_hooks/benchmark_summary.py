@@ -15,6 +15,13 @@ Figures come from three sources, in this order:
 At most :data:`MAX_ROWS` rows are kept; a summary says how many were left out. A new
 benchmark therefore appears with its top-level and nested figures without any edit
 here; adding it to :data:`KNOWN` only gives it labels and an order.
+
+A figure that states its credible range (an object holding ``credible_range`` beside
+the figure, e.g. ``summary.coverage``) and lies outside it must say why in one line:
+the file's top-level ``credible_range_why``, written by whoever ran it (as ``rerun.why``
+is). The page shows that line beside the figure and in the overview;
+:attr:`Summary.unexplained` lists the figures without one (the build hook warns, so a
+strict build fails).
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Row", "Summary", "KNOWN", "MAX_ROWS", "fmt", "lookup", "summarise", "page"]
+__all__ = ["Row", "Summary", "KNOWN", "MAX_ROWS", "CREDIBLE_FIGURES", "WHY_KEY", "fmt", "lookup", "outside_credible",
+           "summarise", "page"]
 
 #: Most rows of figures per benchmark.
 MAX_ROWS = 24
@@ -57,6 +65,23 @@ KNOWN: dict[str, tuple[tuple[str, str], ...]] = {
         ("poses", "thesis poses"),
         ("ballbar_positions", "ball-bar positions"),
     ),
+    "probing_size_bias": (
+        ("far_mean_P_S_orthogonal_mm", "mean P_S of the far positions, orthogonal fit (mm)"),
+        ("far_mean_P_S_along_rays_mm", "mean P_S of the far positions, fit along the rays (mm)"),
+        ("repeated_P_S_orthogonal.mean_mm", "repeated position: mean P_S, orthogonal fit (mm)"),
+        ("repeated_P_S_orthogonal.sem_mm", "its standard error (mm)"),
+        ("repeated_P_S_along_rays.mean_mm", "repeated position: mean P_S, fit along the rays (mm)"),
+        ("repeated_P_S_along_rays.sem_mm", "its standard error (mm)"),
+        ("repeated_P_S_along_rays.sd_mm", "scatter of P_S over the draws (mm)"),
+        ("repeated_mean_u_along_rays_mm", "mean stated u of the diameter, fit along the rays (mm)"),
+        ("noise_free_P_S_along_rays_mm", "P_S rendered without noise (mm)"),
+        ("repeated_points_mean_distance_from_true_sphere_mm", "points' mean distance from the true sphere (mm)"),
+        ("noise_rms_along_rays_mm", "point noise along the camera rays, RMS (mm)"),
+        ("noise_rms_across_rays_mm", "point noise across the camera rays, RMS (mm)"),
+        ("repeated_depth_mm", "depth of the repeated position (mm)"),
+        ("draws", "noise draws"),
+        ("far_positions", "far positions"),
+    ),
     "measure": (
         ("median_wall_s", "median wall time of the command (s)"),
         ("walls_s", "wall time of each repeat (s)"),
@@ -71,10 +96,16 @@ KNOWN: dict[str, tuple[tuple[str, str], ...]] = {
     ),
 }
 
+#: Keys of a figure that an object's ``credible_range`` judges.
+CREDIBLE_FIGURES = ("coverage", "value")
+#: The top-level key saying why a figure lies outside its credible range.
+WHY_KEY = "credible_range_why"
+
 #: Top-level keys shown in the header of a summary, not among its figures.
 _META = {"benchmark", "command", "timed_command", "date", "created_utc", "cpu_count", "python",
          "threads", "load_average_start", "load_average_end", "code_digest_start",
-         "code_digest_end", "complete", "stopped", "code_changed_during_run", "rerun"}
+         "code_digest_end", "complete", "stopped", "code_changed_during_run", "rerun", "smoke", "commit",
+         "numba_cache_at_start", WHY_KEY}
 _DATE_KEYS = ("date", "created_utc", "timestamp")
 _SHORT_TEXT = 40
 _SHORT_LIST = 8
@@ -119,6 +150,10 @@ class Summary:
         Figures left out by the row limit.
     records : list of str
         Top-level lists of records (e.g. ``"`seeds` (50 items)"``), not flattened.
+    outside : list of str
+        One line per figure outside its credible range, with why.
+    unexplained : list of str
+        The figures outside their credible range that the file does not explain.
     """
 
     file: str
@@ -133,6 +168,8 @@ class Summary:
     rows: list[Row] = field(default_factory=list)
     omitted: int = 0
     records: list[str] = field(default_factory=list)
+    outside: list[str] = field(default_factory=list)
+    unexplained: list[str] = field(default_factory=list)
 
 
 def _is_number(value) -> bool:
@@ -189,6 +226,29 @@ def lookup(doc, path: str):
     return value
 
 
+def outside_credible(doc, prefix: str = "") -> list[tuple[str, object, list]]:
+    """(path, value, range) of every figure outside the credible range stated beside it.
+
+    >>> outside_credible({"summary": {"coverage": 0.833, "credible_range": [0.93, 0.97]}})
+    [('summary.coverage', 0.833, [0.93, 0.97])]
+    >>> outside_credible({"summary": {"coverage": 0.95, "credible_range": [0.93, 0.97]}})
+    []
+    """
+    out = []
+    if not isinstance(doc, dict):
+        return out
+    rng = doc.get("credible_range")
+    if isinstance(rng, list) and len(rng) == 2 and all(_is_number(v) for v in rng):
+        for key in CREDIBLE_FIGURES:
+            value = doc.get(key)
+            if _is_number(value) and not rng[0] <= value <= rng[1]:
+                out.append((f"{prefix}{key}", value, rng))
+    for key, value in doc.items():
+        if isinstance(value, dict):
+            out += outside_credible(value, f"{prefix}{key}.")
+    return out
+
+
 def _leaves(doc: dict, prefix: str = ""):
     """(path, value, False) for every scalar below ``doc``, (path, count, True) for every
     list of records (objects), which is counted rather than flattened."""
@@ -234,13 +294,37 @@ def _machine(doc: dict) -> str:
              if isinstance(doc.get(key), list)]
     if loads:
         parts.append("load average (1, 5, 15 min) " + ", ".join(loads))
+    if doc.get("commit"):
+        parts.append(f"commit {doc['commit']}")
+    if doc.get("numba_cache_at_start"):
+        parts.append(f"numba's kernel cache {doc['numba_cache_at_start']} at the start")
     return "; ".join(parts) if parts else "not recorded"
+
+
+def _flatten_conditions(doc: dict) -> dict:
+    """A result written through ``benchmarks/_common.py`` keeps its conditions (date,
+    commit, cores, Python, load averages, numba's cache state) under ``conditions``:
+    the header's keys, at the top level."""
+    c = doc.get("conditions")
+    if not isinstance(c, dict):
+        return doc
+    out = {k: v for k, v in doc.items() if k != "conditions"}
+    for key, new in (("date", "date"), ("cores", "cpu_count"), ("python", "python"), ("commit", "commit"),
+                     ("load_average_start", "load_average_start"), ("load_average_end", "load_average_end"),
+                     ("numba_cache", "numba_cache_at_start")):
+        if key in c:
+            out.setdefault(new, c[key])
+    return out
 
 
 def _script(doc: dict, name: str, bench_dir: Path, json_name: str) -> tuple[str | None, list[str]]:
     """The script writing benchmark ``name``, with notes when the recorded command names
     another script or writes another file than ``benchmarks/results/<json_name>``."""
-    tag = re.compile(r"""["']benchmark["']\s*:\s*["']""" + re.escape(name) + r"""["']""")
+    quoted = r"""["']""" + re.escape(name) + r"""["']"""
+    # the name as a JSON key, as the first argument of _common.conditions, or among the
+    # script's FORMER_NAMES (a renamed benchmark's older result files)
+    tag = re.compile(r"""["']benchmark["']\s*:\s*""" + quoted + r"|conditions\(\s*" + quoted
+                     + r"|^FORMER_NAMES\s*=\s*\([^)]*" + quoted, re.M)
     found = sorted(p for p in bench_dir.glob("*.py") if tag.search(p.read_text(encoding="utf-8")))
     if not found and (bench_dir / f"{name}.py").is_file():
         found = [bench_dir / f"{name}.py"]
@@ -300,6 +384,7 @@ def summarise(path, bench_dir=None) -> Summary:
         raise ValueError(f"{path}: not valid JSON ({err})") from None
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: a benchmark result is a JSON object, found {type(doc).__name__}")
+    doc = _flatten_conditions(doc)
     name = str(doc.get("benchmark") or path.stem)
     recorded = next((str(doc[k]) for k in _DATE_KEYS if doc.get(k)), None)
     if recorded:
@@ -309,10 +394,20 @@ def summarise(path, bench_dir=None) -> Summary:
         date, source = mtime.strftime("%Y-%m-%d %H:%M"), "file modified"
     script, script_notes = _script(doc, name, bench_dir, path.name)
     rows, omitted, records = _rows(doc, name)
+    why = str(doc.get(WHY_KEY) or "").strip()
+    labels = {r.path: r.label for r in rows}
+    outside, unexplained = [], []
+    for where, value, rng in outside_credible(doc):
+        figure = f"{labels.get(where, where)} {fmt(value)}"
+        outside.append(f"{figure} is outside its credible range {fmt(rng[0])}-{fmt(rng[1])}: "
+                       + (why or "not explained"))
+        if not why:
+            unexplained.append(f"{path.name}: {where} = {fmt(value)} is outside its credible range "
+                               f"{fmt(rng[0])}-{fmt(rng[1])} and the file says no why ({WHY_KEY})")
     return Summary(file=path.name, benchmark=name, command=doc.get("command"),
                    timed_command=doc.get("timed_command"), script=script, date=date,
                    date_source=source, machine=_machine(doc), notes=script_notes + _notes(doc), rows=rows,
-                   omitted=omitted, records=records)
+                   omitted=omitted, records=records, outside=outside, unexplained=unexplained)
 
 
 def _cell(text: str) -> str:
@@ -326,6 +421,7 @@ def _section(s: Summary) -> list[str]:
     out = [f"## {s.file}", "", f"* Benchmark: `{s.benchmark}`, script: "
            + (f"`{s.script}`" if s.script else "not found under `benchmarks/`"),
            f"* Date: {when}", f"* Machine: {s.machine}"]
+    out += [f"* Outside its credible range: {o}" for o in s.outside]
     out += [f"* Note: {n}" for n in s.notes]
     if s.records:
         out.append("* Per-item records in the file (not shown): " + ", ".join(s.records))
@@ -353,6 +449,8 @@ def page(summaries: list[Summary], source: str = "benchmarks/results") -> str:
            "", "| file | benchmark | date | headline |", "|---|---|---|---|"]
     for s in summaries:
         head = "; ".join(f"{r.label}: {r.value}" for r in s.rows[:2]) or "no figures"
+        if s.outside:
+            head += "; **outside its credible range**, see below"
         anchor = re.sub(r"[^\w-]", "", s.file.lower())
         date = s.date + ("" if s.date_source == "recorded" else " (file modified)")
         out.append(f"| [{s.file}](#{anchor}) | `{s.benchmark}` | {date} | {_cell(head)} |")

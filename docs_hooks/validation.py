@@ -1,7 +1,8 @@
 """MkDocs hook: generate ``validation.md`` from ``benchmarks/results/*.json`` at build time.
 
 Each JSON file becomes one section (:mod:`benchmark_summary`); a new file appears at the
-next build without any edit. A file that cannot be read is a warning, which fails a
+next build without any edit. A file that cannot be read, and a figure outside its
+credible range whose file does not say why, are warnings, which fail a
 ``mkdocs build --strict``.
 """
 
@@ -41,6 +42,9 @@ def validation_markdown(root) -> str:
             summaries.append(benchmark_summary.summarise(path))
         except (OSError, ValueError) as err:
             log.warning("validation page: %s", err)
+            continue
+        for line in summaries[-1].unexplained:  # a figure outside its credible range must say why
+            log.warning("validation page: %s", line)
     if not summaries:
         log.warning("validation page: no JSON file in %s", results)
     return benchmark_summary.page(summaries, RESULTS)

@@ -48,15 +48,16 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
                               "calibrates rigs with at least one modelled scanner (sensors_prior.csv). A rig of "
                               "black boxes only: python benchmarks/black_box_row.py DATASET (docs/blackbox.md)")
     else:
-        check_simulation(cfg.simulate)
+        check_simulation(cfg.simulate, cfg.acceptance.specification.depth_range_mm)
     return cfg
 
 
-def check_simulation(sim) -> None:
-    """A simulated rig's files, and every planned pose within the hexapod's reach."""
+def check_simulation(sim, depth_range_mm=None) -> None:
+    """A simulated rig's files, its acceptance positions inside the specified measuring
+    volume (``depth_range_mm``), and every planned pose within the hexapod's reach."""
     from fringecal.simulate.source import load_simulated_rig
 
-    sr = load_simulated_rig(sim)
+    sr = load_simulated_rig(sim, depth_range_mm)
     hx = sim.acquisition.hexapod
     if hx.enabled:
         from fringecal.hexapod import HexapodRig, load_hexapod_config
@@ -150,7 +151,7 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
         rows.append(("truth: max position / angle error", f"{tr['max_position_error_mm']:.3f} mm / "
                                                           f"{1e3 * tr['max_angle_error_rad']:.3f} mrad"))
     rows += [("bundle adjustment / total", f"{summary['bundle_seconds']:.2f} s / {summary['total_seconds']:.0f} s")]
-    compiled = sum((summary.get("compile_seconds") or {}).values())
+    compiled = sum((summary.get("compile_seconds") or {}).values()) + summary.get("kernel_wait_seconds", 0.0)
     if compiled:
         rows.append(("  of which compiling kernels", f"{compiled:.0f} s (first run on this machine only)"))
     rows.append(("tasks run / from cache", f"{len(summary['tasks']['ran'])} / {len(summary['tasks']['cached'])}"))
@@ -169,6 +170,17 @@ def verdict_row(verdict: dict | None) -> tuple[str, str]:
     if verdict["accepted"]:
         return (label, f"[green]{verdict['word']}[/]")
     return (label, f"[red]{verdict['word']}[/]: {verdict['failing']}")
+
+
+def _kernels_needed(cfg, until: Optional[str]) -> tuple[bool, bool]:
+    """(renderer, the others): which compiled kernels a run of ``cfg`` up to ``until``
+    uses, so that a first run warms up only those (``fringecal.run.warmup``). The source's
+    first steps (preparing the rig, moving the hexapod, reading a data set) need none."""
+    from fringecal.steps import pipeline
+
+    names = [s.name for s in pipeline(cfg)]
+    reached = names if until is None or until not in names else names[:names.index(until) + 1]
+    return "simulate-render" in reached, bool(set(reached) - {"simulate-prepare", "simulate-hexapod", "ingest"})
 
 
 def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[str], workers: Optional[int],
@@ -200,10 +212,11 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
     log_failures_to(rd.log.path)
     from fringecal.flows.interrupt import armed
 
-    warmup = server = None
+    warmup, server = [], None
     try:
         with armed(run_dir):
-            warmup = kernel_warmup.start()  # first run on this machine: compile later kernels on the idle core
+            # first run on this machine: the kernels compile in helpers while Prefect starts
+            warmup = kernel_warmup.start(*_kernels_needed(cfg, until))
             _quiet_prefect(verbose)
             api = configured_prefect_api()
             reporter.say(f"starting Prefect: the flow reports to {api}" if api else
@@ -216,22 +229,24 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
                     prefect_logs.to_file(rd.log.path)
 
                 kind = runner or cfg.runner.kind
-                task_runner = make_task_runner(kind, workers or cfg.runner.max_workers,
-                                               dask_address or cfg.runner.dask_address,
-                                               workers or cfg.runner.dask_workers)
+                # one thread policy: the worker pool, numba's and BLAS's threads from runner.cores
+                policy = cfg.thread_policy(workers or (cfg.runner.dask_workers if kind == "dask" else None))
+                task_runner = make_task_runner(kind, policy.workers, dask_address or cfg.runner.dask_address,
+                                               policy.workers)
                 flow = run_flow.with_options(task_runner=task_runner)
                 server = _temporary_server()
                 if server is not None:  # local Dask workers report to it instead of each starting
                     os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
                 reporter.say(f"running the flow into {run_dir} ({kind})")
                 try:
-                    summary = flow(cfg, str(run_dir), None, command, until)
+                    summary = flow(cfg, str(run_dir), None, command, until, policy.workers)
                 except NotAccepted as verdict:  # the flow run ended Failed; its outputs are written
                     summary = verdict.summary
     finally:
         if server is not None:
             os.environ.pop("PREFECT_API_URL", None)
-        lifeline.stop(warmup)
+        for proc in warmup:
+            lifeline.stop(proc)
         prefect_logs.restore()
         resume.release(rd)
     if summary.get("resumed"):

@@ -44,8 +44,9 @@ def simulate_command(
     cfg = validate_run_config(config)
     if cfg.source != "simulated":
         raise UserInputError(f"{config}: has no simulate section (it names a data set)")
-    check_simulation(cfg.simulate)
-    sr = load_simulated_rig(cfg.simulate)
+    depths = cfg.acceptance.specification.depth_range_mm
+    check_simulation(cfg.simulate, depths)
+    sr = load_simulated_rig(cfg.simulate, depths)
     plans = object_plans(cfg.simulate, sr.truth, sr.built, sr.rods, sr.hardware)
     for plan in plans:
         reporter.say(f"object {plan.spec.name} ({plan.spec.kind}): recorded by {', '.join(plan.recorders)}")

@@ -17,7 +17,7 @@ import threading
 import time
 from contextlib import contextmanager
 
-__all__ = ["install", "step", "advance", "choose", "MODES", "ENV", "HELP", "RichProgress", "PlainProgress", "Silent"]
+__all__ = ["install", "step", "advance", "say", "choose", "MODES", "ENV", "HELP", "RichProgress", "PlainProgress", "Silent"]
 
 _reporter = None
 #: The progress line that appears while numba compiles kernels.
@@ -44,6 +44,12 @@ def step(name: str, total: int = 1) -> None:
 def advance(name: str, n: int = 1) -> None:
     if _reporter is not None:
         _reporter.advance(name, n)
+
+
+def say(text: str) -> None:
+    """One status line, when a reporter is installed."""
+    if _reporter is not None:
+        _reporter.say(text)
 
 
 def choose(mode: str | None, console):

@@ -37,12 +37,13 @@ from prefect import flow  # noqa: E402
 from prefect.states import Failed, State  # noqa: E402
 
 from fringecal.flows import interrupt, progress  # noqa: E402
-from fringecal.run import resume  # noqa: E402
+from fringecal.run import resume, warmup  # noqa: E402
 from fringecal.run.config import RunConfig, load_run_config  # noqa: E402
 from fringecal.run.summary import manifest, run_summary  # noqa: E402
 from fringecal.rundir import RunDir  # noqa: E402
 from fringecal.steps import Step, current_record, pipeline, step_key  # noqa: E402
 from fringecal.tasks.step import step_task  # noqa: E402
+from fringecal.threads import ThreadPolicy  # noqa: E402
 
 __all__ = ["run_flow", "StepRunner", "NotAccepted"]
 
@@ -64,13 +65,15 @@ class StepRunner:
     """Submits every instance of a step, gathers the records, and notes what ran and
     what came from the cache (Prefect's, or a current record of an earlier run)."""
 
-    def __init__(self, rd: RunDir, config: RunConfig):
+    def __init__(self, rd: RunDir, config: RunConfig, policy: ThreadPolicy | None = None):
         self.rd = rd
         self.config = config
+        self.policy = policy or config.thread_policy()
         self.ran: list[str] = []
         self.cached: list[str] = []
         self.timings: dict[str, float] = {}
         self.compile_seconds: dict[str, float] = {}
+        self.kernel_wait_seconds = 0.0  # waiting for the renderer's warm-up (first run only)
         self.records: dict[str, dict] = {}
         self.finished = 0  # instances finished so far, counted as they end (what an interruption keeps)
         self._lock = threading.Lock()
@@ -84,13 +87,17 @@ class StepRunner:
         view = step.view(self.config)
         items = step.items(self.rd, view)
         progress.step(step.label, len(items))
+        if step.name == "simulate-render":  # a first run: the renderer compiles in a helper (fringecal.run.warmup)
+            self.kernel_wait_seconds += warmup.wait_for_renderer(
+                lambda: progress.say(f"{progress.COMPILING}: the renderer's kernel, in a helper process"))
+        threads = self.policy.instance_threads(len(items))
         futures = {}
         for item in items:
             key = step_key(step, self.rd, view, item)
             stale = current_record(step, self.rd, view, item, key) is None
             task = step_task.with_options(name=step.name, task_run_name=f"{step.name}:{item}" if item else step.name,
                                           result_storage=self.rd.prefect_storage, refresh_cache=stale or None)
-            futures[item] = task.submit(step.name, str(self.rd.root), self.config, item, key, context)
+            futures[item] = task.submit(step.name, str(self.rd.root), self.config, item, key, context, threads)
             futures[item].add_done_callback(self._count)
         for item, future in futures.items():
             name = f"{step.name}:{item}" if item else step.name
@@ -113,14 +120,16 @@ class StepRunner:
 
 @flow(name="fringecal-run")
 def run_flow(config: RunConfig | str | None = None, run_dir: str = "runs/latest", overrides: dict | None = None,
-             command: str = "fringecal run", until: str | None = None) -> dict | State:
+             command: str = "fringecal run", until: str | None = None, workers: int | None = None) -> dict | State:
     """Run the pipeline into ``run_dir``; returns the summary (also ``summary.json``).
 
     ``config`` is the run's :class:`~fringecal.run.config.RunConfig` (a deployment's
     JSON parameter, a manifest's ``config``, is validated into one by Prefect) or a
     run-config YAML path (default ``configs/run_thesis.yaml``). The same object goes to
     every step's task. ``until`` stops after the named step (the summary then lists only
-    what ran).
+    what ran). ``workers``: the step instances the task runner runs at once, if not
+    ``runner.max_workers`` (``--workers``); with ``runner.cores`` it sets the run's
+    thread policy (:mod:`fringecal.threads`, recorded in ``summary.json``'s ``threads``).
     """
     interrupt.reassert()  # the command's Ctrl-C / SIGTERM handling instead of Prefect's (when armed)
     t_start = time.perf_counter()
@@ -128,7 +137,7 @@ def run_flow(config: RunConfig | str | None = None, run_dir: str = "runs/latest"
     rd = RunDir(run_dir).create()
     interrupted = resume.begin(rd, command)  # before any step is submitted: no writer of this run is disturbed
     try:
-        summary = _run(cfg, rd, command, until, t_start, interrupted)
+        summary = _run(cfg, rd, command, until, t_start, interrupted, cfg.thread_policy(workers))
     except Exception:
         resume.finish(rd)  # an error, not an interruption
         raise
@@ -141,12 +150,13 @@ def run_flow(config: RunConfig | str | None = None, run_dir: str = "runs/latest"
 
 
 def _run(cfg: RunConfig, rd: RunDir, command: str, until: str | None, t_start: float,
-         interrupted: dict | None) -> dict:
+         interrupted: dict | None, policy: ThreadPolicy) -> dict:
     doc = manifest(cfg)
     if not rd.manifest.exists() or rd.manifest.load() != doc:
         rd.manifest.save(doc)
-    execution = {"created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "command": command}
-    runner = StepRunner(rd, cfg)
+    execution = {"created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "command": command,
+                 "threads": policy.to_dict()}
+    runner = StepRunner(rd, cfg, policy)
     interrupt.track(runner)
     steps = pipeline(cfg)
     if until is not None and until not in [s.name for s in steps]:
@@ -161,8 +171,10 @@ def _run(cfg: RunConfig, rd: RunDir, command: str, until: str | None, t_start: f
     summary = run_summary(rd, cfg) if until is None else {"name": cfg.name, "source": cfg.source}
     summary.update(execution)
     # compile_seconds: numba compiling kernels (first run on a machine only), per step, summed
-    # over the step's instances (which may overlap in time), part of the step's timing
+    # over the step's instances (which may overlap in time), part of the step's timing;
+    # kernel_wait_seconds: waiting for the renderer compiled by a warm-up helper (first run)
     summary.update(timings=runner.timings, compile_seconds=runner.compile_seconds,
+                   kernel_wait_seconds=runner.kernel_wait_seconds,
                    total_seconds=time.perf_counter() - t_start,
                    tasks={"ran": runner.ran, "cached": runner.cached}, steps=runner.records)
     if interrupted is not None:  # the last run of this directory was interrupted: what it left was reused

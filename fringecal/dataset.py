@@ -13,7 +13,11 @@ contract::
       dataset.yaml            name, reference_scanner; optional description, temperature_c,
                               artefact_corrections, processing (overrides of the run config's
                               decode, extraction, control_points, bundle, verification and
-                              acceptance sections; unknown keys are errors)
+                              acceptance sections), certificate (the report's identity block:
+                              customer, cell, place, date, operator, scanner serial numbers,
+                              the artefact's, ball-bar's and acceptance objects' certificates,
+                              temperatures, approver; :class:`~fringecal.acceptance.identity.CertificateIdentity`);
+                              unknown keys are errors
       artefact.csv            CMM table: sphere_id, x_mm, y_mm, z_mm, diameter_mm[, u_mm]
                               (at least 3 spheres)
       rods.csv                optional: rod_id, sphere_a, sphere_b, length_mm (rods masked
@@ -145,6 +149,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Literal, Optional
 
+from fringecal.acceptance.identity import CertificateIdentity
 from fringecal.acceptance.standards import (
     STANDARDS_FILE,
     DumbbellStandard,
@@ -221,6 +226,7 @@ class DatasetConfig(StrictModel):
     temperature_c: Optional[float] = None
     artefact_corrections: Optional[ArtefactCorrections] = None
     processing: ProcessingOverrides = ProcessingOverrides()
+    certificate: Optional[CertificateIdentity] = None
 
 
 @dataclass(frozen=True)

@@ -542,6 +542,11 @@ class RunDir:
     def residuals_per_measurement(self) -> TableFile:
         return self._table("tables/residuals_per_measurement.csv", "MeasurementResidualsTable")
 
+    @property
+    def residuals_binned(self) -> TableFile:
+        """Residuals and control-point counts binned over each camera's and projector's image."""
+        return self._table("tables/residuals_binned.csv", "BinnedResidualsTable")
+
     def histogram(self, term: str) -> BytesFile:
         """``figures/<term>_hist.png`` for ``eps1`` or ``eps2``."""
         return self._at(BytesFile, f"figures/{term}_hist.png")

@@ -10,6 +10,7 @@ from fringecal.schemas.tables import (  # noqa: F401
     AcquisitionTable,
     ArtefactTable,
     BallbarCentresTable,
+    BinnedResidualsTable,
     CalibratedPosesTable,
     CalibratedSensorsTable,
     ControlPointsTable,

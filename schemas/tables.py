@@ -78,6 +78,7 @@ __all__ = [
     "CalibratedPosesTable",
     "SphereResidualsTable",
     "MeasurementResidualsTable",
+    "BinnedResidualsTable",
     "read_table",
     "read_any_table",
     "read_csv_text",
@@ -474,6 +475,32 @@ class MeasurementResidualsTable(_Base):
     rms_eps2_start_mm: Series[float] = pa.Field(ge=0)
 
     _id_columns = ("measurement", "scanners")
+
+
+class BinnedResidualsTable(_Base):
+    """Bundle-adjustment residuals binned over each sensor's image: one row per
+    (sensor, bin) holding control points, on a grid of ``nx`` x ``ny`` bins over the
+    camera's pixels or the projector's (bin ``ix``, ``iy`` centred at ``u_px``,
+    ``v_px``), with the count (the image's coverage by control points) and the mean
+    and RMS of epsilon-1 and epsilon-2 after the adjustment."""
+
+    scanner: Series[str] = pa.Field()
+    sensor: Series[str] = pa.Field()
+    role: Series[str] = pa.Field(isin=["camera", "projector"])
+    nx: Series[int] = pa.Field(ge=1)
+    ny: Series[int] = pa.Field(ge=1)
+    ix: Series[int] = pa.Field(ge=0)
+    iy: Series[int] = pa.Field(ge=0)
+    u_px: Series[float] = pa.Field()
+    v_px: Series[float] = pa.Field()
+    n_points: Series[int] = pa.Field(ge=1)
+    mean_eps1_mm: Series[float] = pa.Field()
+    rms_eps1_mm: Series[float] = pa.Field(ge=0)
+    mean_eps2_mm: Series[float] = pa.Field()
+    rms_eps2_mm: Series[float] = pa.Field(ge=0)
+
+    _id_columns = ("scanner", "sensor")
+    _unique_together = (("sensor", "ix", "iy"),)
 
 
 class ThermalLogTable(_Base):

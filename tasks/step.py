@@ -20,10 +20,12 @@ __all__ = ["step_task"]
 
 
 @task(cache_key_fn=lambda context, parameters: parameters["key"], persist_result=True)
-def step_task(step: str, run_dir: str, config: RunConfig, item: str, key: str, context: dict | None = None) -> dict:
+def step_task(step: str, run_dir: str, config: RunConfig, item: str, key: str, context: dict | None = None,
+              threads: int | None = None) -> dict:
     """Run ``item`` of ``step`` over ``run_dir`` with the run's ``config``; return its record.
+    ``threads``: the numba threads the instance may use (:mod:`fringecal.threads`).
 
     The steps log through the ``fringecal`` logger, which the flow registers with
     Prefect (``PREFECT_LOGGING_EXTRA_LOGGERS``), so their messages belong to the task run.
     """
-    return run_step(get_step(step), RunDir(run_dir), config, item, context, key=key)
+    return run_step(get_step(step), RunDir(run_dir), config, item, context, key=key, threads=threads)

@@ -33,6 +33,26 @@ ROOT = Path(__file__).resolve().parents[1]
 THESIS = ROOT / "configs" / "thesis"
 
 
+def pytest_sessionstart(session):
+    """In a fresh checkout, compile numba's kernels once, before the test workers start.
+
+    Otherwise each xdist worker compiles every kernel it meets on its own (about 46 s of
+    one core each: the renderer 24 s, the rest 22 s), twice the work on two cores; the
+    run's own warm-up helpers (:mod:`fringecal.run.warmup`) compile them into the
+    checkout's cache side by side (about 24 s), and every worker then loads them."""
+    if os.environ.get("PYTEST_XDIST_WORKER") or not getattr(session.config.option, "numprocesses", None):
+        return
+    from fringecal import lifeline
+    from fringecal.run import warmup
+
+    helpers = warmup.start(renderer=True, others=True)
+    for proc in helpers:
+        try:
+            proc.wait(300)
+        finally:
+            lifeline.stop(proc)
+
+
 @pytest.fixture(scope="session")
 def thesis_dir() -> Path:
     return THESIS

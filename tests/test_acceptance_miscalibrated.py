@@ -1,15 +1,17 @@
-"""A rig deliberately miscalibrated -- scanner 2's camera principal distance off by
-0.05 % -- fails E and SD of the acceptance test, while the calibrated rig passes them.
+"""The demo's specification accepts the calibrated thesis rig and refuses it
+deliberately miscalibrated -- scanner 2's camera principal distance off by 0.05 %.
 
 The world: the thesis rig simulated as the default demo does (ideal profile, all
 twelve poses, the default fringe sequence) at 640 px, ball-bar positions 1, 4 and 9 of
-thesis table 6-9 and two dumbbell positions per scanner. At this size the calibrated
-rig measures SD and E to 14-34 um with U of 45-47 um (measured 2026-11-26), so the
-default limits of 100 um are met with their uncertainty (|value| + U at most 80 um); at
-320-480 px U alone is 100-350 um and no verdict could be proven. The miscalibrated rig is the
-calibration with one parameter changed, measuring the same stores: the 0.05 % of c
-moves scanner 2's points by 0.15-0.36 mm at 2.5 m (0.06-0.14 mm over a 500 mm
-dumbbell), which the verdicts must show as proven non-conformance.
+thesis table 6-9, and per scanner one sphere and two dumbbell positions, placed inside
+the measuring volume of the demo's stated specification (the ``acceptance`` section of
+``configs/run_thesis.yaml``: depths 2.4-3.0 m, its MPEs). The calibrated rig's run
+verdict is ACCEPTED: every component (P_F, P_S, SD, E and the ball-bar lengths) proven
+inside its MPE with its U. The miscalibrated rig is the calibration with one parameter
+changed, measuring the same stores: the 0.05 % of c moves scanner 2's points by
+0.15-0.36 mm at 2.5 m (0.06-0.14 mm over a 500 mm dumbbell), which E and SD of
+scanner 2 must show as proven non-conformance, and the run verdict as NOT ACCEPTED.
+At 320-480 px U alone is 100-350 um and no verdict could be proven.
 """
 
 import numpy as np
@@ -18,6 +20,8 @@ import yaml
 
 from fringecal.acceptance.document import acceptance_document
 from fringecal.acceptance.standards import AcceptanceStandards
+from fringecal.acceptance.verdict import ACCEPTED, NOT_ACCEPTED, run_verdict
+from fringecal.config import configs_dir
 from fringecal.run.config import load_run_config
 from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
@@ -34,9 +38,12 @@ pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leave
 def calibrated(tmp_path_factory):
     d = tmp_path_factory.mktemp("miscalibrated")
     path = write_small_thesis_config(d, width=640, poses=tuple(range(1, 13)), positions=(1, 4, 9),
-                                     acceptance={"sphere": 0, "dumbbell": 2, "flat": 0})
+                                     acceptance={"sphere": 1, "dumbbell": 2, "flat": 0})
     doc = yaml.safe_load(path.read_text())
     del doc["simulate"]["acquisition"]["sequence"]          # the default sequence, as the demo
+    demo = yaml.safe_load((configs_dir() / "run_thesis.yaml").read_text())
+    doc["acceptance"] = demo["acceptance"]                   # the demo's specification and MPEs
+    doc["verification"] = demo["verification"]
     path.write_text(yaml.safe_dump(doc))
     cfg = load_run_config(path)
     rd = RunDir(d / "run").create()
@@ -45,8 +52,9 @@ def calibrated(tmp_path_factory):
     return rd, cfg
 
 
-def parameters(rd, cfg, rig) -> dict:
-    """The acceptance test of ``rig``, its ball-bar (E) measured with ``rig`` too."""
+def judged(rd, cfg, rig) -> tuple[dict, dict]:
+    """The acceptance test of ``rig``, its ball-bar (E) measured with ``rig`` too: the
+    parameters by (name, scanner), and the run verdict of both."""
     covariance = rd.covariance.load()
     _, fails, result, budget = verify_ballbar(ballbar_stores(rd), rig, rd.ballbar.load(), cfg.extraction.rejection,
                                               cfg.verification, rd.bundle_summary.load()["volume_diagonal_mm"],
@@ -55,15 +63,19 @@ def parameters(rd, cfg, rig) -> dict:
     doc, _ = acceptance_document(rig, AcceptanceStandards(**rd.acceptance_standards.load()), cfg.acceptance,
                                  cfg.extraction.rejection, cfg.verification.uncertainty, covariance,
                                  acceptance_stores(rd), verification)
-    return {(p["name"], p["scanner"]): p for p in doc["parameters"]}
+    return {(p["name"], p["scanner"]): p for p in doc["parameters"]}, run_verdict(verification, doc)
 
 
-def test_principal_distance_off_by_0_05_percent_fails_e_and_sd(calibrated):
+def test_the_demo_specification_accepts_the_rig_and_refuses_it_miscalibrated(calibrated):
     rd, cfg = calibrated
+    assert cfg.acceptance.specification.depth_range_mm == (2400.0, 3000.0)
     rig = rd.calibration.load()
-    good = parameters(rd, cfg, rig)
+    good, verdict = judged(rd, cfg, rig)
     assert {k: p["verdict"] for k, p in good.items()} == {
-        ("SD", "scanner1"): "conformance", ("SD", "scanner2"): "conformance", ("E", "cell"): "conformance"}
+        (name, s): "conformance" for name in ("P_F", "P_S", "SD") for s in ("scanner1", "scanner2")} | {
+        ("E", "cell"): "conformance"}
+    assert verdict["word"] == ACCEPTED, verdict["failing"]
+    assert rd.acceptance.load()["failures"] == []          # every position inside the specified volume
     # the step's own document says the same as the re-measured one
     step = {(p["name"], p["scanner"]): p["verdict"] for p in rd.acceptance.load()["parameters"]}
     assert step == {k: p["verdict"] for k, p in good.items()}
@@ -71,11 +83,12 @@ def test_principal_distance_off_by_0_05_percent_fails_e_and_sd(calibrated):
     params = rig.params.copy()
     camera = [s.name for s in rig.sensors].index(rig.scanner("scanner2").camera.name)
     params[camera, 8] *= 1.0005
-    bad = parameters(rd, cfg, rig.with_params(params))
+    bad, verdict = judged(rd, cfg, rig.with_params(params))
+    assert verdict["word"] == NOT_ACCEPTED
     assert bad[("E", "cell")]["verdict"] == "non-conformance"
     assert bad[("SD", "scanner2")]["verdict"] == "non-conformance"
     assert bad[("SD", "scanner1")]["verdict"] == "conformance"     # scanner 1 is untouched
     assert bad[("SD", "scanner1")]["measured_mm"] == good[("SD", "scanner1")]["measured_mm"]
     for key in (("E", "cell"), ("SD", "scanner2")):
-        assert abs(bad[key]["measured_mm"]) - bad[key]["U_mm"] > cfg.acceptance.limits.SD
+        assert abs(bad[key]["measured_mm"]) - bad[key]["U_mm"] > getattr(cfg.acceptance.limits, key[0])
         assert np.isfinite(bad[key]["U_mm"])

@@ -242,3 +242,27 @@ def test_the_simulation_refuses_positions_that_do_not_fit_and_can_be_switched_of
     sr = load_simulated_rig(SimulationConfig(acceptance={"standards": path, "enabled": False}))
     assert sr.acceptance is None and sr.acceptance_standards is None
     assert set(acquisition_table(sr)["kind"]) == {"artefact", "ballbar"}
+
+
+def test_positions_lie_in_the_specified_measuring_volume(thesis):
+    """A specification's depths (along each camera's axis) cut the volumes the positions
+    are planned in: every sphere centre, dumbbell sphere and flat face point lies inside;
+    a specified volume that misses a scanner's is refused, naming both."""
+    sim, sr, volumes, standards = thesis
+    inside = load_simulated_rig(sim, (2400.0, 3000.0))
+    frames = frames_from_rows(inside.acceptance)
+    assert len(inside.acceptance) == 2 * sum(COUNTS.values())
+    for r in inside.acceptance.itertuples(index=False):
+        T = frames[r.measurement]
+        X = {"sphere": T.t[None], "dumbbell": T.to_world(np.array([[0.0, 0, 0], [standards.dumbbell.length_mm, 0, 0]])),
+             "flat": flat_face_points(standards.flat, T)}[r.test]
+        depth = sr.truth.scanner(r.scanner).camera.to_sensor(X)[:, 2]
+        assert depth.min() >= 2400.0 - 1e-6 and depth.max() <= 3000.0 + 1e-6, r.measurement
+    spheres = sr.acceptance[sr.acceptance["test"] == "sphere"]
+    centres = frames_from_rows(spheres)
+    far = max(sr.truth.scanner(r.scanner).camera.to_sensor(centres[r.measurement].t[None])[0, 2]
+              for r in spheres.itertuples(index=False))
+    assert far > 3500.0  # without a specification the spheres reach the far end (3.6 m)
+    with pytest.raises(ConfigError, match=r"scanner1: the specified measuring volume \(depths 4000-4500 mm\) misses "
+                                          r"the volume the artefact calibrates \(2429-3657 mm\)"):
+        load_simulated_rig(sim, (4000.0, 4500.0))

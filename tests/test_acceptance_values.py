@@ -157,3 +157,59 @@ def test_verdict_zone_and_unknown_uncertainty():
     assert verdict(0.11, 0.02, 0.1) == "uncertainty zone"
     assert verdict(0.05, float("nan"), 0.1) == "uncertainty zone"   # no U: conformance not proven
     assert verdict(0.05, 0.01, None) == "not limited"
+
+
+def test_positions_outside_the_specified_volume_are_listed_not_judged():
+    from fringecal.acceptance.document import outside_volume
+    from fringecal.acceptance.evaluate import DEPTH_COLUMNS
+    from fringecal.acceptance.standards import ScannerSpecification
+
+    v = pd.DataFrame([("sphere", "P_F", "s1", "scanner1", 0.30, 0.002, 100, 0, np.nan, 2500.0),
+                      ("sphere", "P_S", "s1", "scanner1", 0.01, 0.004, 100, 0, np.nan, 2500.0),
+                      ("sphere", "P_F", "s2", "scanner1", 2.90, 0.002, 100, 0, np.nan, 3600.0),
+                      ("sphere", "P_S", "s2", "scanner1", -0.30, 0.004, 100, 0, np.nan, 3600.0),
+                      ("dumbbell", "SD", "d1", "scanner1", 0.02, 0.030, 0, 0, 2380.0, 2700.0),
+                      ("ballbar", "E", "bb01", "cell", 0.03, 0.040, 0, 0, np.nan, np.nan)],
+                     columns=VALUE_COLUMNS + DEPTH_COLUMNS)
+    kept, failures = outside_volume(v, ScannerSpecification(depth_range_mm=(2400, 3000)))
+    assert list(kept["position"]) == ["s1", "s1", "bb01"]  # E has no depth: across scanners, always judged
+    assert [(f["position"], f["reason"]) for f in failures] == [
+        ("s2", "outside the specified measuring volume (camera depth 3600 mm, the specification's 2400-3000 mm): "
+               "not judged"),
+        ("d1", "outside the specified measuring volume (camera depth 2380-2700 mm, the specification's "
+               "2400-3000 mm): not judged")]
+    same, none = outside_volume(v, ScannerSpecification())
+    assert same is v and none == []
+    doc = certificate(kept, AcceptanceLimits(P_F=1.5, P_S=0.2), 2.0, 0.003, ["scanner1"], failures,
+                      specification=ScannerSpecification(name="data sheet X", depth_range_mm=(2400, 3000)))
+    assert doc["specification"] == {"name": "data sheet X", "depth_range_mm": [2400.0, 3000.0],
+                                    "mpe_mm": {"P_F": 1.5, "P_S": 0.2, "SD": 0.1, "E": 0.1, "F": 0.5}}
+    assert doc["values"][0]["depth_mm"] == 2500.0 and "depth_near_mm" not in doc["values"][0]
+    assert "depth_mm" not in doc["values"][2] and doc["accepted"] is True
+
+
+def test_p_s_of_a_cap_noisy_along_the_rays_is_unbiased_with_the_ray_fit():
+    """A 127 mm sphere's cap seen from 3.6 m with 0.6 mm RMS noise along each camera ray:
+    over 30 draws the orthogonal fit's P_S is biased by about -0.1 mm; P_S from
+    probe_sphere (fit along the rays from the camera) is not, and its stated U covers
+    the draws' scatter."""
+    rng = np.random.default_rng(7)
+    camera = np.zeros(3)
+    u = symmetric_directions(2500, seed=3)
+    u = u[u[:, 2] < -np.cos(np.radians(64))]
+    centre = np.array([40.0, -30.0, 3600.0])
+    sizes, orthogonal, U = [], [], []
+    for _ in range(30):
+        p = centre + 63.5 * u
+        d = (p - camera) / np.linalg.norm(p - camera, axis=1, keepdims=True)
+        p = p + rng.normal(0, 0.6, (len(p), 1)) * d
+        m = probe_sphere(p, SphereStandard(diameter_mm=127.0), 0.0, origin=camera)
+        sizes.append(m.size_mm)
+        orthogonal.append(m.diameter_orthogonal_mm - 127.0)
+        U.append(2 * m.diameter_u_fit_mm)
+        assert m.fit == "along camera rays"
+    sizes, orthogonal = np.array(sizes), np.array(orthogonal)
+    sem = sizes.std(ddof=1) / np.sqrt(len(sizes))
+    assert orthogonal.mean() < -0.06                       # the bias the fit along the rays removes
+    assert abs(sizes.mean()) < 3 * sem                     # unbiased within its standard error (~0.02 mm)
+    assert 0.7 < np.mean(U) / 2 / sizes.std(ddof=1) < 1.4  # the stated u is the scatter

@@ -41,7 +41,7 @@ LAYERS = (
     ("fringecal.schemas",),
     ("fringecal.sensor", "fringecal.frames", "fringecal.rotation", "fringecal.lens", "fringecal.triangulation"),
     ("fringecal.atomic", "fringecal.store", "fringecal.digests", "fringecal.config", "fringecal.lifeline",
-     "fringecal.compile_clock", "fringecal.configs", "fringecal.names"),
+     "fringecal.compile_clock", "fringecal.threads", "fringecal.configs", "fringecal.names"),
     ("fringecal",),
 )
 

@@ -81,10 +81,12 @@ def test_thesis_rig_from_dlt_estimates(thesis):
 
 
 def test_thesis_rig_from_a_start_perturbed_by_5_mm_and_20_mrad(thesis):
-    """From this start plain LM stops in a separate minimum (F ~ 2.5 mm RMS); that is
-    detected and the adjustment from start values computed from the control points wins."""
+    """From this start plain LM stops in a separate minimum (F ~ 4.4 mm RMS); that is
+    detected and the adjustment from start values computed from the control points wins.
+    (With rotations stepped as rotations, plain LM reaches the floor from some starts of
+    this size, e.g. rng=4, that used to end in a separate minimum.)"""
     rig, art, poses, sim, truth_poses = thesis
-    start_rig, start_p = perturbed_start(rig, truth_poses, rng=4)
+    start_rig, start_p = perturbed_start(rig, truth_poses, rng=5)
     d = np.abs(start_rig.params - rig.params)
     assert np.allclose(d[1:, :3], 5.0) and np.allclose(d[1:, 3:6], 0.02) and np.allclose(np.abs(start_p - truth_poses)[:, 3:], 0.02)
     start_poses = poses.assign(**{c: start_p[:, j] for j, c in enumerate(POSE_COLUMNS)})

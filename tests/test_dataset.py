@@ -140,6 +140,25 @@ def test_config_is_parsed_with_corrections_and_overrides(root):
     assert cfg.processing.extraction is None
 
 
+def test_certificate_identity_is_read_and_merged_into_the_run_config(root):
+    """dataset.yaml's certificate block reaches the run configuration (the report's
+    identity); a run configuration's own keys take precedence over it."""
+    from fringecal.run.config import load_run_config
+
+    identity = {"customer": "Acme Aero GmbH", "date": "2026-11-20", "scanners": {"scanner1": "FP-0042"},
+                "artefact_certificate": {"number": "CMM-2026-117", "date": "2026-10-02"},
+                "temperatures_c": {"air": 20.4}}
+    write_yaml(root / "dataset.yaml", {**CONFIG, "certificate": identity})
+    cert = DataSet.open(root).config.certificate
+    assert cert.customer == "Acme Aero GmbH" and str(cert.date) == "2026-11-20"
+    assert cert.artefact_certificate.number == "CMM-2026-117" and cert.scanners == {"scanner1": "FP-0042"}
+    run = root.parent / "run.yaml"
+    write_yaml(run, {"dataset": str(root), "certificate": {"customer": "Acme Aero, plant 2"}})
+    merged = load_run_config(run).certificate
+    assert merged.customer == "Acme Aero, plant 2" and merged.temperatures_c == {"air": 20.4}
+    assert str(merged.artefact_certificate.date) == "2026-10-02"
+
+
 def test_optional_parts_may_be_absent(root):
     for name in ("rods.csv", "poses_planned.csv"):
         (root / name).unlink()
@@ -229,6 +248,11 @@ def yaml_unknown_key(r):
 def yaml_unknown_nested_key(r):
     write_yaml(r / "dataset.yaml", {**CONFIG, "artefact_corrections": {"thermal": {"cte": 1e-6}}})
     return r / "dataset.yaml", ("artefact_corrections.thermal.cte: unknown key",)
+
+
+def yaml_unknown_certificate_key(r):
+    write_yaml(r / "dataset.yaml", {**CONFIG, "certificate": {"customer": "A", "serial": "B"}})
+    return r / "dataset.yaml", ("certificate.serial: unknown key",)
 
 
 def yaml_no_name(r):
@@ -453,7 +477,7 @@ CASES = [
     # 1: root and dataset.yaml
     (no_root, DataSetError), (root_is_file, DataSetError), (no_yaml, DataSetError),
     (yaml_not_yaml, DataSetError), (yaml_unknown_key, DataSetError), (yaml_unknown_nested_key, DataSetError),
-    (yaml_no_name, DataSetError), (yaml_no_reference, DataSetError),
+    (yaml_unknown_certificate_key, DataSetError), (yaml_no_name, DataSetError), (yaml_no_reference, DataSetError),
     # 2: tables
     (no_artefact, DataSetError), (bad_artefact, TableError), (two_spheres, DataSetError),
     (rod_unknown_sphere, TableError), (no_prior, DataSetError), (bad_prior, TableError),

@@ -138,6 +138,30 @@ def test_validation_page_shows_the_benchmarks(site):
         assert f'id="{anchor}"' in html, path.name
 
 
+def test_every_figure_outside_its_credible_range_says_why(site, tmp_path):
+    """Item of the validation page: a coverage outside 0.93-0.97 carries its file's one-line
+    why, on the page and in the overview; a file without one is caught."""
+    html = (site / "validation" / "index.html").read_text()
+    for path in sorted(RESULTS.glob("*.json")):
+        s = bs.summarise(path)
+        assert s.unexplained == [], s.unexplained
+        for line in s.outside:
+            assert line.split(": ", 1)[1] != "not explained"
+            assert html.count("outside its credible range") >= 1
+    four = bs.summarise(RESULTS / "coverage_4poses_ideal.json")
+    assert four.outside == [f"coverage: lengths whose error is within U 0.8333 is outside its credible range 0.93-0.97: "
+                            f"{_load('coverage_4poses_ideal.json')['credible_range_why']}"]
+    assert "calibrate with enough poses for the cross-validation" in html
+    assert bs.summarise(RESULTS / "coverage_ideal.json").outside == []  # 0.953: inside
+    bare = tmp_path / "results" / "c.json"
+    bare.parent.mkdir()
+    bare.write_text('{"benchmark": "coverage", "summary": {"coverage": 0.83, "credible_range": [0.93, 0.97]}}')
+    s = bs.summarise(bare, tmp_path)
+    assert s.unexplained == ["c.json: summary.coverage = 0.83 is outside its credible range 0.93-0.97 and the file "
+                             "says no why (credible_range_why)"]
+    assert "**outside its credible range**" in bs.page([s])
+
+
 def test_contracts_page_lists_every_table_model():
     from fringecal.schemas import tables
 

@@ -32,6 +32,8 @@ import yaml
 from typer.testing import CliRunner
 
 from fringecal.flows.cli import app
+from fringecal.frames import POSE_COLUMNS
+from fringecal.spheres.linking import LINK_COLUMNS
 
 ROOT = Path(__file__).resolve().parents[1]
 THESIS = ROOT / "configs" / "thesis"
@@ -400,7 +402,7 @@ def test_a_second_run_into_a_busy_run_directory_is_refused_at_once(small_config,
         raise AssertionError("the command went on to start Prefect")
 
     monkeypatch.setattr("fringecal.flows.cli_run.make_task_runner", trap)
-    monkeypatch.setattr("fringecal.run.warmup.start", lambda: None)
+    monkeypatch.setattr("fringecal.run.warmup.start", lambda *needed: [])
     rd = RunDir(tmp_path / "run").create()
     fd = os.open(rd.lock.path, os.O_RDWR | os.O_CREAT)
     try:
@@ -455,44 +457,85 @@ def test_a_full_disk_under_run(small_config, tmp_path, monkeypatch):
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.setattr("fringecal.flows.cli_run.make_task_runner", _enospc(work / "run" / "manifest.json"))
-    monkeypatch.setattr("fringecal.run.warmup.start", lambda: None)
+    monkeypatch.setattr("fringecal.run.warmup.start", lambda *needed: [])
     res = runner.invoke(app, ["run", "-c", str(small_config), "--out", str(work / "run")])
     line = one_line(res, 2, f"{work / 'run' / 'manifest.json'}: no space left on the device (")
     assert "the run needs roughly 91.8 MB in" in line  # 14 stores of 320 x 320 px x 64 bytes
     assert not (work / "run" / "manifest.json").exists()
 
 
-def test_a_scanner_that_never_sees_three_spheres_is_named(small_config, tmp_path):
-    """Scanner2 sees two spheres of each pose: its link to the reference scanner cannot
-    exist; the step says so, with the spheres it saw (issue 31: a ValueError)."""
+def _unlinked_run(tmp_path, centres, poses, outcomes=None):
+    """A run directory holding what the initialise step reads: the thesis's two scanners,
+    labelled centres, their poses, scanner1 linked to itself only, and optionally the
+    label outcomes."""
     import pandas as pd
 
     from fringecal.artefact import load_artefact
     from fringecal.rig import load_rig
     from fringecal.rundir import RunDir
-    from fringecal.spheres.pose import estimate_poses_file
 
     rd = RunDir(tmp_path / "run").create()
     rd.sensors_prior.save(load_rig(SENSORS))
     rd.artefact.save(load_artefact(ARTEFACT))
-    centres = pd.read_csv(CENTRES, dtype={"measurement": str, "sphere_id": str})
-    two = centres.groupby("measurement").head(2).assign(scanner="scanner2")
-    rd.sphere_centres.save(pd.concat([centres, two], ignore_index=True))
-    estimate_poses_file(ARTEFACT, CENTRES, tmp_path / "poses.csv")
-    poses = pd.read_csv(tmp_path / "poses.csv", dtype={"measurement": str})
+    rd.sphere_centres.save(centres)
     rd.poses.save(poses)
-    rd.scanner_links.save(pd.DataFrame([{
-        "scanner": "scanner1", "reference": "scanner1", "tx_mm": 0.0, "ty_mm": 0.0, "tz_mm": 0.0, "omega_rad": 0.0,
-        "phi_rad": 0.0, "kappa_rad": 0.0, "n_measurements": len(poses), "n_rejected": 0,
-        "translation_spread_mm": 0.0, "rotation_spread_rad": 0.0, "u_translation_mm": 0.0, "u_rotation_rad": 0.0,
-        "via": "scanner1"}]))
+    links = [{"scanner": "scanner1", "reference": "scanner1", "tx_mm": 0.0, "ty_mm": 0.0, "tz_mm": 0.0,
+              "omega_rad": 0.0, "phi_rad": 0.0, "kappa_rad": 0.0, "n_measurements": len(poses), "n_rejected": 0,
+              "translation_spread_mm": 0.0, "rotation_spread_rad": 0.0, "u_translation_mm": 0.0,
+              "u_rotation_rad": 0.0, "via": "scanner1"}] if len(poses) else []
+    rd.scanner_links.save(pd.DataFrame(links, columns=list(LINK_COLUMNS)))
+    ms = sorted(set(centres["measurement"]) | set(outcomes["measurement"] if outcomes is not None else []), key=int)
     rd.acquisition.save(pd.DataFrame([{"measurement": f"{m}-{s}", "kind": "artefact", "pose": m, "scanner": s,
                                        "store": f"measurements/{m}-{s}.zarr", "source": "simulated"}
-                                      for m in poses.measurement for s in ("scanner1", "scanner2")]))
+                                      for m in ms for s in ("scanner1", "scanner2")]))
+    if outcomes is not None:
+        rd.label_outcomes.save(outcomes)
+    return rd
+
+
+def test_a_scanner_that_never_sees_three_spheres_is_named(small_config, tmp_path):
+    """Scanner2 sees two spheres of each pose: its link to the reference scanner cannot
+    exist; the step says so once, with the spheres it saw, and what would link it (issue
+    31: a ValueError; issue 28: the reference listed as unlinked to itself)."""
+    import pandas as pd
+
+    from fringecal.spheres.pose import estimate_poses_file
+
+    centres = pd.read_csv(CENTRES, dtype={"measurement": str, "sphere_id": str})
+    two = centres.groupby("measurement").head(2).assign(scanner="scanner2")
+    estimate_poses_file(ARTEFACT, CENTRES, tmp_path / "poses.csv")
+    poses = pd.read_csv(tmp_path / "poses.csv", dtype={"measurement": str})
+    rd = _unlinked_run(tmp_path, pd.concat([centres, two], ignore_index=True), poses)
     before = listing(tmp_path)
     res = runner.invoke(app, ["step", "initialise", "--run", str(rd.root), "-c", str(small_config)])
-    line = one_line(res, 2, f"{rd.root}: scanner scanner2 (labelled spheres per measurement, most first: ")
-    assert "never sees three or more labelled artefact spheres" in line and "label_outcomes.csv" in line
+    line = one_line(res, 2, f"{rd.root}: 1 scanner(s) cannot be placed in the frame of the reference scanner "
+                            "(scanner1): scanner scanner2: labelled spheres per measurement, most first: ")
+    assert "A view needs three or more of the artefact's spheres" in line and "label_outcomes.csv" in line
+    assert line.count("scanner2") == 1 and "scanner scanner1:" not in line
+    assert listing(tmp_path) == before
+
+
+def test_views_no_scanner_can_decide_without_a_plan_are_named_with_what_would(small_config, tmp_path):
+    """Every view ambiguous and no plan (issue 28): one line naming the scanner that cannot
+    be linked once (never the reference as unlinked), its measurements, and what would
+    decide them -- the planned poses or more spheres per view; nothing written."""
+    import pandas as pd
+
+    ms = [str(m) for m in range(1, 13)]
+    outcomes = pd.DataFrame([{"measurement": m, "scanner": s, "status": "refused", "reason": "ambiguous",
+                              "method": "distances", "n_candidates": 4, "n_labelled": 0, "rms_mm": float("nan"),
+                              "message": f"ambiguous: measurement {m}, scanner {s}, 4 candidate(s): ..."}
+                             for m in ms for s in ("scanner1", "scanner2")])
+    centres = pd.DataFrame(columns=["measurement", "scanner", "sphere_id", "x_mm", "y_mm", "z_mm"])
+    poses = pd.DataFrame(columns=["measurement", "scanner", *POSE_COLUMNS, "rms_mm", "n_spheres"])
+    rd = _unlinked_run(tmp_path, centres, poses, outcomes)
+    before = listing(tmp_path)
+    res = runner.invoke(app, ["step", "initialise", "--run", str(rd.root), "-c", str(small_config)])
+    line = one_line(res, 2, f"{rd.root}: 1 scanner(s) cannot be placed in the frame of the reference scanner "
+                            "(scanner1): the reference scanner scanner1 itself has no labelled view (ambiguous")
+    assert "scanner scanner2: ambiguous" in line and line.count("scanner2") == 1
+    assert "in measurement(s) 1, 2, 3, 4, 5, 6, ... (12 in all)" in line
+    assert "The planned poses (poses_planned.csv in the data set) or views with more spheres" in line
     assert listing(tmp_path) == before
 
 

@@ -8,6 +8,7 @@ from fringecal.frames import Frame
 from fringecal.schemas import PosePlanTable, SphereCentresTable, read_table
 from fringecal.spheres.label_scanners import label_sphere_fits
 from fringecal.spheres.labelling import LabellingConfig, LabellingRefused, ambiguous_subsets, label_spheres
+from fringecal.spheres.poses_and_links import label_pose_link
 
 SCANNER_ONE = [str(i) for i in range(4, 10)]
 SCANNER_TWO = [str(i) for i in range(10, 16)]
@@ -127,12 +128,13 @@ def thesis_fits(thesis_dir):
     return pd.concat(frames, ignore_index=True)
 
 
-def test_thesis_centres_need_the_plan_and_get_it_right(thesis_dir, thesis_artefact):
+def test_thesis_centres_need_the_plan_or_each_other_and_get_it_right(thesis_dir, thesis_artefact):
     """The thesis's own fitted centres (tables 6-3, 6-6) are 0.2-0.5 mm off the CMM shape
     before calibration and show four spheres of near-regular octahedra: distances alone
     cannot tell them apart, so every measurement is refused. With the planned poses
     (table 6-1, in scanner one's frame; scanner two's frame is found by consensus) all 24
-    are labelled, all correctly."""
+    are labelled, all correctly; without them the two scanners' views together label all
+    24 the same way."""
     fits = thesis_fits(thesis_dir)
     cfg = LabellingConfig(centre_u_mm=0.15)
     labelled, outcomes = label_sphere_fits(fits, thesis_artefact, cfg)
@@ -145,3 +147,10 @@ def test_thesis_centres_need_the_plan_and_get_it_right(thesis_dir, thesis_artefa
     assert (outcomes["status"] == "labelled").all() and (outcomes["method"] == "planned pose").all()
     assert (labelled["sphere_id"] == labelled["truth"]).all()
     assert outcomes["n_labelled"].eq(4).all()
+    # without the plan (issue 28): the link both scanners' possible labellings agree on in
+    # all 12 measurements, then each measurement by the two views together: all right too
+    fits = fits.assign(sphere_id="", radius_mm=25.0, rms_mm=0.01, n_points=1000, u_x_mm=0.01, u_y_mm=0.01,
+                       u_z_mm=0.01, cap_angle_deg=60.0, coverage=0.5, n_rejected=0)
+    res = label_pose_link(fits.drop(columns="truth"), thesis_artefact, "scanner1", cfg)
+    assert (res.labels["status"] == "labelled").all() and (res.labels["method"] == "linked pose").all()
+    assert (res.fits["sphere_id"] == fits["truth"]).all() and not res.links.unlinked

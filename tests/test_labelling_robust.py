@@ -118,31 +118,34 @@ def test_with_the_plan_every_view_is_labelled_right_and_linked(rigs, name):
 
 @pytest.mark.parametrize("name", RIGS)
 @pytest.mark.slow
-def test_without_the_plan_labels_are_right_or_refused_as_ambiguous(rigs, name):
-    """Thesis rig and three-scanner row: every view is one octahedron or one triangle of
-    near-regular ones, ambiguous at these errors (the exact spheres seen are ambiguous at the
-    scanner's own estimated tolerance), so every view is refused, none guessed. Ring: some
-    views see asymmetric sets; their poses and links place the others, so all 60 are labelled."""
+def test_without_the_plan_every_view_is_labelled_right_by_the_other_scanners(rigs, name):
+    """Thesis rig and three-scanner row: every view alone is ambiguous at these errors (one
+    octahedron or one triangle of near-regular ones: the exact spheres seen are ambiguous at
+    the scanner's own estimated tolerance), yet every view is labelled, and right: the link
+    every shared measurement's possible labellings agree on, then each measurement placed by
+    all scanners' views together (``fringecal.spheres.label_links``). Links as good as with
+    the plan. Ring: some views see asymmetric sets and are labelled by distances alone."""
     obs = rigs[name]
     res = label_pose_link(obs.fits, obs.artefact, obs.reference)
     _, right = right_labels(obs, res)
     assert right
     out = res.labels
+    assert (out["status"] == "labelled").all()
+    mm, rad = check_links(obs, res)
+    assert mm < LINK_MM and rad < LINK_RAD
     if name == "ring6":
-        assert (out["status"] == "labelled").all()
         assert set(out["method"]) == {"distances", "linked pose"} and (out["method"] == "distances").sum() >= 10
-        mm, rad = check_links(obs, res)
-        assert mm < LINK_MM and rad < LINK_RAD
         return
-    assert (out["status"] == "refused").all() and (out["reason"] == "ambiguous").all()
+    assert set(out["method"]) == {"linked pose"}
+    assert "scanners' views together" in out.loc[0, "message"]
     from dataclasses import replace
 
-    for (_, s), g in obs.fits.groupby(["measurement", "scanner"]):
+    seen = {(s, tuple(sorted(g["truth"]))) for (_, s), g in obs.fits.groupby(["measurement", "scanner"])}
+    for s, ids in seen:  # each set of spheres a scanner sees, once
         est = res.estimates[s]
         cfg = replace(LabellingConfig(), centre_u_mm=est.centre_u_mm, scale_tol=est.scale_tol)
         with pytest.raises(LabellingRefused, match="ambiguous"):
-            label_spheres(obs.artefact.centres_of(g["truth"]), obs.artefact, config=cfg)
-    assert "measurement 1, scanner scanner1" in out.loc[0, "message"] and "labellings of" in out.loc[0, "message"]
+            label_spheres(obs.artefact.centres_of(list(ids)), obs.artefact, config=cfg)
 
 
 def planted(obs, measurement, scanner, truth_to_wrong, all_given=False):
@@ -240,6 +243,37 @@ def test_a_plan_that_moves_along_a_symmetry_axis_is_refused_not_guessed(thesis_a
     assert (out["status"] == "refused").all() and (out["reason"] == "ambiguous").all()
     assert "the planned poses do not single out one scanner frame" in out["message"].iloc[0]
     assert estimates["s"].frame is None
+
+
+def test_without_a_plan_moves_along_a_symmetry_axis_are_refused_not_guessed(thesis_artefact):
+    """Two scanners, the artefact only slid along its column (no plan): A's triangle 1-2-3
+    with sphere 5 and B's 10-11-12 with 14, each with its layer one octahedron away, give
+    two links 1.6 m apart that every measurement fits alike. Nothing is linked or labelled;
+    each view says what the other scanners gave and what would decide it, and B why it has
+    no link."""
+    rng = np.random.default_rng(5)
+    base = Frame.from_params([100, -50, 2900, 1.2, 0.4, -0.3])
+    own = {"A": Frame(np.zeros(3), np.zeros(3)), "B": Frame.from_params([1500, 200, 100, 0.1, -0.3, 0.5])}
+    seen = {"A": ["1", "2", "3", "5"], "B": ["10", "11", "12", "14"]}
+    rows = []
+    for k in range(4):
+        T = base.compose(Frame([0.0, 60.0 * k, 0], [0, 0, 0]))
+        for s, ids in seen.items():
+            X = 0.996 * own[s].inverse().compose(T).to_world(thesis_artefact.centres_of(ids))
+            X += rng.normal(0, 0.2, X.shape)
+            rows += [{"measurement": str(k), "scanner": s, "candidate": f"c{j}", "sphere_id": "", "x_mm": x[0],
+                      "y_mm": x[1], "z_mm": x[2], "radius_mm": 25.0, "rms_mm": 0.01, "n_points": 1000,
+                      "u_x_mm": 0.01, "u_y_mm": 0.01, "u_z_mm": 0.01, "cap_angle_deg": 60.0, "coverage": 0.5,
+                      "n_rejected": 0} for j, x in enumerate(X)]
+    res = label_pose_link(pd.DataFrame(rows), thesis_artefact, "A")
+    out = res.labels
+    assert (out["status"] == "refused").all() and (out["reason"] == "ambiguous").all()
+    assert (res.fits["sphere_id"] == "").all()
+    assert list(res.links.unlinked) == ["B"] and "two links of B to A" in res.links.unlinked["B"]
+    assert "A" not in res.links.unlinked
+    msg = out.loc[0, "message"]
+    assert msg.startswith("ambiguous: measurement 0, scanner A, 4 candidate(s): ")
+    assert msg.endswith("the planned poses (poses_planned.csv) or more spheres in the view would decide it")
 
 
 def test_frame_uncertainty_and_bad_settings():

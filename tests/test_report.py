@@ -43,7 +43,7 @@ COMMAND = "fringecal run --out runs/report-test"
 SUMMARY_TIMINGS = {"simulate-render": 120.5, "spheres-first": 31.2, "bundle": 0.4, "verify": 25.0}
 TIMINGS = {"simulate-render": 118.25, "spheres-first": 30.5, "bundle": 0.35, "verify": 24.0, "total": 175.0}
 SECTIONS = [("rig", "Rig and artefact"), ("timing", "Timing"), ("results", "Calibration results"),
-            ("parameters", "Sensor parameters"), ("residuals", "Residuals"), ("crossval", "Cross-validation"),
+            ("scanners", "Scanners"), ("residuals", "Residuals"), ("crossval", "Cross-validation"),
             ("verification", "Verification (ball-bar)"), ("acceptance", "Acceptance test (VDI/VDE 2634 parts 2 and 3)"),
             ("truth", "Simulation truth"), ("provenance", "Provenance")]
 
@@ -185,12 +185,13 @@ def test_report_is_written_atomically_and_self_contained(rd):
     page = rd.report.load()
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     links = re.findall(r'\b(?:src|href)\s*=\s*["\']?([^"\'\s>]*)', page, re.I)
-    assert len(links) >= 5  # the navigation and the three images at least
+    assert len(links) >= 5  # the navigation and the images at least
     assert all(v.startswith("data:image/png;base64,") or v.startswith("#") for v in links), links
     for anchor in {v[1:] for v in links if v.startswith("#")}:
         assert f'id="{anchor}"' in page
     assert not re.search(r"<script|<link|<iframe|@import|url\(", page, re.I)
-    assert page.count("data:image/png;base64,") == 3  # two histograms and the ball-bar plot
+    # two histograms, the ball-bar plot and per scanner its residual and uncertainty maps
+    assert page.count("data:image/png;base64,") == 3 + 2 * len(SCANNERS)
     _well_formed(page)
 
 
@@ -230,7 +231,7 @@ def test_report_shows_the_numbers_of_the_run(rd):
     assert "true parameters (simulation)" in results and NO_TRUTH not in page
     assert f"{bs['bundle_seconds']:.2f} s" in results  # the adjustment's own wall time
 
-    params = _section(page, "parameters")
+    params = _section(page, "scanners")
     assert params.count("(fixed)") == 6  # the reference camera's external parameters
     assert params.count("±") == 4 * 14 - 6
     assert len(re.findall(r"<tr><td", params.split("Strongest correlations")[0])) == 2 * 14
@@ -251,7 +252,7 @@ def test_report_shows_the_numbers_of_the_run(rd):
         assert rows[p][2] == f"{REFERENCE_MM + cal:.4f} mm"
         assert rows[p][3] == f"{cal * 1000:.1f} µm" and rows[p][5] == f"{true * 1000:.1f} µm"
     head = page.split("<nav>")[0]
-    assert '<span class="badge pass">PASS</span>' in head
+    assert '<span class="badge pass">ACCEPTED</span>' in head
     assert execution["created_utc"] in head and CREATED not in page  # the execution passed in, not the summary's
 
     timing = _section(page, "timing")
@@ -289,21 +290,144 @@ def test_report_shows_the_numbers_of_the_run(rd):
     assert str(rd.root) not in page  # no absolute path of the machine that wrote it
 
 
-def test_sections_and_key_figures_in_order(rd):
+def test_sections_in_order_after_the_certificate(rd):
     page = render_report(rd, TIMINGS, generated="2026-05-06 07:08:09")
     assert re.findall(r'<section id="([^"]+)">\s*<h2>([^<]*)</h2>', page) == SECTIONS
     nav = re.search(r"<nav>(.*?)</nav>", page, re.S).group(1)
     assert re.findall(r'<a href="#([^"]+)">([^<]*)</a>', nav) == SECTIONS
-    header = page.split("<nav>")[0]
-    assert "<title>Calibration report: thesis</title>" in header
-    assert re.search(r"<h1>Multi-scanner calibration report: thesis <span class=\"badge pass\">PASS</span></h1>", header)
-    bs = rd.bundle_summary.load()
-    assert re.findall(r"<div>[^<]*(?:<sub>\d</sub>[^<]*)*<b>([^<]*)</b></div>", header) == [
-        f"{bs['after']['rms_eps2_mm'] * 1000:.1f} µm", f"1 part in {bs['one_part_in_1p96_sigma']:,.0f}", "47.0 µm",
-        f"1 part in {DIAGONAL_MM / 0.047:,.0f}", "100.0 µm"]
-    assert "<th>Report written (UTC)</th><td>2026-05-06 07:08:09</td>" in header
+    assert page.index('<header id="certificate"') < page.index("<nav>")
+    assert "<title>Calibration report: thesis</title>" in page
     assert page.rstrip().endswith("on 2026-05-06 07:08:09 UTC from the files of the run directory run.</p></footer>\n"
                                   "</body>\n</html>")
+
+
+def _certificate(page: str) -> str:
+    m = re.search(r'<header id="certificate" class="certificate">(.*?)</header>', page, re.S)
+    assert m
+    return m.group(1)
+
+
+def _cells(html_: str) -> list[list[str]]:
+    return [[re.sub(r"<[^>]+>", "", c.replace("<br>", " ")).strip() for c in re.findall(r"<t[dh][^>]*>(.*?)</t[dh]>", r, re.S)]
+            for r in re.findall(r"<tr>(.*?)</tr>", html_, re.S)]
+
+
+IDENTITY = {"customer": "Acme Aero GmbH", "cell": "hall 3, wing jig", "place": "Bremen", "date": "2026-11-20",
+            "operator": "R. Tarvaz", "scanners": {"scanner1": "FP-0042"},
+            "artefact_certificate": {"number": "CMM-2026-117", "date": "2026-10-02", "issuer": "PTB"},
+            "ballbar_certificate": {"number": "BB-88"}, "temperatures_c": {"air": 20.4, "artefact": 20.1},
+            "approved_by": "Q. Manager"}
+
+
+def test_certificate_page_states_identity_verdict_components_chain_and_approval(rd):
+    config = _config(simulate={"acquisition": {"camera_width_px": 512}}, certificate=IDENTITY)
+    rd.manifest.save(_manifest(config, "simulated", {"configs/thesis/artefact_cmm2.csv": "ab" * 32}))
+    cert = _certificate(render_report(rd, TIMINGS, generated="2026-05-06 07:08:09"))
+    assert re.search(r'<h1>Calibration certificate <span class="badge pass">ACCEPTED</span></h1>', cert)
+    number = re.search(r"Certificate No\. <b>(FC-[0-9A-F]{4}-[0-9A-F]{4}-[0-9A-F]{4})</b>", cert).group(1)
+    rows = {r[0]: r[1] for r in _cells(cert.split('<table class="kv identity">')[1].split("</table>")[0])}
+    assert rows["Customer"] == "Acme Aero GmbH" and rows["Cell"] == "hall 3, wing jig" and rows["Place"] == "Bremen"
+    assert rows["Date of calibration"] == "2026-11-20" and rows["Operator"] == "R. Tarvaz"
+    assert rows["Scanners"] == "scanner1: serial FP-0042; scanner2: serial ______"  # a serial not stated: a blank
+    assert rows["Artefact (CMM) certificate"] == "CMM-2026-117 (2026-10-02, PTB)"
+    assert rows["Ball-bar certificate"] == "BB-88" and rows["Acceptance objects certificate"] == ""
+    assert rows["Temperatures"] == "air 20.4 °C, artefact 20.1 °C"
+    assert "A simulated run (simulation profile ideal): this certificate certifies no physical cell." in cert
+    # the verdict with its rule, and the ball-bar's component: the largest |error| of CAL_ERRORS_MM with its U
+    assert "<b>Verdict: ACCEPTED</b>" in cert and "ISO 14253-1 per component" in cert
+    table = _cells(cert.split('<table class="verdicts">')[1].split("</table>")[0])
+    assert table[0] == ["Quality parameter", "scanner1", "scanner2", "MPE"]
+    assert table[1] == ["ball-bar lengths of the ball-bar verification (9 positions)",
+                        "47.0 µm (U 50.0 µm) conformance, 9 pos.", "100.0 µm"]
+    chain = re.findall(r"<li><b>([^<]*)</b><br>([^<]*)</li>", cert)
+    assert [c[0] for c in chain] == ["CMM certificate", "Artefact", "Calibration", "Lengths"]
+    assert chain[0][1] == "CMM-2026-117 (2026-10-02, PTB)" and chain[1][1].startswith("15 spheres, artefact.csv")
+    bs = rd.bundle_summary.load()
+    assert f"{bs['n_control_points']:,} control points in {bs['n_measurements']} measurements" in chain[2][1]
+    assert chain[3][1] == "ball-bar 1015.6500 mm (certificate BB-88), 9 lengths measured, largest |error| 47.0 µm"
+    assert "Name: R. Tarvaz" in cert and "Name: Q. Manager" in cert and cert.count("Signature:") == 2
+    # the number follows the results: the same files give the same number, another verification another
+    again = _certificate(render_report(rd, TIMINGS, generated="2027-01-01 00:00:00"))
+    assert number in again
+    ver = rd.verification.load()
+    ver["calibrated"]["positions"][0]["error_mm"] = 0.022
+    rd.verification.save(ver)
+    assert number not in _certificate(render_report(rd, TIMINGS))
+
+
+def test_certificate_without_identity_leaves_fields_to_fill_in(rd):
+    cert = _certificate(render_report(rd, TIMINGS))
+    rows = _cells(cert.split('<table class="kv identity">')[1].split("</table>")[0])
+    blank = [r[0] for r in rows if r[1] == ""]
+    assert blank == ["Customer", "Cell", "Place", "Operator", "Artefact (CMM) certificate", "Ball-bar certificate",
+                     "Acceptance objects certificate", "Temperatures"]
+    assert cert.count('<td class="blank">') == len(blank)
+    assert "Date of calibration</th><td>2026-01-02 (run started)" in cert  # the summary's execution
+
+
+def test_scanner_sections_show_maps_from_the_binned_residuals(rd):
+    """The bundle step's binned table holds every control point once per sensor, with the
+    residuals' RMS per cell; the report draws each scanner's maps from it."""
+    bins = rd.residuals_binned.load()
+    per_sphere = rd.residuals_per_sphere.load()
+    for scanner in SCANNERS:
+        mine = bins[bins.scanner == scanner]
+        n = int(per_sphere[per_sphere.scanner == scanner]["n_points"].sum())
+        for role in ("camera", "projector"):
+            part = mine[mine.role == role]
+            assert part["n_points"].sum() == n  # every point once over each sensor's image
+            # the RMS over all cells equals the RMS over the points (per-sphere table, same points)
+            rms = np.sqrt((part["n_points"] * part["rms_eps2_mm"] ** 2).sum() / n)
+            expected = np.sqrt((per_sphere[per_sphere.scanner == scanner].eval("n_points * rms_eps2_mm ** 2")).sum() / n)
+            assert rms == pytest.approx(expected, rel=1e-9)
+        cam = mine[mine.role == "camera"]
+        width = rd.calibration.load().scanner(scanner).camera.format.width_px
+        assert (cam.nx == 16).all() and cam.u_px.between(0, width).all()
+    cells = bins.drop_duplicates("sensor").eval("nx * ny").sum()
+    assert not bins.duplicated(["sensor", "ix", "iy"]).any() and len(bins) <= cells  # one row per cell, not per point
+    section = _section(render_report(rd, TIMINGS), "scanners")
+    for scanner in SCANNERS:
+        assert f"<h3>Scanner {scanner}</h3>" in section
+        assert f'alt="residuals and control points over the images of {scanner}"' in section
+        assert f'alt="uncertainty of a measured point over the camera image of {scanner}"' in section
+    assert "the depths of the artefact spheres that gave control points" in section  # no specification
+    assert "Not available: acceptance.json is not in the run directory." in section
+
+
+def test_uncertainty_map_is_the_propagated_covariance_at_each_depth(rd):
+    """The map's value at a cell is the point's u from the covariance through the
+    triangulation (a point straight ahead, checked against an independent Jacobian)."""
+    from fringecal.calibration.file import read_calibration
+    from fringecal.calibration.propagation import (
+        frame_free_covariance,
+        scanner_block,
+        triangulate_mm,
+        uncertainty_at_depth,
+    )
+
+    cal = read_calibration(rd.calibration.path)
+    rig = cal.rig
+    cov = scanner_block(frame_free_covariance(rig, cal.covariances.total), rig, "scanner2")
+    sc = rig.scanner("scanner2")
+    m = uncertainty_at_depth(sc, cov, 2600.0, nx=4)
+    assert m.u_mm.shape == (4, 4)  # a square camera: 4 x 4 cells
+    cam_mm = sc.camera.format.pixel_to_mm(np.array([[m.u_px[1], m.v_px[1]]]))
+    origin, d = sc.camera.rays(cam_mm)
+    X = origin + d * 2600.0 / (d @ sc.camera.R[2])
+    assert sc.camera.to_sensor(X)[0, 2] == pytest.approx(2600.0)
+    prj = sc.projector.project(X)
+    p0 = np.concatenate([sc.camera.params, sc.projector.params])
+    J = np.zeros((3, 28))
+    for j in range(28):
+        h = 1e-7 * max(1.0, abs(p0[j]))
+        plus, minus = p0.copy(), p0.copy()
+        plus[j] += h
+        minus[j] -= h
+        J[:, j] = (triangulate_mm(type(sc)(sc.name, sc.camera.with_params(plus[:14]),
+                                            sc.projector.with_params(plus[14:])), cam_mm, prj)[0]
+                   - triangulate_mm(type(sc)(sc.name, sc.camera.with_params(minus[:14]),
+                                             sc.projector.with_params(minus[14:])), cam_mm, prj)[0]) / (2 * h)
+    assert m.u_mm[1, 1] == pytest.approx(np.sqrt(np.trace(J @ cov @ J.T)), rel=1e-3)
 
 
 def test_print_style_sheet_repeats_headers_and_hides_the_navigation(rd):
@@ -318,7 +442,9 @@ def test_print_style_sheet_repeats_headers_and_hides_the_navigation(rd):
     tables = re.findall(r"<table([^>]*)>\s*(<\w+)", page)
     assert len(tables) > 20
     assert {(attrs, first) for attrs, first in tables} <= {("", "<thead"), (' class="long"', "<thead"),
-                                                           (' class="kv"', "<tr")}
+                                                           (' class="kv"', "<tr"), (' class="kv identity"', "<tr"),
+                                                           (' class="verdicts"', "<thead"),
+                                                           (' class="approval"', "<thead")}
     # a table of more than 25 rows may break across pages, a shorter one is kept whole
     residuals = _section(page, "residuals")
     assert residuals.count('<table class="long">') == 1 and "All " in residuals
@@ -326,7 +452,7 @@ def test_print_style_sheet_repeats_headers_and_hides_the_navigation(rd):
 
 def test_templates_are_package_data():
     names = {p.name for p in (files("fringecal.report") / "templates").iterdir()}
-    assert {"base.html.j2", "macros.html.j2", "header.html.j2", "report.css"} <= names
+    assert {"base.html.j2", "macros.html.j2", "certificate.html.j2", "report.css"} <= names
     assert {f"{anchor}.html.j2" for anchor, _ in SECTIONS} <= names
     pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
     assert "report/templates/*" in pyproject["tool"]["setuptools"]["package-data"]["fringecal"]
@@ -395,7 +521,7 @@ def test_missing_optional_files_give_notes(rd):
     assert f"Timings from {rd.summary.rel}" in timing and "120.5 s (2 min 0 s)" in timing
     assert "181.0 s (3 min 1 s)" in timing
     assert CREATED in page.split("<nav>")[0] and COMMAND in _section(page, "provenance")
-    assert page.count("data:image/png;base64,") == 1
+    assert page.count("data:image/png;base64,") == 1 + 2 * len(SCANNERS)  # eps1's histogram and the maps
     assert "Could not be shown" not in page
     _well_formed(page)
 
@@ -445,7 +571,8 @@ def test_a_dataset_run_says_there_is_no_truth(rd):
     assert "not moved by a hexapod here" in rig and "recorded data set /data/cell-a" in rig
     assert "Read from the data set" in rig and "42 image stacks or stores" in rig and "px wide" not in rig
     assert "recorded data set /data/cell-a" in page.split("<nav>")[0]
-    assert '<span class="badge pass">PASS</span>' in page.split("<nav>")[0]
+    assert '<span class="badge pass">ACCEPTED</span>' in page.split("<nav>")[0]
+    assert "simulated run" not in page.split("<nav>")[0]
     assert "ef" * 32 in _section(page, "provenance")
     _well_formed(page)
 
@@ -460,7 +587,7 @@ def test_malformed_file_is_named_and_the_rest_is_shown(rd):
     rig = _section(page, "rig")
     assert "Could not be shown" in rig and rd.hexapod_moves.rel in rig and "translation_error_mm" in rig
     assert "24 from 12 artefact poses" in rig  # the acquisition table is still shown
-    assert _section(page, "parameters").count("(fixed)") == 6
+    assert _section(page, "scanners").count("(fixed)") == 6
     assert str(rd.root) not in page
     _well_formed(page)
 
@@ -508,6 +635,10 @@ def test_cli_rewrites_the_report(rd, tmp_path):
     timing = _section(page, "timing")
     assert f"Timings from {rd.summary.rel}" in timing and "181.0 s" in timing and "120.5 s" in timing
     assert CREATED in page.split("<nav>")[0] and COMMAND in _section(page, "provenance")
+    res = runner.invoke(app, ["report", "--run", str(rd.root), "--pdf", str(tmp_path / "r.pdf")],
+                        env={"FRINGECAL_CHROMIUM": str(tmp_path / "no-chromium")})
+    assert res.exit_code == 2 and "cannot write a PDF without headless Chromium" in res.output.replace("\n", "")
+    assert "apt-get install chromium" in res.output.replace("\n", "") and not (tmp_path / "r.pdf").exists()
     res = runner.invoke(app, ["report", "--run", str(tmp_path / "nowhere")])
     assert res.exit_code == 2 and "no such run directory" in res.output
     empty = tmp_path / "empty"

@@ -421,3 +421,23 @@ def test_a_data_set_supplies_name_reference_and_processing_overrides(small_datas
     own.write_text(yaml.safe_dump({"control_points": {"spacing_px": 2}, "bundle": {"gamma2": 0.5}}))
     cfg = load_run_config(own, dataset=data)  # the run config's keys win over dataset.yaml's
     assert cfg.control_points.spacing_px == 2 and cfg.bundle.gamma2 == 0.5 and cfg.dataset == data.resolve()
+
+
+@pytest.mark.flow
+@pytest.mark.slow
+def test_benchmarks_that_read_a_run_directory_run_on_this_run(first_run, tmp_path):
+    """The smoke tier (tests/test_benchmarks.py) of the benchmarks that read a finished
+    simulated run: extraction against the renderer's truth, the split of each length's
+    error (the evaluate step's true-rig figures) and the processing steps timed again."""
+    from test_benchmarks import run_benchmark
+
+    run_dir, summary = first_run
+    extraction = run_benchmark("extraction_accuracy", [str(run_dir), "--smoke"], tmp_path / "e.json")
+    assert len(extraction["measurements"]) == 2 and extraction["all_fully_visible_found_and_labelled"]
+    # each labelled sphere's kept pixels fit a centre on that sphere (320 px: a few 100 um of noise, 25 mm radius)
+    assert extraction["centre_error_true_sensors_um"]["all_labelled"]["max"] < 1000
+    split = run_benchmark("coverage_split", [str(run_dir), "--smoke"], tmp_path / "c.json")
+    lengths = json.loads((run_dir / "verification.json").read_text())["uncertainty"]["lengths"]
+    assert sorted(split["positions"]) == sorted(length["measurement"] for length in lengths)
+    scale = run_benchmark("thesis_scale", [str(run_dir), "--smoke"], tmp_path / "t.json")
+    assert set(scale["steps_s"]) == {"initialise", "bundle"} and scale["n_control_points"] == summary["n_control_points"]

@@ -217,6 +217,7 @@ def _wait_for_a_finished_scheduled_run(url: str, proc: subprocess.Popen, log: Pa
             if run["deployment_id"] and (run["state_type"] == "COMPLETED" or verdict):
                 return run
             if run["state_type"] in ("FAILED", "CRASHED"):
-                pytest.fail(f"scheduled run {run['name']} {run['state_type']}:\n{_tail(log, 80)}")
+                message = (run.get("state") or {}).get("message", "")
+                pytest.fail(f"scheduled run {run['name']} {run['state_type']} ({message}):\n{_tail(log, 80)}")
         time.sleep(2)
     pytest.fail(f"no scheduled run finished within {RUN_DEADLINE_S} s (runs: {seen}):\n{_tail(log, 80)}")

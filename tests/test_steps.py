@@ -68,17 +68,39 @@ def test_an_input_table_edited_in_place_reruns_the_steps_that_read_it(data_run):
     assert steps_that_ran(restored) == {"ingest", "spheres-second", "report"}
 
 
-def test_planned_poses_edited_in_place_rerun_ingest_and_labelling_only(data_run):
+def test_planned_poses_edited_or_deleted_rerun_ingest_and_labelling_only(data_run):
+    """A plan 1 mm off singles out the same labels: ingest and the labelling rerun, nothing
+    else. The plan deleted (issue 28): every view of the small thesis rig whose spheres
+    decide it is labelled from the scanners' views alone -- the link both scanners' possible
+    labellings agree on in every measurement, then each measurement by both views together
+    (in measurement 12 scanner1's ambiguous triangle by scanner2's two spheres) -- exactly
+    as with the plan; scanner2's two spheres of measurement 12 stay unlabelled, as with the
+    plan. Only the report reruns besides, and the calibration is the same file, to the
+    last byte (tolerance zero)."""
     data, rd, _ = data_run
     poses = data / "poses_planned.csv"
-    original = poses.read_text()
+    original = poses.read_bytes()
+    planned_labels, planned_out = rd.sphere_fits_labelled.load(), rd.label_outcomes.load()
+    calibration = (rd.root / "calibration.json").read_bytes()
     try:
         df = pd.read_csv(poses)
-        df.loc[0, "tx_mm"] += 1.0  # a plan 1 mm off still singles out the same labels
+        df.loc[0, "tx_mm"] += 1.0
         df.to_csv(poses, index=False)
         assert steps_that_ran(run_pipeline(rd, load_run_config(dataset=data))) == {"ingest", "label"}
+        poses.unlink()
+        records = run_pipeline(rd, load_run_config(dataset=data))
+        assert not rd.poses_planned.exists()
+        out = rd.label_outcomes.load()
+        labelled = out["status"] == "labelled"
+        assert labelled.sum() == 7 and set(out.loc[labelled, "method"]) == {"linked pose"}
+        assert list(out["status"]) == list(planned_out["status"])
+        assert list(out.loc[~labelled, "reason"]) == ["too_few_candidates"]
+        assert "scanner1, scanner2 together" in out.loc[(out["measurement"] == "12") & labelled, "message"].iloc[0]
+        assert rd.sphere_fits_labelled.load()["sphere_id"].equals(planned_labels["sphere_id"])
+        assert steps_that_ran(records) == {"ingest", "label", "report"}
+        assert (rd.root / "calibration.json").read_bytes() == calibration
     finally:
-        poses.write_text(original)
+        poses.write_bytes(original)
     run_pipeline(rd, load_run_config(dataset=data))
 
 

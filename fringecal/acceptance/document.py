@@ -11,9 +11,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
-from fringecal.acceptance.evaluate import VALUE_COLUMNS, certificate, form_u
+from fringecal.acceptance.evaluate import DEPTH_COLUMNS, VALUE_COLUMNS, certificate, form_u
 from fringecal.acceptance.measure import AcceptanceMeasurementError, measure_flat_store, measure_sphere_store
-from fringecal.acceptance.standards import AcceptanceConfig, AcceptanceStandards
+from fringecal.acceptance.standards import AcceptanceConfig, AcceptanceStandards, ScannerSpecification
 from fringecal.rig import Rig
 from fringecal.spheres.robust import RejectionConfig
 from fringecal.verification.lengths import ballbar_lengths
@@ -21,7 +21,7 @@ from fringecal.verification.measure import measure_positions
 from fringecal.verification.settings import LengthUncertaintyConfig
 from fringecal.verification.uncertainty import ballbar_uncertainty
 
-__all__ = ["acceptance_document", "measure_acceptance", "length_values"]
+__all__ = ["acceptance_document", "measure_acceptance", "length_values", "camera_depths", "outside_volume"]
 
 
 def length_values(budget: dict | None, lengths: pd.DataFrame, parameter: str, test: str, k: float,
@@ -39,6 +39,11 @@ def length_values(budget: dict | None, lengths: pd.DataFrame, parameter: str, te
     return rows
 
 
+def camera_depths(rig: Rig, scanner: str, points) -> np.ndarray:
+    """Depths (mm) of world points (n, 3) along ``scanner``'s camera axis."""
+    return rig.scanner(scanner).camera.to_sensor(np.atleast_2d(np.asarray(points, float)))[:, 2]
+
+
 def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict], list[dict]]:
     position, scanner, store = job
     k = config.coverage_factor
@@ -47,19 +52,42 @@ def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict
             s = standards.sphere
             m = measure_sphere_store(store, rig.scanner(scanner), s, config.exclude_fraction,
                                      config.max_incidence_deg, rejection)
+            depth = float(camera_depths(rig, scanner, m.centre)[0])
             return [{"test": kind, "parameter": "P_F", "position": position, "scanner": scanner,
                      "value_mm": m.form_mm, "U_mm": k * form_u(s.form_mm), "n_points": m.n_points,
-                     "n_excluded": m.n_excluded},
+                     "n_excluded": m.n_excluded, "depth_mm": depth},
                     {"test": kind, "parameter": "P_S", "position": position, "scanner": scanner,
                      "value_mm": m.size_mm, "U_mm": k * float(np.hypot(s.diameter_u_mm, m.diameter_u_fit_mm)),
-                     "n_points": m.n_points, "n_excluded": m.n_excluded}], []
+                     "n_points": m.n_points, "n_excluded": m.n_excluded, "depth_mm": depth}], []
         f = standards.flat
         m = measure_flat_store(store, rig.scanner(scanner), f, config.exclude_fraction, config.max_incidence_deg)
         return [{"test": kind, "parameter": "F", "position": position, "scanner": scanner,
                  "value_mm": m.flatness_mm, "U_mm": k * float(np.hypot(form_u(f.flatness_mm), f.flatness_u_mm)),
-                 "n_points": m.n_points, "n_excluded": m.n_excluded}], []
+                 "n_points": m.n_points, "n_excluded": m.n_excluded,
+                 "depth_mm": float(camera_depths(rig, scanner, m.point)[0])}], []
     except AcceptanceMeasurementError as err:
         return [], [{"test": kind, "position": position, "scanner": scanner, "reason": str(err)}]
+
+
+def outside_volume(values: pd.DataFrame, specification: ScannerSpecification) -> tuple[pd.DataFrame, list[dict]]:
+    """The values whose position lies in the specified measuring volume, and one
+    failure (not judged) per position outside it; values without a depth (E, across
+    scanners) are kept. A dumbbell position is inside when both its spheres are."""
+    if specification.depth_range_mm is None or "depth_mm" not in values:
+        return values, []
+    near, far = specification.depth_range_mm
+    depth = values["depth_mm"].astype(float)
+    low = depth.where(values["depth_near_mm"].isna(), values["depth_near_mm"]) if "depth_near_mm" in values \
+        else depth
+    out = depth.notna() & ((low < near) | (depth > far))
+    failures = []
+    for (test, position, scanner), g in values[out].groupby(["test", "position", "scanner"], sort=False):
+        lo, hi = float(low[g.index].min()), float(depth[g.index].max())
+        where = f"{lo:.0f} mm" if abs(hi - lo) < 0.5 else f"{lo:.0f}-{hi:.0f} mm"
+        failures.append({"test": test, "position": position, "scanner": scanner,
+                         "reason": f"outside the specified measuring volume (camera depth {where}, the "
+                                   f"specification's {near:g}-{far:g} mm): not judged"})
+    return values[~out].reset_index(drop=True), failures
 
 
 def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, length_config, covariance,
@@ -103,8 +131,13 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
             cfg = length_config.model_copy(update={"monte_carlo_draws": 0, "coverage_factor": config.coverage_factor})
             budget = ballbar_uncertainty(centres, pixels, stores["dumbbell"], rig, lengths, bell.length_mm,
                                          covariance, cfg, config.limits.SD, bell.length_u_mm, ("A", "B"), workers)
-        rows += length_values(budget, lengths, "SD", "dumbbell", config.coverage_factor, cell=False)
-    return pd.DataFrame(rows, columns=VALUE_COLUMNS), failures
+        sd = length_values(budget, lengths, "SD", "dumbbell", config.coverage_factor, cell=False)
+        for row in sd:
+            ends = centres[(centres["position"].astype(str) == row["position"])]
+            z = camera_depths(rig, row["scanner"].split("/")[0], ends[["x_mm", "y_mm", "z_mm"]].to_numpy(float))
+            row["depth_near_mm"], row["depth_mm"] = float(z.min()), float(z.max())
+        rows += sd
+    return pd.DataFrame(rows, columns=VALUE_COLUMNS + DEPTH_COLUMNS), failures
 
 
 def acceptance_document(rig: Rig, standards: AcceptanceStandards, config: AcceptanceConfig, rejection: dict,
@@ -117,12 +150,14 @@ def acceptance_document(rig: Rig, standards: AcceptanceStandards, config: Accept
     ``calibrated`` positions and their ``uncertainty``, as ``verification.json`` holds
     them) when given; ``positions`` are where the objects stood, for the report."""
     values, failures = measure_acceptance(stores, rig, standards, config, rejection, length_config, covariance)
+    values, outside = outside_volume(values, config.specification)
+    failures += outside
     if verification is not None:
         e = _e_values(verification, config.coverage_factor)
         values = pd.concat([values, e], ignore_index=True) if len(values) else e
     scanners = [s.name for s in rig.scanners]
     doc = certificate(values, config.limits, config.coverage_factor, config.exclude_fraction, scanners, failures,
-                      list(positions))
+                      list(positions), config.specification)
     return doc, values
 
 

@@ -36,13 +36,17 @@ import math
 
 import pandas as pd
 
-from fringecal.acceptance.standards import PARAMETERS, AcceptanceLimits
+from fringecal.acceptance.standards import PARAMETERS, AcceptanceLimits, ScannerSpecification
 from fringecal.verification.uncertainty import iso14253_verdict
 
-__all__ = ["VALUE_COLUMNS", "verdict", "parameters", "certificate", "form_u", "CELL"]
+__all__ = ["VALUE_COLUMNS", "DEPTH_COLUMNS", "verdict", "parameters", "certificate", "form_u", "CELL"]
 
 #: Columns of the raw values table.
 VALUE_COLUMNS = ["test", "parameter", "position", "scanner", "value_mm", "U_mm", "n_points", "n_excluded"]
+#: Where a position's object was, at the calibrated camera's depth (mm): ``depth_mm``
+#: (the sphere's centre, the flat's centroid, the dumbbell's farther sphere) and, for
+#: the dumbbell, ``depth_near_mm`` (its nearer sphere); empty for E.
+DEPTH_COLUMNS = ["depth_near_mm", "depth_mm"]
 
 #: The ``scanner`` of a parameter of the whole cell (part 3).
 CELL = "cell"
@@ -114,22 +118,40 @@ def parameters(values: pd.DataFrame, limits: AcceptanceLimits, scanners=()) -> l
     return out
 
 
+def _records(values: pd.DataFrame) -> list[dict]:
+    """The values as JSON records, with their depths where known (NaN left out)."""
+    cols = VALUE_COLUMNS + [c for c in DEPTH_COLUMNS if c in values]
+    out = []
+    for r in values[cols].to_dict("records"):
+        for c in DEPTH_COLUMNS:
+            if c in r and not (isinstance(r[c], float) and math.isfinite(r[c])):
+                del r[c]
+        out.append(r)
+    return out
+
+
 def certificate(values: pd.DataFrame, limits: AcceptanceLimits, coverage_factor: float, exclude_fraction: float,
-                scanners=(), failures: list | None = None, positions: list | None = None) -> dict:
-    """The acceptance document (``acceptance.json``): the parameters, whether the cell
-    is accepted (every limited parameter's conformance proven), the settings it was
-    evaluated with, the raw values, the positions and what could not be measured."""
+                scanners=(), failures: list | None = None, positions: list | None = None,
+                specification: ScannerSpecification | None = None) -> dict:
+    """The acceptance document (``acceptance.json``): the scanner specification it
+    checks (its name, measuring volume and MPEs), the parameters, whether the cell is
+    accepted (every limited parameter's conformance proven), the settings it was
+    evaluated with, the raw values, the positions and what could not be measured or
+    judged."""
     params = parameters(values, limits, scanners)
     limited = [p for p in params if p["mpe_mm"] is not None]
+    spec = specification or ScannerSpecification()
     return {
         "standard": "VDI/VDE 2634 parts 2 and 3",
         "decision_rule": "ISO 14253-1 (conformance proven: |value| + U <= MPE)",
+        "specification": {"name": spec.name, "depth_range_mm": None if spec.depth_range_mm is None
+                          else [float(d) for d in spec.depth_range_mm], "mpe_mm": limits.model_dump()},
         "coverage_factor": float(coverage_factor),
         "exclude_fraction": float(exclude_fraction),
         "accepted": bool(limited) and all(p["verdict"] == "conformance" for p in limited),
         "within_mpe": bool(limited) and all(p["within_mpe"] for p in limited),
         "parameters": params,
-        "values": values[VALUE_COLUMNS].to_dict("records"),
+        "values": _records(values),
         "positions": positions or [],
         "failures": failures or [],
     }

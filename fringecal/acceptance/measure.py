@@ -28,7 +28,20 @@ points belong to the object is the evaluator's segmentation, stated here):
 - Then, for both: a least-squares fit (free radius; total least squares plane), the
   ``exclude_fraction`` of points with the largest residuals removed, half from each
   end (the 0.3 % of the guideline), the fit repeated on the points kept, and the
-  range of its residuals is P_F or F. P_S is the fitted diameter minus the calibrated.
+  range of its residuals is P_F or F.
+- **P_S** is the fitted diameter minus the calibrated, the diameter of a free-radius
+  sphere fitted to the same kept points **along the camera's lines of sight**
+  (:func:`sphere_along_rays`) when the camera is known. A fringe-projection point is
+  noisy along the camera ray through its pixel (the phase moves it along that ray,
+  the pixel does not move), not across it. The guideline's orthogonal (Gaussian)
+  fit of a partial cap treats that noise as if it were radial: near the rim it
+  moves the points sideways, the fit's centre slides toward the camera and the
+  radius shrinks. On the demo's far positions (3.6 m, 0.4 mm RMS along the rays)
+  that bias is -0.11 mm of diameter, while the points themselves are unbiased; the
+  fit along the rays, whose residual is each point's distance along its ray to the
+  sphere, is the maximum-likelihood fit of that noise and has no such bias
+  (docs/acceptance.md, *P_S at the far positions*). The orthogonal fit's diameter
+  is kept beside it (``diameter_orthogonal_mm``).
 """
 
 from __future__ import annotations
@@ -37,6 +50,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.optimize import least_squares
 
 from fringecal.acceptance.standards import FlatStandard, SphereStandard
 from fringecal.artefact import Artefact
@@ -46,7 +60,8 @@ from fringecal.spheres.regions import boundary_flags
 from fringecal.verification.ballbar import SightingConfig, find_sightings
 from fringecal.verification.measure import store_maps
 
-__all__ = ["SphereMeasurement", "FlatMeasurement", "trim_by_residual", "probe_sphere", "probe_flat",
+__all__ = ["SphereMeasurement", "FlatMeasurement", "RaySphere", "trim_by_residual", "sphere_along_rays",
+           "probe_sphere", "probe_flat",
            "measure_sphere_store", "measure_flat_store", "AcceptanceMeasurementError"]
 
 #: Distance (mm) from the robust object within which points belong to it.
@@ -68,7 +83,12 @@ class AcceptanceMeasurementError(ValueError):
 
 @dataclass(frozen=True)
 class SphereMeasurement:
-    """P_F and P_S of one sphere measurement (mm), with the fit they come from."""
+    """P_F and P_S of one sphere measurement (mm), with the fits they come from.
+
+    ``centre``, ``diameter_mm`` and ``diameter_u_fit_mm`` are those of the fit that
+    gives P_S (along the camera rays when the camera is known, else the orthogonal
+    one); ``diameter_orthogonal_mm`` (and its ``diameter_u_orthogonal_mm``) is the
+    guideline's orthogonal fit's, whose residuals give P_F and ``rms_mm``."""
 
     centre: np.ndarray
     diameter_mm: float
@@ -78,6 +98,9 @@ class SphereMeasurement:
     rms_mm: float
     n_points: int
     n_excluded: int
+    diameter_orthogonal_mm: float = float("nan")
+    diameter_u_orthogonal_mm: float = float("nan")
+    fit: str = "orthogonal"  # the fit P_S comes from: "orthogonal" or "along camera rays"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -122,8 +145,87 @@ def trim_by_residual(residuals, exclude_fraction: float) -> np.ndarray:
     return keep
 
 
-def probe_sphere(points, standard: SphereStandard, exclude_fraction: float = 0.003) -> SphereMeasurement:
-    """P_F and P_S of the points (n, 3) of one sphere measurement (mm).
+@dataclass(frozen=True)
+class RaySphere:
+    """A sphere fitted along lines of sight: centre (3,), radius and its standard
+    uncertainty (heteroscedasticity-consistent: the noise along a ray differs from
+    point to point), RMS of the residuals along the rays (mm)."""
+
+    centre: np.ndarray
+    radius: float
+    radius_u: float
+    rms_along_rays: float
+
+
+def sphere_along_rays(points, origin, centre, radius: float) -> RaySphere:
+    """The least-squares sphere of ``points`` (n, 3) whose residual is each point's
+    distance along its line of sight from ``origin`` (the camera's projection centre)
+    to the sphere's near surface: the maximum-likelihood sphere when the points are
+    noisy along their rays only. ``centre`` and ``radius`` start it (the orthogonal fit).
+
+    A ray that misses the sphere (never, near the optimum, for points seen at an
+    incidence below 90 degrees) is measured to its closest approach.
+
+    Raises
+    ------
+    FitError
+        Fewer than 5 points, or the fit does not converge.
+
+    Examples
+    --------
+    A cap of a 127 mm sphere seen from 3.6 m, its points exactly on the sphere, started
+    from a sphere 2 mm off: the fit finds it (``tests/test_acceptance_values.py`` shows
+    that, with noise along the rays, the orthogonal fit is biased and this one is not).
+
+    >>> u = np.random.default_rng(3).normal(size=(3000, 3)); u /= np.linalg.norm(u, axis=1, keepdims=True)
+    >>> u = u[u[:, 2] < -np.cos(np.radians(64))]                # the cap facing the camera
+    >>> s = sphere_along_rays([0.0, 0.0, 3600.0] + 63.5 * u, np.zeros(3), [1.0, 1.0, 3601.0], 62.5)
+    >>> (np.round(s.centre, 6) + 0.0).tolist(), round(s.radius, 6), s.rms_along_rays < 1e-9
+    ([0.0, 0.0, 3600.0], 63.5, True)
+    """
+    p = np.asarray(points, float)
+    if len(p) < 5:
+        raise FitError(f"sphere along rays: {len(p)} points, need at least 5")
+    o = np.asarray(origin, float)
+    v = p - o
+    t = np.linalg.norm(v, axis=1)
+    d = v / t[:, None]
+
+    def _parts(x):
+        c, r = x[:3], x[3]
+        b = d @ (c - o)
+        s = np.sqrt(np.maximum(b * b - (float(np.sum((o - c) ** 2)) - r * r), 1e-12))
+        return c, r, b, s
+
+    def residuals(x):
+        _, _, b, s = _parts(x)
+        return t - (b - s)
+
+    def jacobian(x):
+        c, r, b, s = _parts(x)
+        return np.column_stack([-(d - (b[:, None] * d - (c - o)) / s[:, None]), r / s])
+
+    fit = least_squares(residuals, np.r_[np.asarray(centre, float), float(radius)], jac=jacobian, method="lm",
+                        xtol=1e-12, ftol=1e-12)
+    if not fit.success:
+        raise FitError(f"sphere along rays: no convergence ({fit.message})")
+    # the noise along a ray grows toward the rim (less light, oblique incidence), where the
+    # radius also moves a point most: the heteroscedasticity-consistent covariance (HC1)
+    J, r = fit.jac, fit.fun
+    try:
+        A = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        raise FitError("sphere along rays: singular normal equations") from None
+    cov = A @ (J.T * r ** 2) @ J @ A * len(p) / max(len(p) - 4, 1)
+    return RaySphere(fit.x[:3].copy(), float(fit.x[3]), float(np.sqrt(max(cov[3, 3], 0.0))),
+                     float(np.sqrt(np.mean(fit.fun ** 2))))
+
+
+def probe_sphere(points, standard: SphereStandard, exclude_fraction: float = 0.003,
+                 origin=None) -> SphereMeasurement:
+    """P_F and P_S of the points (n, 3) of one sphere measurement (mm); ``origin``: the
+    projection centre of the camera that measured them (P_S then comes from the fit
+    along its rays, :func:`sphere_along_rays`; None: from the orthogonal fit).
 
     Examples
     --------
@@ -145,10 +247,15 @@ def probe_sphere(points, standard: SphereStandard, exclude_fraction: float = 0.0
     keep = trim_by_residual(np.linalg.norm(p - first.centre, axis=1) - first.radius, exclude_fraction)
     fit = SphereModel.from_estimate(p[keep]) if not keep.all() else first
     r = np.linalg.norm(p[keep] - fit.centre, axis=1) - fit.radius
-    diameter = 2 * float(fit.radius)
-    return SphereMeasurement(np.asarray(fit.centre, float), diameter, float(r.max() - r.min()),
-                             diameter - standard.diameter_mm, 2 * float(np.sqrt(fit.covariance[3, 3])),
-                             float(fit.rms), int(keep.sum()), int((~keep).sum()))
+    orthogonal = 2 * float(fit.radius)
+    centre, diameter, u = np.asarray(fit.centre, float), orthogonal, 2 * float(np.sqrt(fit.covariance[3, 3]))
+    how = "orthogonal"
+    if origin is not None:
+        rays = sphere_along_rays(p[keep], origin, fit.centre, fit.radius)
+        centre, diameter, u, how = rays.centre, 2 * rays.radius, 2 * rays.radius_u, "along camera rays"
+    return SphereMeasurement(centre, diameter, float(r.max() - r.min()), diameter - standard.diameter_mm, u,
+                             float(fit.rms), int(keep.sum()), int((~keep).sum()), orthogonal,
+                             2 * float(np.sqrt(fit.covariance[3, 3])), how)
 
 
 def probe_flat(points, exclude_fraction: float = 0.003, toward=None) -> FlatMeasurement:
@@ -227,7 +334,7 @@ def measure_sphere_store(store, scanner: Scanner, standard: SphereStandard, excl
     normals = (p - s.centre) / np.linalg.norm(p - s.centre, axis=1, keepdims=True)
     p = p[_incidence_ok(p, normals, scanner, max_incidence_deg)]
     try:
-        return probe_sphere(p, standard, exclude_fraction)
+        return probe_sphere(p, standard, exclude_fraction, origin=scanner.camera.pinhole)
     except (FitError, AcceptanceMeasurementError) as err:
         raise AcceptanceMeasurementError(f"{store}: sphere: {err}") from None
 

@@ -29,13 +29,13 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from fringecal.artefact import Artefact
 from fringecal.config import StrictModel, load_yaml_model
 
 __all__ = ["SphereStandard", "DumbbellStandard", "FlatStandard", "AcceptanceStandards", "AcceptanceLimits",
-           "AcceptanceConfig", "load_standards", "PARAMETERS", "STANDARDS_FILE"]
+           "ScannerSpecification", "AcceptanceConfig", "load_standards", "PARAMETERS", "STANDARDS_FILE"]
 
 #: Name of the certificate file of a data set's ``verification/acceptance/`` folder.
 STANDARDS_FILE = "standards.yaml"
@@ -104,9 +104,9 @@ class AcceptanceLimits(StrictModel):
     """Maximum permissible errors (mm) of the quality parameters; None: not limited
     (the value is reported, its verdict is the uncertainty zone).
 
-    The defaults are the demo's limits for the thesis rig (scanners with ~45 um RMS
-    phase-triangulation noise at 2.5 m over a 2.9 m cell, docs/acceptance.md), not a
-    manufacturer's specification: a real cell writes its own.
+    The defaults are placeholders of no specification; a cell states its scanners'
+    specification (``acceptance.specification`` with these limits), as the demo does in
+    ``configs/run_thesis.yaml`` (docs/acceptance.md).
     """
 
     P_F: Optional[float] = Field(0.5, gt=0)
@@ -114,6 +114,41 @@ class AcceptanceLimits(StrictModel):
     SD: Optional[float] = Field(0.1, gt=0)
     E: Optional[float] = Field(0.1, gt=0)
     F: Optional[float] = Field(0.5, gt=0)
+
+
+class ScannerSpecification(StrictModel):
+    """The scanner specification the acceptance test checks the cell against, beside its
+    MPEs (:class:`AcceptanceLimits`): what it is (``name``: a data sheet, a model and
+    its options) and its specified measuring volume.
+
+    ``depth_range_mm`` (near, far): the measuring volume as a range of depths along
+    each scanner's camera axis (its camera frame's z, mm), over the field both the
+    camera and the projector see. The MPEs hold inside it: a position whose object lies
+    outside (the sphere's or a dumbbell sphere's centre, the flat's centroid, at the
+    calibrated camera's depth) is listed as not judged, never part of a verdict, and a
+    simulation places its objects inside it. None: the volume the calibration covered.
+    """
+
+    name: Optional[str] = None
+    depth_range_mm: Optional[tuple[float, float]] = None
+
+    @field_validator("depth_range_mm")
+    @classmethod
+    def _near_before_far(cls, v):
+        if v is not None and not 0 < v[0] < v[1]:
+            raise ValueError(f"depth_range_mm {list(v)}: need 0 < near < far (mm along the camera axis)")
+        return v
+
+    def contains(self, depth_mm: float) -> bool:
+        """Whether a camera depth (mm) lies in the specified measuring volume (always,
+        without one; never for NaN).
+
+        >>> ScannerSpecification(depth_range_mm=(2300, 3000)).contains(2999.5), ScannerSpecification().contains(9e9)
+        (True, True)
+        """
+        if self.depth_range_mm is None:
+            return True
+        return bool(self.depth_range_mm[0] <= depth_mm <= self.depth_range_mm[1])
 
 
 class AcceptanceConfig(StrictModel):
@@ -125,9 +160,12 @@ class AcceptanceConfig(StrictModel):
     expands the standard uncertainties (k = 2). ``max_incidence_deg``: points of a
     sphere seen more obliquely than this (angle between the line of sight and the
     fitted normal) are not part of the probed surface [U], as the calibration does.
+    ``specification``: the scanner specification whose MPEs ``limits`` are, with its
+    measuring volume (:class:`ScannerSpecification`).
     """
 
     enabled: bool = True
+    specification: ScannerSpecification = Field(default_factory=ScannerSpecification)
     limits: AcceptanceLimits = Field(default_factory=AcceptanceLimits)
     exclude_fraction: float = Field(0.003, ge=0, lt=0.5)
     coverage_factor: float = Field(2.0, gt=0)

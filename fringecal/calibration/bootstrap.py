@@ -16,21 +16,33 @@ into the projector) plus the control point's own residual times a random sign
 (Rademacher weights: the wild bootstrap, which keeps every point's noise level). A
 point's sign in each replica is keyed by its own camera and projector coordinates
 (:mod:`fringecal.calibration.keyed`), not by its place in the problem, so that the
-replicas, and the bias they give, do not depend on the measurements' names or order.
-The adjustment of each replica starts from the calibration. The replicas' sensor
-parameters give, for any derived quantity ``q``, the bias ``mean(q*) - q`` (to be
-subtracted) and its spread ``std(q*)``.
+replicas, and the bias they give, do not depend on the measurements' names or order. The
+replicas' sensor parameters give, for any derived quantity ``q``, the bias
+``mean(q*) - q`` (to be subtracted) and its spread ``std(q*)``.
+
+A replica differs from the calibrated problem only in its projector observations, so
+its adjustment reuses everything else: the parameter layout, the groups and chunks of
+control points the kernels work through, the rotation increments, and the solution as
+the start. It is the adjustment's own minimisation (:func:`.bundle.minimise`: the same
+solver, tolerances and robust loss), without what a replica does not need: the checks
+of the start values and of the structure (the calibration passed them), the noise-floor
+test, the uncertainty and the diagnoses. The signs are drawn before any replica runs, so
+the replicas and their minima do not depend on how many run at once (``workers`` threads, each replica's kernels on one thread).
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import scipy.linalg
 
-from fringecal.calibration.bundle import BundleResult, bundle_adjust
+from fringecal.calibration.bundle import BundleResult, StartValueError, minimise
+from fringecal.calibration.increments import RotationIncrements
 from fringecal.calibration.keyed import keyed_signs, row_keys
+from fringecal.calibration.model import Evaluator
 from fringecal.rotation import rotation_matrix
+from fringecal.threads import numba_threads
 from fringecal.triangulation import sphere_hits
 
 __all__ = ["predicted_projector_mm", "bootstrap_calibrations"]
@@ -53,12 +65,12 @@ def predicted_projector_mm(result: BundleResult) -> np.ndarray:
     return out
 
 
-def bootstrap_calibrations(result: BundleResult, draws: int, seed: int = 0) -> np.ndarray:
+def bootstrap_calibrations(result: BundleResult, draws: int, seed: int = 0, workers: int = 1) -> np.ndarray:
     """Sensor parameters (draws, n_sensors, 14) of ``draws`` wild-bootstrap re-adjustments.
 
     Control points whose noise-free prediction does not exist (the ray misses the
     sphere) keep their observation unchanged. Every replica is adjusted with the
-    result's own options, from the result's parameters.
+    result's own options, from the result's parameters, ``workers`` at a time.
     """
     if draws <= 0:
         return np.empty((0,) + result.rig.params.shape)
@@ -67,11 +79,69 @@ def bootstrap_calibrations(result: BundleResult, draws: int, seed: int = 0) -> n
     ok = np.isfinite(predicted).all(axis=1)
     residual = np.where(ok[:, None], problem.prj_mm - predicted, 0.0)
     base = np.where(ok[:, None], predicted, problem.prj_mm)
-    start = problem.with_start(result.rig, result.poses)
-    options = result.options.model_copy(update={"start": "given"})
     keys = row_keys(problem.cam_mm, problem.prj_mm)
-    out = np.empty((draws,) + result.rig.params.shape)
-    for i in range(draws):
-        signs = keyed_signs(keys, seed, i)[:, None]
-        out[i] = bundle_adjust(replace(start, prj_mm=base + signs * residual), options).rig.params
-    return out
+    flips = np.stack([keyed_signs(keys, seed, r) < 0 for r in range(draws)])
+    evaluator = Evaluator(problem.with_start(result.rig, result.poses), result.layout, result.options.chunk_size)
+    starts = _first_steps(result, evaluator, base + residual, base - residual, flips)
+    sensors = result.rig.params
+
+    def replica(r: int) -> np.ndarray:
+        ev = evaluator.with_projector(np.where(flips[r][:, None], base - residual, base + residual))
+        x, start = result.x, None
+        if starts is not None:
+            x, cost_at_solution = starts[0][r], starts[1][r]
+            start = ev.evaluate(x, True)
+            if not start.cost < cost_at_solution:  # the shared first step did not descend: start at the solution
+                x, start = result.x, None
+        if start is None:
+            start = ev.evaluate(x, True)
+        if not (start.ok.all() and np.isfinite(start.cost)):
+            raise StartValueError(f"a bootstrap replica cannot form rays at {int(np.sum(~start.ok))} control "
+                                  "points from the calibration")
+        report, _, _ = minimise(ev, x, start, result.options, coarse=False, replica=True)
+        return result.layout.unpack(report.x, sensors, result.poses)[0]
+
+    if workers <= 1:
+        return np.stack([replica(r) for r in range(draws)])
+
+    def on_one_thread(r: int) -> np.ndarray:  # each replica's kernels on one thread: the replicas run in parallel
+        with numba_threads(1):
+            return replica(r)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return np.stack(list(pool.map(on_one_thread, range(draws))))
+
+
+def _first_steps(result: BundleResult, evaluator: Evaluator, plus: np.ndarray, minus: np.ndarray,
+                 flips: np.ndarray):
+    """Every replica's first Gauss-Newton step from the solution, from one pass over the
+    control points and one factorisation; None with a robust loss or without the
+    solution's normal equations.
+
+    At the solution x^ a replica's gradient is the calibration's plus the change of each
+    flipped control point's term, exact (:meth:`.model.Evaluator.replica_differences`);
+    its normal matrix differs from the calibration's by a few parts in 10^4, so the
+    calibration's N^ (factorised once, in the rotation increments' coordinates) gives
+    the same first step as the replica's own N. Returns the start points (R, p) and each
+    replica's F at x^ (the first step must lower it, else the replica starts at x^).
+    """
+    e = result.report.evaluation
+    options = result.options
+    if options.robust_loss not in ("none", "linear") or e is None or e.N1 is None:
+        return None
+    problem = evaluator.problem
+    dcost, dgrad, ok = evaluator.replica_differences(result.x, plus, minus, flips)
+    if not ok.all():
+        return None
+    rotations = RotationIncrements.of(result.layout)
+    N, b = rotations.transform(result.x, e.normal(problem.gamma1, problem.gamma2), e.b[None, :] + dgrad)
+    D = np.sqrt(np.diag(N))
+    D[D == 0] = 1.0
+    try:
+        factor = scipy.linalg.cho_factor(N / np.outer(D, D), check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    steps = -scipy.linalg.cho_solve(factor, (b / D).T, check_finite=False).T / D
+    if not np.all(np.isfinite(steps)):
+        return None
+    return np.stack([rotations.retract(result.x, d) for d in steps]), e.cost + dcost

@@ -40,6 +40,7 @@ from pydantic import Field, field_validator
 
 from fringecal.calibration.convergence import SEPARATE_MINIMUM_RATIO, noise_floor_check, same_minimum
 from fringecal.calibration.diagnostics import DegenerateCalibrationError, Diagnosis, check_rank, check_structure
+from fringecal.calibration.increments import RotationIncrements
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
 from fringecal.calibration.solver import LMOptions, LMReport, irls_weights, levenberg_marquardt
 from fringecal.calibration.start import reinitialise
@@ -449,6 +450,67 @@ def _replace_start(result: "BundleResult", problem: BundleProblem, res0: np.ndar
                        before=ResidualStatistics.of(res0, (problem.gamma1, problem.gamma2)))
 
 
+def minimise(ev: Evaluator, x0: np.ndarray, e0, options: BundleOptions, coarse: bool = True,
+             replica: bool = False) -> tuple[LMReport, tuple, Optional[dict]]:
+    """Minimise F of ``ev``'s problem from ``x0`` (``e0``: ``ev.evaluate(x0, True)``) as
+    ``options`` say: Levenberg-Marquardt with every rotation stepped as a small rotation
+    (:mod:`.increments`), after a first stage on a subsample of a large problem
+    (``coarse``), and with a robust loss in passes of fixed scale. ``replica``: a
+    bootstrap replica, which stops as soon as the next step promises less than ``ftol``
+    (:class:`.solver.LMOptions` ``stop_on_promise``).
+
+    Returns the solver's report (its ``x`` the minimum, its ``evaluation`` there with
+    the normal equations of the last pass's loss), the robust scales ((1, 1) without a
+    robust loss) and the coarse stage's figures (None without one).
+    """
+    problem, layout = ev.problem, ev.layout
+    gamma = (problem.gamma1, problem.gamma2)
+    lm = LMOptions(options.max_iterations, options.ftol, options.xtol, options.gtol, stop_on_promise=replica)
+    rotations = RotationIncrements.of(layout)  # steps of every free rotation as a small rotation
+    scales = (1.0, 1.0)
+    x = x0
+    stage = None
+    e0_lm = e0
+    if coarse and options.coarse_points and problem.n_points > 2 * options.coarse_points:
+        # converge on a uniform subsample of every sphere image first; the adjustment on
+        # all points then only has the last few iterations to do
+        every = int(np.ceil(problem.n_points / options.coarse_points))
+        first = levenberg_marquardt(Evaluator(problem.thinned(every), layout, options.chunk_size).evaluate,
+                                    x, gamma, LMOptions(options.max_iterations, max(options.ftol, 1e-8),
+                                                        options.xtol, options.gtol), increments=rotations)
+        e_c = ev.evaluate(first.x, True)
+        if e_c.cost < e0.cost:
+            x, e0_lm = first.x, e_c
+        stage = {"every": every, "iterations": first.iterations, "evaluations": first.evaluations,
+                 "message": first.message}
+    if options.robust_loss in ("none", "linear"):
+        return levenberg_marquardt(ev.evaluate, x, gamma, lm, start=e0_lm, increments=rotations), scales, stage
+    if options.robust_loss not in ROBUST_K:
+        raise ValueError(f"unknown robust loss {options.robust_loss!r}; choose none, huber or cauchy")
+    fixed = options.robust_scale_mm
+    res = e0.res
+    total_it = total_ev = total_jac = 0
+    history = []
+    for _ in range(max(1, options.robust_passes)):
+        new = (fixed, fixed) if np.isscalar(fixed) else (tuple(fixed) if fixed else _robust_scales(res, options.robust_loss))
+        if scales != (1.0, 1.0) and all(abs(a - b) <= 0.05 * b for a, b in zip(new, scales)):
+            break
+        scales = new
+        report = levenberg_marquardt(ev.robust(options.robust_loss, scales).evaluate, x, gamma, lm,
+                                     increments=rotations)
+        x = report.x
+        total_it += report.iterations
+        total_ev += report.evaluations
+        total_jac += report.jacobians
+        history += report.history
+        res = ev.evaluate(x, False).res
+        if fixed is not None:
+            break
+    report = LMReport(x, report.cost, total_it, total_ev, total_jac, report.converged, report.message, history,
+                      report.evaluation)
+    return report, scales, stage
+
+
 def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> BundleResult:
     """One Levenberg-Marquardt adjustment from the problem's start values."""
     t0 = time.perf_counter()
@@ -461,53 +523,8 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     rank = check_rank(e0.normal(*gamma), layout, problem, "start values")
     if any(d.severity == "error" for d in rank):
         raise DegenerateCalibrationError(found + rank)
-    lm = LMOptions(options.max_iterations, options.ftol, options.xtol, options.gtol)
-    scales = (1.0, 1.0)
-    x = x0
-    coarse = None
-    if options.coarse_points and problem.n_points > 2 * options.coarse_points:
-        # converge on a uniform subsample of every sphere image first; the adjustment on
-        # all points then only has the last few iterations to do
-        every = int(np.ceil(problem.n_points / options.coarse_points))
-        coarse = levenberg_marquardt(Evaluator(problem.thinned(every), layout, options.chunk_size).evaluate,
-                                     x, gamma, LMOptions(options.max_iterations, max(options.ftol, 1e-8),
-                                                         options.xtol, options.gtol))
-        e_c = ev.evaluate(coarse.x, True)
-        if e_c.cost < e0.cost:
-            x, e0_lm = coarse.x, e_c
-        else:
-            e0_lm = e0
-        coarse = {"every": every, "iterations": coarse.iterations, "evaluations": coarse.evaluations,
-                  "message": coarse.message}
-    else:
-        e0_lm = e0
-    if options.robust_loss in ("none", "linear"):
-        report = levenberg_marquardt(ev.evaluate, x, gamma, lm, start=e0_lm)
-        x = report.x
-    else:
-        if options.robust_loss not in ROBUST_K:
-            raise ValueError(f"unknown robust loss {options.robust_loss!r}; choose none, huber or cauchy")
-        fixed = options.robust_scale_mm
-        res = e0.res
-        total_it = total_ev = total_jac = 0
-        history = []
-        for _ in range(max(1, options.robust_passes)):
-            new = (fixed, fixed) if np.isscalar(fixed) else (tuple(fixed) if fixed else _robust_scales(res, options.robust_loss))
-            if scales != (1.0, 1.0) and all(abs(a - b) <= 0.05 * b for a, b in zip(new, scales)):
-                break
-            scales = new
-            rob = Evaluator(problem, layout, options.chunk_size, options.robust_loss, scales)
-            report = levenberg_marquardt(rob.evaluate, x, gamma, lm)
-            x = report.x
-            total_it += report.iterations
-            total_ev += report.evaluations
-            total_jac += report.jacobians
-            history += report.history
-            res = ev.evaluate(x, False).res
-            if fixed is not None:
-                break
-        report = LMReport(x, report.cost, total_it, total_ev, total_jac, report.converged, report.message, history,
-                          report.evaluation)
+    report, scales, coarse = minimise(ev, x0, e0, options)
+    x = report.x
     e1 = report.evaluation  # at x, with the (robust) normal equations
     plain = ev.evaluate(x, False) if options.robust_loss not in ("none", "linear") else e1
     weights = irls_weights(plain.res, options.robust_loss, scales)

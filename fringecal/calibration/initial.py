@@ -71,7 +71,8 @@ def initial_calibration(prior: Rig, centres: pd.DataFrame, poses: pd.DataFrame, 
         :class:`fringecal.schemas.ScannerLinksTable`: T_reference_scanner per scanner.
     """
     link = links_from_table(links)
-    missing = [s.name for s in prior.scanners if s.name not in link]
+    # the reference is its own frame: never "unlinked", even when no pose of it is known
+    missing = [s.name for s in prior.scanners if s.name not in link and s.name != prior.reference]
     if missing:
         raise UnlinkedScanners(missing, f"scanner(s) {missing} could not be linked to the reference scanner "
                                         f"{prior.reference!r}: they share no measured artefact pose with it")

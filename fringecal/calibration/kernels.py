@@ -39,7 +39,7 @@ from numba import njit, prange
 
 from fringecal.lens import first_order_inverse, newton_step
 
-__all__ = ["N_LOCAL", "assemble", "scatter", "residual_rows"]
+__all__ = ["N_LOCAL", "assemble", "scatter", "residual_rows", "replica_gradients"]
 
 #: Local parameter slots per control point: camera 14, projector 14, pose 6.
 N_LOCAL = 34
@@ -432,3 +432,70 @@ def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, gr
             for i in range(34):
                 J[k, 0, i] = j1[i] if (good and i < 28) else 0.0
                 J[k, 1, i] = j2[i] if good else 0.0
+
+
+@njit(cache=True, parallel=True)
+def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_meas,
+                      sens_p, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
+                      cam_mm, prj_a, prj_b, flip, gamma1, gamma2, ok, dcost, dgrad):
+    """Cost and gradient of many data replicas at one parameter vector, from two
+    observation sets: replica r observes ``prj_b[k]`` where ``flip[r, k]``, else ``prj_a[k]``.
+
+    Outputs, per chunk: dcost (n_chunks, R) and dgrad (n_chunks, R, 34), the replica's
+    cost and its local gradient (gamma1 alpha1 j1 + gamma2 alpha2 j2) minus those with
+    ``prj_a`` everywhere, summed over the chunk's control points (no robust loss);
+    ok (n,) False where a ray cannot be formed with either observation.
+    """
+    n_chunks = chunk_start.shape[0]
+    R = flip.shape[0]
+    for ch in prange(n_chunks):
+        g = chunk_group[ch]
+        ic = group_cam[g]
+        ip = group_prj[g]
+        im = group_meas[g]
+        pc, Rc, dRc = sens_p[ic], sens_R[ic], sens_dR[ic]
+        pp, Rp, dRp = sens_p[ip], sens_R[ip], sens_dR[ip]
+        tpose, Rpose, dRpose = pose_t[im], pose_R[im], pose_dR[im]
+        Dc = np.empty(3)
+        Dp = np.empty(3)
+        dDc = np.zeros((3, 11))
+        dDp = np.zeros((3, 11))
+        ja1 = np.zeros(28)
+        ja2 = np.zeros(34)
+        jb1 = np.zeros(28)
+        jb2 = np.zeros(34)
+        out_a = np.empty(2)
+        out_b = np.empty(2)
+        diff = np.empty(34)
+        for r in range(R):
+            dcost[ch, r] = 0.0
+            for i in range(34):
+                dgrad[ch, r, i] = 0.0
+        for k in range(chunk_start[ch], chunk_stop[ch]):
+            si = sphere_idx[k]
+            good = _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
+                                  cam_mm[k, 0], cam_mm[k, 1], prj_a[k, 0], prj_a[k, 1], True,
+                                  Dc, dDc, Dp, dDp, ja1, ja2, out_a)
+            good = good and _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si,
+                                           radii[si], cam_mm[k, 0], cam_mm[k, 1], prj_b[k, 0], prj_b[k, 1],
+                                           True, Dc, dDc, Dp, dDp, jb1, jb2, out_b)
+            ok[k] = good
+            if not good:
+                for r in range(R):
+                    if flip[r, k]:
+                        dcost[ch, r] = np.inf
+                continue
+            fa1 = gamma1 * out_a[0]
+            fa2 = gamma2 * out_a[1]
+            fb1 = gamma1 * out_b[0]
+            fb2 = gamma2 * out_b[1]
+            dc = fb1 * out_b[0] + fb2 * out_b[1] - fa1 * out_a[0] - fa2 * out_a[1]
+            for i in range(28):
+                diff[i] = fb1 * jb1[i] + fb2 * jb2[i] - fa1 * ja1[i] - fa2 * ja2[i]
+            for i in range(28, 34):
+                diff[i] = fb2 * jb2[i] - fa2 * ja2[i]
+            for r in range(R):
+                if flip[r, k]:
+                    dcost[ch, r] += dc
+                    for i in range(34):
+                        dgrad[ch, r, i] += diff[i]

@@ -375,6 +375,35 @@ class Evaluator:
             ev.N1, ev.N2, ev.b = N1, N2, b
         return ev
 
+    def replica_differences(self, x, prj_a: np.ndarray, prj_b: np.ndarray, flip: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cost and gradient of R data replicas at x, as differences from observing ``prj_a``
+        everywhere: replica r observes ``prj_b[k]`` where ``flip[r, k]`` (a bootstrap
+        replica's flipped residuals), else ``prj_a[k]``; no robust loss.
+
+        Returns dcost (R,), dgrad (R, p) (half the gradient of F, as ``Evaluation.b``) and
+        ok (n,) (False where a ray cannot be formed with either observation). One pass
+        over the control points serves every replica.
+        """
+        pr, a = self.problem, self._arrays
+        flip = np.ascontiguousarray(flip, np.bool_)
+        R, nc = flip.shape[0], self.n_chunks
+        ok = np.empty(pr.n_points, np.bool_)
+        dcost = np.empty((nc, R))
+        dgrad = np.empty((nc, R, kernels.N_LOCAL))
+        with _threads_for(pr.n_points):
+            kernels.replica_gradients(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"],
+                                      a["group_prj"], a["group_meas"], *self._geometry(x), pr.sphere_idx,
+                                      a["centres"], a["radii"], pr.cam_mm, np.ascontiguousarray(prj_a, float),
+                                      np.ascontiguousarray(prj_b, float), flip, pr.gamma1, pr.gamma2, ok, dcost,
+                                      dgrad)
+        grad = np.zeros((R, self.layout.n))
+        for ch, g in enumerate(a["chunk_group"]):
+            cols = a["gmap"][g]
+            used = cols >= 0
+            grad[:, cols[used]] += dgrad[ch][:, used]
+        return dcost.sum(axis=0), grad, ok
+
     def jacobian_rows(self, x) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Residuals (n, 2), local Jacobian rows (n, 2, 34) and ok (n,) at x (memory n*544 bytes)."""
         pr, a = self.problem, self._arrays
@@ -387,6 +416,24 @@ class Evaluator:
                               a["group_meas"], sp, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
                               pr.cam_mm, pr.prj_mm, res, ok, J)
         return res, J, ok
+
+    def robust(self, loss: str, scales: tuple) -> "Evaluator":
+        """The same evaluator with a robust ``loss`` (``none``, ``huber``, ``cauchy``) of
+        ``scales`` (alpha1, alpha2), sharing its structure."""
+        if loss not in kernels.LOSS_CODES:
+            raise ValueError(f"unknown robust loss {loss!r}; choose one of none, huber, cauchy")
+        other = copy.copy(self)
+        other.loss, other.scales = loss, tuple(scales)
+        return other
+
+    def with_projector(self, prj_mm: np.ndarray) -> "Evaluator":
+        """The same evaluator with other projector observations (n, 2), in problem order
+        (a bootstrap replica): the structure (layout, groups, chunks) is shared."""
+        from dataclasses import replace
+
+        other = copy.copy(self)
+        other.problem = replace(self.problem, prj_mm=np.asarray(prj_mm, float))
+        return other
 
     def with_artefact(self, centres: np.ndarray, radii: np.ndarray) -> "Evaluator":
         """The same evaluator against other sphere centres (n_spheres, 3) and radii

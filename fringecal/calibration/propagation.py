@@ -23,8 +23,8 @@ from fringecal.rig import Rig, Scanner
 from fringecal.rotation import angles_from_matrix
 
 __all__ = ["ParameterCovariances", "parameter_covariances", "sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
-           "point_variances", "point_uncertainty_map", "scanner_with", "STEP_FRACTION", "rigid_motion_basis", "frame_free_covariance",
-           "ATTITUDE_WEIGHT_MM"]
+           "point_variances", "point_uncertainty_map", "uncertainty_at_depth", "DepthUncertainty", "scanner_with", "STEP_FRACTION",
+           "rigid_motion_basis", "frame_free_covariance", "ATTITUDE_WEIGHT_MM"]
 
 #: central-difference step as a fraction of each parameter's standard uncertainty
 STEP_FRACTION = 1e-3
@@ -141,6 +141,46 @@ def point_uncertainty_map(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, val
     return xr.Dataset({"u_mm": (dims, np.sqrt(var.sum(axis=0))), "u_x_mm": (dims, np.sqrt(var[0])),
                        "u_y_mm": (dims, np.sqrt(var[1])), "u_z_mm": (dims, np.sqrt(var[2]))},
                       attrs={"units": "mm", "what": "standard uncertainty of each point from the calibration"})
+
+
+@dataclass(frozen=True)
+class DepthUncertainty:
+    """The calibration's uncertainty of the points a scanner measures on a plane of
+    constant camera depth: ``u_mm`` (ny, nx), the 3-D standard uncertainty (square
+    root of the covariance's trace) of the point seen at the centre of each cell of
+    an ``nx`` x ``ny`` grid over the camera's image (NaN where the projector does not
+    see the point); ``u_px``, ``v_px`` the cells' centres (camera pixels)."""
+
+    depth_mm: float
+    u_mm: np.ndarray
+    u_px: np.ndarray
+    v_px: np.ndarray
+
+
+def uncertainty_at_depth(scanner: Scanner, cov28: np.ndarray, depth_mm: float, nx: int = 24) -> DepthUncertainty:
+    """The map of :class:`DepthUncertainty` at camera depth ``depth_mm``: for each cell,
+    the point on the camera ray through its centre at that depth, the projector
+    coordinates that see it, and the covariance (28, 28) of the scanner's parameters
+    propagated through the triangulation (:func:`point_jacobian`). What a measured
+    point inherits from the calibration alone (the pixel's own phase noise is not in it).
+    """
+    cam = scanner.camera
+    fmt = cam.format
+    ny = max(1, int(round(nx * fmt.height_px / fmt.width_px)))
+    u_px = (np.arange(nx) + 0.5) * fmt.width_px / nx - 0.5
+    v_px = (np.arange(ny) + 0.5) * fmt.height_px / ny - 0.5
+    uv = np.stack(np.meshgrid(u_px, v_px), axis=-1).reshape(-1, 2)
+    cam_mm = fmt.pixel_to_mm(uv)
+    origin, direction = cam.rays(cam_mm)
+    X = origin + direction * (depth_mm / (direction @ cam.R[2]))[:, None]
+    seen = scanner.projector.in_view(X)
+    u = np.full(len(X), np.nan)
+    if seen.any():
+        prj_mm = scanner.projector.project(X[seen])
+        std = np.sqrt(np.clip(np.diag(cov28), 0, None))
+        C = point_covariance(point_jacobian(scanner, cam_mm[seen], prj_mm, std), cov28)
+        u[seen] = np.sqrt(np.clip(np.trace(C, axis1=1, axis2=2), 0, None))
+    return DepthUncertainty(float(depth_mm), u.reshape(ny, nx), u_px, v_px)
 
 
 def rigid_motion_basis(rig: Rig, eps: float = 1e-6) -> np.ndarray:

@@ -16,9 +16,13 @@ import pandas as pd
 from fringecal.calibration.artefact_sensitivity import artefact_sensitivity
 from fringecal.calibration.bundle import BundleResult
 from fringecal.calibration.model import triangulated_points
-from fringecal.schemas import MeasurementResidualsTable, SphereResidualsTable, validate_table
+from fringecal.schemas import BinnedResidualsTable, MeasurementResidualsTable, SphereResidualsTable, validate_table
 
-__all__ = ["residual_tables", "volume_diagonal_mm", "summary", "covariance_arrays"]
+__all__ = ["residual_tables", "binned_residuals", "IMAGE_BINS", "volume_diagonal_mm", "summary", "covariance_arrays"]
+
+#: Bins across each sensor's image width for :func:`binned_residuals` (its height gets
+#: as many as keep the bins square: 16 x 16 on a square camera, 16 x 12 on a 4:3 projector).
+IMAGE_BINS = 16
 
 def _frame(result: BundleResult) -> pd.DataFrame:
     pr = result.problem
@@ -48,6 +52,39 @@ def residual_tables(result: BundleResult) -> tuple[pd.DataFrame, pd.DataFrame]:
         mean_eps2_mm=("e2", "mean"), rms_eps1_start_mm=("s1", _rms), rms_eps2_start_mm=("s2", _rms)).reset_index()
     return (validate_table(per_sphere, SphereResidualsTable, "residuals per sphere"),
             validate_table(per_meas, MeasurementResidualsTable, "residuals per measurement"))
+
+
+def binned_residuals(result: BundleResult, nx: int = IMAGE_BINS) -> pd.DataFrame:
+    """The residuals after the adjustment binned over each sensor's image
+    (:class:`~fringecal.schemas.BinnedResidualsTable`): every control point falls in one
+    bin of its camera's pixel grid (its pixel) and one of its projector's (its phases,
+    as projector pixels); each bin holding points gives their count and the mean and
+    RMS of epsilon-1 and epsilon-2. What a residual map and a coverage map of the
+    camera and projector images need, without the points themselves."""
+    pr = result.problem
+    res = np.asarray(result.residuals, float)
+    rows = []
+    for k, scanner in enumerate(pr.rig.scanners):
+        mine = pr.scanner_idx == k
+        for sensor, image_mm in ((scanner.camera, pr.cam_mm[mine]), (scanner.projector, pr.prj_mm[mine])):
+            fmt = sensor.format
+            ny = max(1, int(round(nx * fmt.height_px / fmt.width_px)))
+            uv = fmt.mm_to_pixel(image_mm)
+            ix = np.clip(np.floor((uv[:, 0] + 0.5) / fmt.width_px * nx), 0, nx - 1).astype(int)
+            iy = np.clip(np.floor((uv[:, 1] + 0.5) / fmt.height_px * ny), 0, ny - 1).astype(int)
+            cell = iy * nx + ix
+            e = res[mine]
+            n = np.bincount(cell, minlength=nx * ny)
+            sums = [np.bincount(cell, w, minlength=nx * ny) for w in (e[:, 0], e[:, 0] ** 2, e[:, 1], e[:, 1] ** 2)]
+            for c in np.flatnonzero(n):
+                j, i = divmod(int(c), nx)
+                rows.append({"scanner": scanner.name, "sensor": sensor.name, "role": sensor.role, "nx": nx, "ny": ny,
+                             "ix": i, "iy": j, "u_px": (i + 0.5) * fmt.width_px / nx - 0.5,
+                             "v_px": (j + 0.5) * fmt.height_px / ny - 0.5, "n_points": int(n[c]),
+                             "mean_eps1_mm": sums[0][c] / n[c], "rms_eps1_mm": float(np.sqrt(sums[1][c] / n[c])),
+                             "mean_eps2_mm": sums[2][c] / n[c], "rms_eps2_mm": float(np.sqrt(sums[3][c] / n[c]))})
+    columns = list(BinnedResidualsTable.to_schema().columns)
+    return validate_table(pd.DataFrame(rows, columns=columns), BinnedResidualsTable, "residuals binned over the images")
 
 
 def volume_diagonal_mm(result: BundleResult) -> float:

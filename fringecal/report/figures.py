@@ -1,8 +1,9 @@
 """The report's plots, drawn with matplotlib (Agg, no display) and embedded as PNG.
 
 The residual histograms are the run's own ``figures/*.png``
-(:mod:`fringecal.report.plotting`); drawn here are the ball-bar errors per position and
-the acceptance test's positions in the world frame.
+(:mod:`fringecal.report.plotting`); drawn here are the ball-bar errors per position, the
+acceptance test's positions in the world frame, each scanner's residual and coverage
+maps over its images and its measuring-uncertainty maps.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from fringecal.report.formatting import finite
 from fringecal.report.plotting import figure as _figure
 from fringecal.report.plotting import png as _png
 
-__all__ = ["TEST_COLOURS", "Image", "acceptance_png", "ballbar_png"]
+__all__ = ["TEST_COLOURS", "Image", "acceptance_png", "ballbar_png", "residual_maps_png", "uncertainty_maps_png",
+           "binned_grid"]
 
 #: Colour of each acceptance object (and of the ball-bar) in the positions figure.
 TEST_COLOURS = {"sphere": "tab:blue", "dumbbell": "tab:orange", "flat": "tab:green", "ballbar": "tab:purple"}
@@ -129,3 +131,108 @@ def _draw_shape(ax, shape: dict, h: int, v: int) -> None:
         ax.plot(pts[:, h], pts[:, v], "-", color=colour, lw=1.2)
     else:
         ax.plot(pts[0, h], pts[0, v], "o", color=colour, ms=4)
+
+
+#: The panels of a residual map: column of the binned table, title, colour map, symmetric about 0.
+RESIDUAL_PANELS = (("n_points", "control points per cell", "viridis", False),
+                   ("mean_eps1_mm", "mean ε1 (µm)", "RdBu_r", True),
+                   ("mean_eps2_mm", "mean ε2 (µm)", "RdBu_r", True),
+                   ("rms_eps2_mm", "RMS ε2 (µm)", "magma", False))
+
+
+def _locator(n: int):
+    from matplotlib.ticker import MaxNLocator
+
+    return MaxNLocator(n)
+
+
+def _few_ticks(ax, fmt) -> None:
+    """Ticks at the first, middle and last pixel of an image axis (drawing many ticks is
+    most of a small panel's cost)."""
+    ax.set_xticks([0, (fmt.width_px - 1) // 2, fmt.width_px - 1])
+    ax.set_yticks([0, (fmt.height_px - 1) // 2, fmt.height_px - 1])
+    ax.tick_params(labelsize=6)
+
+
+def binned_grid(rows, column: str) -> np.ndarray:
+    """The values of ``column`` of one sensor's binned residuals (rows with ``nx``,
+    ``ny``, ``ix``, ``iy``) as an (ny, nx) grid, NaN where a cell holds no point.
+
+    >>> import pandas as pd
+    >>> g = binned_grid(pd.DataFrame({"nx": [2, 2], "ny": [1, 1], "ix": [1, 0], "iy": [0, 0], "v": [5.0, 3.0]}), "v")
+    >>> g.tolist()
+    [[3.0, 5.0]]
+    """
+    nx, ny = int(rows["nx"].iloc[0]), int(rows["ny"].iloc[0])
+    grid = np.full((ny, nx), np.nan)
+    grid[rows["iy"].to_numpy(int), rows["ix"].to_numpy(int)] = rows[column].to_numpy(float)
+    return grid
+
+
+def residual_maps_png(bins, formats: dict) -> bytes:
+    """One scanner's residuals over its images: a row per sensor (camera, then
+    projector) of :data:`RESIDUAL_PANELS` drawn over the sensor's pixels.
+
+    Parameters
+    ----------
+    bins : the scanner's rows of the binned residuals (:class:`~fringecal.schemas.BinnedResidualsTable`)
+    formats : sensor name -> its :class:`~fringecal.sensor.SensorFormat`
+
+    Returns
+    -------
+    The PNG's bytes.
+    """
+    sensors = [(name, g) for role in ("camera", "projector")
+               for name, g in bins[bins["role"] == role].groupby("sensor", sort=False)]
+    fig = _figure(10, 2.55 * len(sensors) + 0.3)
+    for i, (name, g) in enumerate(sensors):
+        fmt = formats[name]
+        for j, (column, title, cmap, symmetric) in enumerate(RESIDUAL_PANELS):
+            ax = fig.add_subplot(len(sensors), len(RESIDUAL_PANELS), i * len(RESIDUAL_PANELS) + j + 1)
+            grid = binned_grid(g, column) * (1.0 if column == "n_points" else 1000.0)
+            vmax = float(np.nanmax(np.abs(grid))) if np.isfinite(grid).any() else 1.0
+            image = ax.imshow(grid, cmap=cmap, origin="upper", interpolation="nearest",
+                              extent=(-0.5, fmt.width_px - 0.5, fmt.height_px - 0.5, -0.5),
+                              vmin=-vmax if symmetric else (0 if column == "n_points" else None),
+                              vmax=vmax if symmetric else None)
+            ax.set_title(f"{name} ({g['role'].iloc[0]}): {title}", fontsize=7)
+            _few_ticks(ax, fmt)
+            if j == 0:
+                ax.set_ylabel("row (px)", fontsize=7)
+            if i == len(sensors) - 1:
+                ax.set_xlabel("column (px)", fontsize=7)
+            bar = fig.colorbar(image, ax=ax, fraction=0.046, pad=0.03)
+            bar.ax.tick_params(labelsize=6)
+            bar.locator = _locator(4)
+            bar.update_ticks()
+    fig.subplots_adjust(left=0.06, right=0.97, bottom=0.1, top=0.93, wspace=0.45, hspace=0.35)
+    return _png(fig)
+
+
+def uncertainty_maps_png(maps: list, fmt) -> bytes:
+    """The calibration's uncertainty of a measured point over the camera image at a
+    few depths (:class:`~fringecal.calibration.propagation.DepthUncertainty` each), on
+    one colour scale (µm).
+
+    Returns
+    -------
+    The PNG's bytes.
+    """
+    fig = _figure(10, 3.2)
+    values = [m.u_mm[np.isfinite(m.u_mm)] for m in maps]
+    top = max((float(v.max()) for v in values if v.size), default=1.0) * 1000
+    image = None
+    for k, m in enumerate(maps):
+        ax = fig.add_subplot(1, len(maps), k + 1)
+        image = ax.imshow(m.u_mm * 1000, cmap="viridis", origin="upper", interpolation="nearest", vmin=0, vmax=top,
+                          extent=(-0.5, fmt.width_px - 0.5, fmt.height_px - 0.5, -0.5))
+        ax.set_title(f"depth {m.depth_mm:.0f} mm", fontsize=8)
+        ax.set_xlabel("camera column (px)", fontsize=7)
+        if k == 0:
+            ax.set_ylabel("camera row (px)", fontsize=7)
+        _few_ticks(ax, fmt)
+    if image is not None:
+        bar = fig.colorbar(image, ax=fig.axes, fraction=0.02, pad=0.02)
+        bar.set_label("u of a measured point (µm, k = 1)", fontsize=7)
+        bar.ax.tick_params(labelsize=6)
+    return _png(fig)

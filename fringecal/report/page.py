@@ -14,13 +14,13 @@ from fringecal.report.rundata import RunData, Shown, guard
 from fringecal.report.sections import (
     SECTIONS,
     acceptance,
+    certificate,
     crossval,
-    header,
-    parameters,
     provenance,
     residuals,
     results,
     rig,
+    scanners,
     timing,
     truth,
     verification,
@@ -46,7 +46,7 @@ def _run_dir(run_dir) -> RunDir:
 def _bodies(run: RunData, timings: dict | None, execution: dict, compile_seconds: dict | None) -> dict[str, Shown]:
     """Each section's context (or its note or warning), by anchor."""
     builders = {"rig": (rig.build,), "timing": (timing.build, timings, compile_seconds), "results": (results.build,),
-                "parameters": (parameters.build,), "residuals": (residuals.build,), "crossval": (crossval.build,),
+                "scanners": (scanners.build,), "residuals": (residuals.build,), "crossval": (crossval.build,),
                 "verification": (verification.build,), "acceptance": (acceptance.build,), "truth": (truth.build,),
                 "provenance": (provenance.build, execution)}
     bodies = {}
@@ -72,7 +72,7 @@ def render_report(run_dir, timings: dict | None = None, execution: dict | None =
     bodies = _bodies(run, timings, execution, compile_seconds)
     return environment().get_template("base.html.j2").render(
         name=run.name(), run_dir=run.root.name, version=__version__, generated=generated,
-        header=header.build(run, generated, execution),
+        certificate=certificate.build(run, generated, execution),
         sections=[(s, bodies[s.anchor]) for s in SECTIONS])
 
 

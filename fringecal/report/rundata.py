@@ -63,6 +63,25 @@ class RunData:
             raise value
         return value
 
+    def calibration_file(self):
+        """The calibration read whole, with its covariances
+        (:class:`fringecal.calibration.file.Calibration`); loaded once."""
+        from fringecal.calibration.file import read_calibration  # lazy: numba loads when a calibration is read
+
+        f = self.rd.calibration
+        if not f.exists():
+            raise Missing(f"{f.rel} is not in the run directory")
+        key = f.rel + "#whole"
+        if key not in self._loaded:
+            try:
+                self._loaded[key] = (True, read_calibration(f.path))
+            except (ValueError, KeyError, OSError) as err:
+                self._loaded[key] = (False, err)
+        ok, value = self._loaded[key]
+        if not ok:
+            raise value
+        return value
+
     def json(self, f: RunFile) -> dict:
         """A JSON file that must hold an object."""
         doc = self.load(f)

@@ -30,6 +30,7 @@ from typing import Literal, Optional
 
 from pydantic import Field, model_validator
 
+from fringecal.acceptance.identity import CertificateIdentity
 from fringecal.acceptance.standards import AcceptanceConfig
 from fringecal.calibration.bundle import BundleOptions
 from fringecal.config import (
@@ -47,6 +48,7 @@ from fringecal.dataset import DATASET_FILE, DatasetConfig
 from fringecal.fringe.decode import DecodeSettings
 from fringecal.simulate.settings import SimulationConfig
 from fringecal.spheres.settings import ControlPointConfig, ExtractionConfig
+from fringecal.threads import ThreadPolicy
 from fringecal.verification.settings import VerificationConfig
 
 __all__ = ["RunConfig", "RunnerConfig", "load_run_config", "default_run_config_path"]
@@ -58,9 +60,15 @@ def default_run_config_path() -> Path:
 
 
 class RunnerConfig(StrictModel):
-    """Where tasks run: bounded threads here, or a Dask cluster through prefect-dask."""
+    """Where tasks run: bounded threads here, or a Dask cluster through prefect-dask.
+
+    ``cores``: the cores the run may use (None: all the process may run on); with
+    ``max_workers`` (step instances at once, at most ``cores``) it sizes the worker
+    pool, numba's threads and BLAS together (:mod:`fringecal.threads`).
+    """
 
     kind: Literal["threads", "dask"] = "threads"
+    cores: Optional[int] = Field(None, ge=1)
     max_workers: int = Field(2, ge=1)
     dask_address: Optional[str] = None
     dask_workers: int = Field(2, ge=1)
@@ -71,7 +79,10 @@ class RunConfig(StrictModel):
     a rig, or a recorded ``dataset`` folder; exactly one) and how they are processed.
 
     ``reference_scanner`` (the scanner whose frame is the world) comes from the rig or
-    the data set's ``dataset.yaml`` unless given here.
+    the data set's ``dataset.yaml`` unless given here. ``certificate``: the identity
+    block of the report's certificate page (customer, cell, serial numbers, reference
+    certificates, temperatures, approval; :class:`~fringecal.acceptance.identity.CertificateIdentity`),
+    merged over the data set's own; no step reads it.
     """
 
     name: Optional[str] = None
@@ -85,6 +96,7 @@ class RunConfig(StrictModel):
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
     acceptance: AcceptanceConfig = Field(default_factory=AcceptanceConfig)
     runner: RunnerConfig = Field(default_factory=RunnerConfig)
+    certificate: Optional[CertificateIdentity] = None
 
     @model_validator(mode="before")
     @classmethod
@@ -95,6 +107,11 @@ class RunConfig(StrictModel):
             if data.get("simulate") is None and data.get("dataset") is None:
                 data = {**data, "simulate": {}}
         return data
+
+    def thread_policy(self, workers: int | None = None) -> ThreadPolicy:
+        """The run's :class:`~fringecal.threads.ThreadPolicy` (``workers``: instead of
+        ``runner.max_workers``, e.g. from ``--workers``)."""
+        return ThreadPolicy.of(self.runner.cores, workers or self.runner.max_workers)
 
     @property
     def source(self) -> str:
@@ -138,6 +155,9 @@ def load_run_config(path: Path | None = None, overrides: dict | None = None, dat
             validate_section(values, RunConfig.model_fields[section].annotation, root / DATASET_FILE,
                              f"processing.{section}.")
         data = deep_update(processing, data)
+        if ds.certificate is not None:
+            data["certificate"] = deep_update(ds.certificate.model_dump(mode="json", exclude_none=True),
+                                              data.get("certificate") or {})
         data.setdefault("name", ds.name)
         data.setdefault("reference_scanner", ds.reference_scanner)
     cfg = validate_model(data, RunConfig, source, base)

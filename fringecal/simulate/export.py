@@ -80,6 +80,8 @@ def _dataset_yaml(cfg) -> dict:
     processing = {k: v for k, v in processing.items() if v}
     if processing:
         doc["processing"] = processing
+    if cfg.certificate is not None:
+        doc["certificate"] = cfg.certificate.model_dump(mode="json", exclude_none=True, exclude_defaults=True)
     return doc
 
 
@@ -144,7 +146,7 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         if p.exists():
             raise FileExistsError(f"{p}: already exists; choose a new folder (nothing is overwritten)")
     sim = cfg.simulate
-    sr = load_simulated_rig(sim)
+    sr = load_simulated_rig(sim, cfg.acceptance.specification.depth_range_mm)
     rc = sim.rig_config()
     tmp, tmp_truth = temporary_sibling(out), temporary_sibling(truth_out)
     try:

@@ -20,15 +20,16 @@ camera and inside its image. On the thesis rig this gives
 thesis table 6-9's arrangement (sphere A seen by scanner one, B by scanner two).
 
 The acceptance test's positions (sphere, dumbbell, flat; ``simulate.acceptance``) are
-planned in each scanner's measurement volume from the true rig and the planned poses
-(:func:`fringecal.acceptance.plan.plan_acceptance`, seeded by
+planned in each scanner's measurement volume from the true rig and the planned poses,
+within the specified measuring volume (``acceptance.specification``), as an operator
+would place them (:func:`fringecal.acceptance.plan.plan_acceptance`, seeded by
 ``simulate.acceptance.seed``); each is recorded by the scanner it was planned for. A
 position asked for that does not fit is refused with a message, never dropped.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -56,7 +57,8 @@ if TYPE_CHECKING:
     from fringecal.acceptance.standards import AcceptanceStandards
 
 __all__ = ["acceptance_camera_width", "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing",
-           "sphere_sightings", "acquisition_table", "true_volumes", "acceptance_plan", "object_plans"]
+           "sphere_sightings", "acquisition_table", "true_volumes", "specified_volumes", "acceptance_plan",
+           "object_plans"]
 
 
 @dataclass(frozen=True)
@@ -186,17 +188,40 @@ def _positions(sim, truth: Rig, ballbar: Artefact, artefact: Artefact, planned: 
     return placed, recorders
 
 
-def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict):
+def specified_volumes(volumes: dict, depth_range_mm) -> tuple[dict, list[str]]:
+    """The measurement volumes cut to a specified measuring volume's depth range (along
+    each camera's axis; None: unchanged), and the scanners whose volume it misses."""
+    if depth_range_mm is None:
+        return volumes, []
+    near, far = depth_range_mm
+    out, missed = {}, []
+    for name, v in volumes.items():
+        lo, hi = max(v.depth_range_mm[0], near), min(v.depth_range_mm[1], far)
+        if lo < hi:
+            out[name] = replace(v, depth_range_mm=(lo, hi))
+        else:
+            missed.append(f"{name}: the specified measuring volume (depths {near:g}-{far:g} mm) misses the volume "
+                          f"the artefact calibrates ({v.depth_range_mm[0]:.0f}-{v.depth_range_mm[1]:.0f} mm)")
+    return out, missed
+
+
+def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict, depth_range_mm=None):
     """(standards, positions) of the simulated acceptance test; (None, None) when
-    ``simulate.acceptance`` is disabled. Raises ConfigError, naming every position
-    that does not fit, when the plan falls short of the counts asked for."""
+    ``simulate.acceptance`` is disabled. The positions lie in each scanner's
+    measurement volume within the specified measuring volume's depths
+    ``depth_range_mm`` (``acceptance.specification``; None: the whole volume), as an
+    operator following the specification places them. Raises ConfigError, naming
+    every position that does not fit, when the plan falls short of the counts asked for."""
 
     a = sim.acceptance
     if not a.enabled:
         return None, None
     standards = load_standards(a.standards_path())
     counts = {t: getattr(a, t) for t in TESTS}
-    plan = plan_acceptance(truth, true_volumes(truth, artefact, planned), standards, counts, seed=a.seed)
+    volumes, missed = specified_volumes(true_volumes(truth, artefact, planned), depth_range_mm)
+    plan = plan_acceptance(truth, volumes, standards, counts, seed=a.seed)
+    if missed:
+        plan = plan._replace(uncovered=missed + [u for u in plan.uncovered if "no measurement volume" not in u])
     if plan.uncovered:
         raise ConfigError(f"{a.standards_path()}: the acceptance positions asked for do not fit the rig "
                           f"{sim.rig}: {'; '.join(plan.uncovered)} (lower simulate.acceptance.<test>, or set "
@@ -204,8 +229,10 @@ def acceptance_plan(sim, truth: Rig, artefact: Artefact, planned: dict):
     return standards, plan.positions
 
 
-def load_simulated_rig(sim) -> SimulatedRig:
-    """Build the :class:`SimulatedRig` of a simulation config; errors name the file."""
+def load_simulated_rig(sim, depth_range_mm=None) -> SimulatedRig:
+    """Build the :class:`SimulatedRig` of a simulation config; errors name the file.
+    ``depth_range_mm``: the specified measuring volume the acceptance positions are
+    placed in (``acceptance.specification.depth_range_mm``; None: the whole volume)."""
 
     rc = sim.rig_config()
     if rc.artefact_poses is None:
@@ -241,7 +268,7 @@ def load_simulated_rig(sim) -> SimulatedRig:
     except ValueError as err:
         raise ConfigError(f"simulate.errors.projector_gamma: {err}") from None
     built, ballbar_built = as_built_artefact(sim, sim.errors), as_built_ballbar(ballbar, sim.errors)
-    standards, acceptance = acceptance_plan(sim, truth, artefact, planned)
+    standards, acceptance = acceptance_plan(sim, truth, artefact, planned, depth_range_mm)
     return SimulatedRig(truth, prior, frames, artefact, rods, hardware, planned, ballbar, positions, recorders,
                         built, ballbar_built, standards, acceptance)
 

@@ -50,7 +50,10 @@ scanner's other measurements contradict is refused, never passed on. Per scanner
 Without planned poses only steps 1-4 run. The link step
 (:func:`fringecal.spheres.poses_and_links.label_pose_link`) then checks every labelling against
 the other scanners' poses of the same measurement, and labels the measurements still
-ambiguous from those poses (the same consensus, with measured poses for planned ones).
+ambiguous from those poses; a scanner no labelled pose links is linked by the transform
+its and another scanner's hypotheses agree on in their shared measurements, and a
+measurement no scanner labelled alone by all linked scanners' views together
+(:mod:`fringecal.spheres.label_links`, :mod:`fringecal.spheres.label_joint`).
 """
 
 from __future__ import annotations

@@ -29,6 +29,8 @@ from fringecal.registration import kabsch
 from fringecal.schemas import LabelOutcomesTable, ScannerLinksTable, SphereCentresTable, SphereFitsTable, validate_table
 from fringecal.spheres.fit import SphereModel
 from fringecal.spheres.label_consensus import frame_uncertainty, scanner_frame_from_plan
+from fringecal.spheres.label_joint import joint_placements
+from fringecal.spheres.label_links import links_from_hypotheses
 from fringecal.spheres.label_scanners import estimate_scale, label_sphere_fits, label_with_prior
 from fringecal.spheres.labelling import Labelling, LabellingConfig
 from fringecal.spheres.linking import LinkResult, link_scanners, mean_frame, pose_contradictions
@@ -130,8 +132,15 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
     poses the linked scanners measured (:func:`_label_from_poses`, method ``linked
     pose``), and so on until nothing changes. With planned poses, a link that disagrees
     by as much with the link the plan implies (each scanner's consensus frame) is
-    refused too. Poses and links are those of the scale-corrected scanner frames (see
-    the module doc); ``estimates`` and the outcomes' ``scale`` hold each scanner's scale.
+    refused too. Without planned poses, a scanner that no labelled pose links is linked
+    by the transform its and another scanner's possible labellings agree on in their
+    shared measurements, and a measurement no scanner labelled alone is placed by all
+    linked scanners' views at once (:mod:`fringecal.spheres.label_links`,
+    :mod:`fringecal.spheres.label_joint`); a view left
+    ambiguous says what the other scanners' views gave and what would decide it, and
+    ``links.unlinked`` says why a scanner has no link. Poses and links are those of the
+    scale-corrected scanner frames (see the module doc); ``estimates`` and the outcomes'
+    ``scale`` hold each scanner's scale.
     """
     fits = validate_table(fits, SphereFitsTable, source)
     estimates: dict = {}
@@ -140,6 +149,10 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
     D = artefact.distance_matrix()
     tol = 0.5 * float(D[np.triu_indices(len(D), 1)].min()) if len(D) > 1 else np.inf
     found = []
+    # without a plan: links from the hypotheses alone (where no labelled pose links a scanner),
+    # and measurements placed by all linked scanners' views at once
+    joint = None if planned else {}
+    guess = None
     for attempt in range(12):  # refuse contradicted labellings, label from the links, link again
         centres = centres_from_fits(validate_table(labelled, SphereFitsTable, source))
         if attempt:
@@ -149,9 +162,12 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
         if attempt == 11:
             break
         anchor = _anchor_links(poses, links, source)
+        if joint is not None and guess is None and _lacks_links(anchor, estimates, reference):
+            guess = links_from_hypotheses(labelled, estimates, artefact, reference, config or LabellingConfig())
+        anchor = _with_guess(anchor, guess)
         if anchor is None:
             break
-        bad = pose_contradictions(poses.poses, anchor, artefact.centres, tol, source)
+        bad = pose_contradictions(poses.poses, anchor, artefact.centres, tol, source) if len(poses.poses) else []
         if len(bad):
             found.append(bad)
             for r in bad.itertuples(index=False):
@@ -162,10 +178,12 @@ def label_pose_link(fits: pd.DataFrame, artefact: Artefact, reference: str,
                         f"inconsistent: {r.message} (it had labelled candidates {seen})")
             continue
         if not _label_from_poses(labelled, outcomes, poses.poses, anchor, estimates, artefact,
-                                 config or LabellingConfig(), allowed_ids, tol):
+                                 config or LabellingConfig(), allowed_ids, tol, joint):
             break
     if links is not None and planned:
         links = _check_links_against_plan(links, estimates, artefact, planned, tol)
+    if joint is not None:
+        links = _say_what_decides(outcomes, links, guess, joint, reference)
     labelled = validate_table(labelled, SphereFitsTable, source)
     outcomes = validate_table(outcomes, LabelOutcomesTable, "label outcomes")
     # groups refused by labelling never reach the pose step: say so in its skip list
@@ -222,6 +240,51 @@ def _anchor_links(poses: PoseResult, links: LinkResult | None, source: str) -> L
     return best
 
 
+def _say_what_decides(outcomes: pd.DataFrame, links: LinkResult | None, guess: LinkResult | None, joint: dict,
+                      reference: str) -> LinkResult | None:
+    """Without a plan: each view still ambiguous says what the other scanners' views gave
+    and what would decide it; each scanner left unlinked, why the hypotheses gave no link
+    (the reference is never unlinked)."""
+    rows = (outcomes["status"] == "refused") & (outcomes["reason"] == "ambiguous")
+    for i in np.flatnonzero(rows.to_numpy()):
+        m = outcomes.at[i, "measurement"]
+        others = joint.get(m, "no scanner linked to it sees this measurement")
+        outcomes.at[i, "message"] = (f"{outcomes.at[i, 'message']}; with the other scanners' views: {others}; "
+                                     "the planned poses (poses_planned.csv) or more spheres in the view would "
+                                     "decide it")
+    if guess is None:
+        return links
+    linked = links.links if links is not None else {}
+    unlinked = dict(links.unlinked) if links is not None else {}
+    for s, why in guess.unlinked.items():
+        if s not in linked and s != reference:
+            unlinked[s] = f"{unlinked[s]}; " if s in unlinked else ""
+            unlinked[s] += f"from its possible labellings: {why}"
+    return LinkResult(reference, dict(linked), unlinked) if links is not None or unlinked else links
+
+
+def _lacks_links(anchor: LinkResult | None, estimates: dict, reference: str) -> bool:
+    """Does some scanner with hypotheses lack a link in the reference's frame?"""
+    if anchor is None or anchor.reference != reference:
+        return True
+    return any(s not in anchor.links and e.hypotheses and any(e.hypotheses.values()) for s, e in estimates.items())
+
+
+def _with_guess(anchor: LinkResult | None, guess: LinkResult | None) -> LinkResult | None:
+    """The anchor's links, and for the scanners it lacks the links the hypotheses
+    alone gave (:func:`~fringecal.spheres.label_links.links_from_hypotheses`), when both
+    are in the reference's frame."""
+    if guess is None or (anchor is not None and anchor.reference != guess.reference):
+        return anchor
+    if anchor is None:
+        return guess if len(guess.links) > 1 else None
+    extra = {s: lk for s, lk in guess.links.items() if s not in anchor.links}
+    if not extra:
+        return anchor
+    return LinkResult(anchor.reference, {**anchor.links, **extra},
+                      {s: w for s, w in anchor.unlinked.items() if s not in extra})
+
+
 def _refuse(labelled: pd.DataFrame, outcomes: pd.DataFrame, measurement, scanner, message: str) -> None:
     key = (outcomes["measurement"] == measurement) & (outcomes["scanner"] == scanner)
     outcomes.loc[key, ["status", "reason", "n_labelled", "rms_mm"]] = ["refused", "inconsistent", 0, np.nan]
@@ -233,7 +296,7 @@ def _refuse(labelled: pd.DataFrame, outcomes: pd.DataFrame, measurement, scanner
 
 def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.DataFrame, links: LinkResult,
                       estimates: dict, artefact: Artefact, config: LabellingConfig, allowed_ids: dict | None,
-                      tol: float) -> int:
+                      tol: float, joint: dict | None = None) -> int:
     """Label the groups refused as ambiguous from the poses other scanners measured.
 
     The linked scanners' poses of a measurement, carried into the reference frame,
@@ -243,6 +306,12 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
     possible labellings), and its ambiguous measurements are labelled with the
     predicted pose (method ``linked pose``) if the labelling's own pose puts every
     sphere within ``tol`` of it. Returns how many groups were labelled.
+
+    ``joint`` (without a plan): a measurement no linked scanner has posed is placed by
+    all linked scanners' views together
+    (:func:`~fringecal.spheres.label_joint.joint_placement`), and each scanner's frame
+    is its link rather than a consensus; the dict is filled with measurement -> why
+    it stays refused.
     """
     placed: dict[str, list] = {}
     for r in poses.itertuples(index=False):
@@ -257,10 +326,20 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
         placed.setdefault(str(r.measurement), []).append((r.scanner, links.links[r.scanner].frame.compose(T), sigma))
     world = {m: mean_frame([T for _, T, _ in v])[0] for m, v in placed.items()}
     sigma = {m: min(sg for _, _, sg in v) for m, v in placed.items()}
-    for m, (W, sg, names) in _poses_from_alternatives(labelled, outcomes, links, estimates, artefact, config,
-                                                      set(world)).items():
-        world[m], sigma[m] = W, sg
-        placed[m] = [(f"{', '.join(names)} (the only labelling on which they agree)", W, sg)]
+    if joint is None:
+        for m, (W, sg, names) in _poses_from_alternatives(labelled, outcomes, links, estimates, artefact, config,
+                                                          set(world)).items():
+            world[m], sigma[m] = W, sg
+            placed[m] = [(f"{', '.join(names)} (the only labelling on which they agree)", W, sg)]
+    else:
+        for m, jp in joint_placements(labelled, outcomes, links, estimates, artefact, config, set(world),
+                                      tol).items():
+            if jp.frame is None:
+                joint[m] = jp.note
+                continue
+            joint.pop(m, None)
+            world[m], sigma[m] = jp.frame, jp.sigma
+            placed[m] = [(f"{', '.join(jp.scanners)} together ({jp.note})", jp.frame, jp.sigma)]
     todo = outcomes[(outcomes["status"] == "refused") & (outcomes["reason"] == "ambiguous")
                     & outcomes["measurement"].isin(list(world))]
     n_new = 0
@@ -273,7 +352,10 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
             rows = (labelled["measurement"] == m) & (labelled["scanner"] == s)
             if m in world and alts:
                 results[m] = (labelled.loc[rows, ["x_mm", "y_mm", "z_mm"]].to_numpy(float), alts)
-        frame, _, _ = scanner_frame_from_plan(results, world, artefact, config, est.scale, sigma)
+        if joint is not None and s in links.links:  # no plan: the link is the scanner's frame
+            frame = links.links[s].frame.inverse()
+        else:
+            frame, _, _ = scanner_frame_from_plan(results, world, artefact, config, est.scale, sigma)
         if frame is None:
             continue
         for i, r in mine.iterrows():
@@ -293,7 +375,7 @@ def _label_from_poses(labelled: pd.DataFrame, outcomes: pd.DataFrame, poses: pd.
             notes = [f"candidate {cands[j]}: {w}" for j, w in res.unlabelled.items()]
             notes.append(f"distances alone: ambiguous; labelled with the pose of scanner(s) "
                          f"{', '.join(sc for sc, _, _ in placed[m])} carried by their links, {s}'s frame from "
-                         "the consensus of its measurements")
+                         + ("its link" if joint is not None else "the consensus of its measurements"))
             outcomes.loc[i, ["status", "reason", "method", "n_labelled", "rms_mm", "message"]] = [
                 "labelled", "", "linked pose", res.n_labelled, res.rms_mm, "; ".join(notes)]
             n_new += 1

@@ -69,18 +69,22 @@ def get_step(name: str) -> Step:
 def run_pipeline(rd, config, workers: int = 1, until: str | None = None, force: bool = False,
                  context: dict | None = None) -> dict[str, dict[str, dict]]:
     """Run every step of ``config`` over ``rd`` without Prefect (tests, benchmarks,
-    ``fringecal step``): the instances of a step in a pool of ``workers`` threads, one
-    step after the other. Returns step name -> item -> record (``reused`` says whether
-    it had to run). ``context`` goes to the report step.
+    ``fringecal step``): the instances of a step in a pool of ``workers`` threads (at
+    most the run's cores, :meth:`~fringecal.run.config.RunConfig.thread_policy`), one
+    step after the other, each instance with its share of numba's threads. Returns step
+    name -> item -> record (``reused`` says whether it had to run). ``context`` goes to
+    the report step.
     """
     from concurrent.futures import ThreadPoolExecutor
 
+    policy = config.thread_policy(workers)
     out: dict[str, dict[str, dict]] = {}
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with ThreadPoolExecutor(max_workers=policy.workers) as pool:
         for step in pipeline(config):
             items = step.items(rd, step.view(config))
             ctx = context if step.name == "report" else None
-            records = pool.map(lambda item: run_step(step, rd, config, item, ctx, force), items)
+            threads = policy.instance_threads(len(items))
+            records = pool.map(lambda item: run_step(step, rd, config, item, ctx, force, threads=threads), items)
             out[step.name] = dict(zip(items, records))
             if step.name == until:
                 break

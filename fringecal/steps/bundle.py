@@ -1,7 +1,8 @@
 """Bundle adjustment: every sensor and one artefact pose per measurement refined from
 the control points (thesis 2.3.7, 6.4-6.5, :func:`fringecal.calibration.bundle.bundle_adjust`),
 with uncertainties, a diagnosis of degenerate set-ups and the wild-bootstrap replicas.
-Writes the calibration (JSON and XML), its tables, the residual histograms, the
+Writes the calibration (JSON and XML), its tables (the residuals per sphere image, per
+measurement and binned over every camera's and projector's image), the residual histograms, the
 covariance arrays and ``bundle_summary.json``, all or nothing.
 """
 
@@ -16,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 
-from fringecal import compile_clock
+from fringecal import compile_clock, threads
 from fringecal.atomic import atomic_paths
 from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
@@ -24,7 +25,7 @@ from fringecal.calibration.bundle import bundle_adjust
 from fringecal.calibration.file import rig_to_dict, xml_text
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
-from fringecal.calibration.results import covariance_arrays, residual_tables, summary
+from fringecal.calibration.results import binned_residuals, covariance_arrays, residual_tables, summary
 from fringecal.config import ConfigError
 from fringecal.digests import digest_path, digest_value
 from fringecal.frames import Frame
@@ -73,8 +74,8 @@ class Bundle(Step):
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         boxes = [rd.black_boxes, rd.black_boxes_export] if black_box_scanners(rd) else []
         return [rd.calibration, rd.calibration.xml, rd.sensors_calibrated, rd.poses_calibrated,
-                rd.residuals_per_sphere, rd.residuals_per_measurement, rd.histogram("eps1"), rd.histogram("eps2"),
-                rd.bundle_summary, rd.covariance] + boxes
+                rd.residuals_per_sphere, rd.residuals_per_measurement, rd.residuals_binned, rd.histogram("eps1"),
+                rd.histogram("eps2"), rd.bundle_summary, rd.covariance] + boxes
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         b = cfg.bundle
@@ -88,7 +89,7 @@ class Bundle(Step):
         log.info("F RMS %.4f -> %.4f mm in %d iterations (start: %s)", result.before.rms_f_mm, result.after.rms_f_mm,
                  result.iterations, result.extra.get("start"))
         t1 = time.perf_counter()
-        bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed)
+        bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed, workers=threads.granted())
         timing = {"bundle_seconds": seconds, "bundle_compile_seconds": compile_seconds,
                   "bootstrap_draws": b.bootstrap_draws, "bootstrap_seconds": time.perf_counter() - t1}
         arrays = covariance_arrays(result)
@@ -202,7 +203,8 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
             "iterations": doc["iterations"], "converged": doc["converged"]}
     per_sphere, per_meas = residual_tables(result)
     tables = {rd.sensors_calibrated: result.sensors_frame(), rd.poses_calibrated: result.poses_frame(),
-              rd.residuals_per_sphere: per_sphere, rd.residuals_per_measurement: per_meas}
+              rd.residuals_per_sphere: per_sphere, rd.residuals_per_measurement: per_meas,
+              rd.residuals_binned: binned_residuals(result)}
     tables = {f: validate_table(df, f.schema, str(f.path)) for f, df in tables.items()}
     figures = dict(zip((rd.histogram("eps1"), rd.histogram("eps2")),
                        residual_histograms_png(result.residuals_start, result.residuals)))

@@ -44,15 +44,57 @@ class Initialise(Step):
 
 
 def unlinked_message(rd: RunDir, scanners: list[str], reference: str, centres: pd.DataFrame) -> str:
-    """What a scanner without a link lacks: per scanner, its labelled spheres in each
-    measurement (a pose needs three, and a link one pose shared with a linked scanner)."""
+    """One sentence for the scanners without a link (each named once, the reference never):
+    per scanner why its views were not labelled (from ``label_outcomes``: ambiguous, too
+    few spheres, inconsistent, by measurement) and its labelled spheres per measurement (a
+    pose needs three, and a link one pose shared with a linked scanner); then what would
+    decide them: the planned poses for ambiguous views, more spheres per view for the others."""
+    scanners = list(dict.fromkeys(s for s in scanners if s != reference))
     per = centres.groupby(["scanner", "measurement"]).size() if len(centres) else pd.Series(dtype=int)
-    parts = []
+    outcomes = rd.label_outcomes.load() if rd.label_outcomes.exists() else None
+    parts, reasons = [], set()
     for s in scanners:
         seen = per[s] if s in per.index.get_level_values(0) else pd.Series(dtype=int)
         best = ", ".join(f"{m}: {n}" for m, n in seen.sort_values(ascending=False).head(4).items()) or "none"
-        parts.append(f"scanner {s} (labelled spheres per measurement, most first: {best})")
-    return (f"{rd.root}: {'; '.join(parts)}: never sees three or more labelled artefact spheres in a measurement "
-            f"whose pose the reference scanner {reference} (or a scanner linked to it) knows, so it cannot be placed "
-            f"in the reference frame; why spheres were not labelled: {rd.label_outcomes.path}. Measure the artefact "
-            "where every scanner sees at least three of its spheres in a pose another scanner sees too")
+        why = []
+        if outcomes is not None:
+            mine = outcomes[outcomes["scanner"] == s]
+            for reason, g in mine[mine["status"] == "refused"].groupby("reason", sort=False):
+                reasons.add(reason)
+                most = int(g["n_candidates"].max())
+                why.append(f"{_REASON.get(reason, reason)} in measurement(s) {_listed(g['measurement'])}"
+                           + (f" (at most {most} candidate(s) in a view)" if reason == "too_few_candidates" else ""))
+        parts.append(f"scanner {s}: {'; '.join(why + [f'labelled spheres per measurement, most first: {best}'])}")
+    ref_seen = per[reference] if reference in per.index.get_level_values(0) else pd.Series(dtype=int)
+    if not (ref_seen >= 3).any() and outcomes is not None:
+        mine = outcomes[(outcomes["scanner"] == reference) & (outcomes["status"] == "refused")]
+        reasons |= set(mine["reason"])
+        why = [f"{_REASON.get(r, r)} in measurement(s) {_listed(g['measurement'])}"
+               for r, g in mine.groupby("reason", sort=False)]
+        parts.insert(0, f"the reference scanner {reference} itself has no labelled view"
+                        + (f" ({'; '.join(why)})" if why else "") + ", so nothing can be linked to it")
+    decide = []
+    if "ambiguous" in reasons:
+        decide.append("the planned poses (poses_planned.csv in the data set) or views with more spheres, not all "
+                      "of one symmetric part of the artefact, would decide the ambiguous views")
+    if reasons - {"ambiguous"} or not reasons:
+        decide.append("a view needs three or more of the artefact's spheres, in a measurement a linked scanner "
+                      "shares, to link its scanner")
+    return (f"{rd.root}: {len(scanners)} scanner(s) cannot be placed in the frame of the reference scanner "
+            f"({reference}): {'. '.join(parts)}. {_first_upper('; '.join(decide))}; why each view was refused: "
+            f"{rd.label_outcomes.path}")
+
+
+_REASON = {"ambiguous": "ambiguous (its spheres fit several labellings, and the other scanners' views do not "
+                        "single one out)",
+           "too_few_candidates": "fewer than three spheres", "inconsistent": "contradicted by its other views or "
+           "the other scanners", "search_limit": "too many candidates to search"}
+
+
+def _listed(measurements) -> str:
+    ms = sorted(map(str, measurements), key=lambda m: (len(m), m))
+    return ", ".join(ms) if len(ms) <= 8 else f"{', '.join(ms[:6])}, ... ({len(ms)} in all)"
+
+
+def _first_upper(text: str) -> str:
+    return text[:1].upper() + text[1:]

@@ -29,6 +29,7 @@ from fringecal import compile_clock
 from fringecal.digests import DigestCache, digest_value, source_digest
 from fringecal.rundir import RunDir, RunFile
 from fringecal.steps.base import Rows, Settings, Step, StepError, Value
+from fringecal.threads import step_threads
 
 __all__ = ["step_key", "current_record", "run_step", "digests_of", "RunFileChanged", "recorded_outputs",
            "check_unchanged"]
@@ -164,7 +165,7 @@ def current_record(step: Step, rd: RunDir, cfg: Settings, item: str, key: str) -
 
 
 def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | None = None,
-             force: bool = False, key: str | None = None) -> dict:
+             force: bool = False, key: str | None = None, threads: int | None = None) -> dict:
     """Run one instance of ``step`` over ``rd`` unless it is current; return its record.
 
     ``config`` is the resolved :class:`~fringecal.run.config.RunConfig`; the step sees
@@ -173,7 +174,9 @@ def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | Non
     instance's key when the caller has just computed it (the flow does, to submit the
     task). The record gains ``"reused": True`` when nothing had to run, and
     ``"seconds"`` (wall) and ``"compile_seconds"`` (numba compiling kernels on a first
-    run, part of the wall time; :mod:`fringecal.compile_clock`) otherwise.
+    run, part of the wall time; :mod:`fringecal.compile_clock`) otherwise. ``threads``:
+    the numba threads this instance may use (:func:`fringecal.threads.step_threads`;
+    None: every core the run's policy allows, for an instance that runs alone).
     """
     cfg = step.view(config)
     key = key or step_key(step, rd, cfg, item)
@@ -182,7 +185,10 @@ def run_step(step: Step, rd: RunDir, config, item: str = "", context: dict | Non
     check_unchanged(rd, step.reads(rd, cfg, item))  # what it reads is what the steps before it wrote
     clock = compile_clock.install()
     t0, c0 = time.perf_counter(), clock.thread_seconds()
-    step.run(rd, cfg, item, **(context or {}))
+    if threads is None:
+        threads = config.thread_policy(1).instance_threads(1)
+    with step_threads(threads):
+        step.run(rd, cfg, item, **(context or {}))
     seconds, compile_seconds = time.perf_counter() - t0, clock.thread_seconds() - c0
     outputs = step.writes(rd, cfg, item)
     missing = [f.rel for f in outputs if not f.optional and not f.exists()]

@@ -1,5 +1,6 @@
 """Label, pose, link: which artefact sphere each fitted candidate is (inter-sphere
-distances, and the planned poses where distances alone are ambiguous), one artefact
+distances, and where distances alone are ambiguous the planned poses or, without a
+plan, all scanners' views together through the links their measurements agree on), one artefact
 pose per (measurement, scanner) by SVD, and each scanner's frame linked to the
 reference scanner's through the measurements they share (thesis 6.2-6.3).
 

@@ -19,7 +19,8 @@ def report_inputs(rd: RunDir) -> list:
     """Every file the report shows (those absent give the page a note instead)."""
     return [rd.manifest, rd.artefact, rd.rods, rd.ballbar, rd.acquisition, rd.hexapod_moves,
             rd.label_outcomes, rd.scanner_links, rd.dlt, rd.calibration, rd.bundle_summary,
-            rd.residuals_per_sphere, rd.residuals_per_measurement, rd.histogram("eps1"), rd.histogram("eps2"),
+            rd.residuals_per_sphere, rd.residuals_per_measurement, rd.residuals_binned, rd.histogram("eps1"),
+            rd.histogram("eps2"), rd.control_points, rd.poses_calibrated,
             rd.crossval, rd.verification, rd.ballbar_centres, rd.acceptance, rd.acceptance_standards,
             rd.evaluation]
 

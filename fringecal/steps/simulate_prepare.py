@@ -57,7 +57,8 @@ class SimulatePrepare(Step):
                 "simulate.acquisition.camera_width_px", "simulate.verification.scheme",
                 "simulate.verification.per_pair", "simulate.verification.per_scanner", "simulate.verification.seed",
                 "simulate.acceptance.enabled", "simulate.acceptance.sphere", "simulate.acceptance.dumbbell",
-                "simulate.acceptance.flat", "simulate.acceptance.seed", "simulate.outputs") \
+                "simulate.acceptance.flat", "simulate.acceptance.seed", "acceptance.specification.depth_range_mm",
+                "simulate.outputs") \
         + switch_settings(ARTEFACT_SWITCHES)
     locations = ("simulate.rig", "simulate.verification.ballbar", "simulate.verification.positions",
                  "simulate.acceptance.standards")
@@ -73,7 +74,7 @@ class SimulatePrepare(Step):
                 rd.truth.ballbar_positions, rd.truth.acceptance_positions, rd.acceptance_standards]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        sr = load_simulated_rig(simulation_of(cfg))
+        sr = load_simulated_rig(simulation_of(cfg), cfg.acceptance.specification.depth_range_mm)
         rd.artefact.save(sr.artefact)
         save_or_remove(rd.rods, sr.rods)
         rd.ballbar.save(sr.ballbar)

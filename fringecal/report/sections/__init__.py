@@ -21,7 +21,7 @@ class Section:
 
 
 SECTIONS = (Section("rig", "Rig and artefact"), Section("timing", "Timing"),
-            Section("results", "Calibration results"), Section("parameters", "Sensor parameters"),
+            Section("results", "Calibration results"), Section("scanners", "Scanners"),
             Section("residuals", "Residuals"), Section("crossval", "Cross-validation"),
             Section("verification", "Verification (ball-bar)"),
             Section("acceptance", "Acceptance test (VDI/VDE 2634 parts 2 and 3)"),

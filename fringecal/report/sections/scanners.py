@@ -1,0 +1,183 @@
+"""One part per scanner: its 14 + 14 parameters with their uncertainties, the residuals
+and the coverage by control points over its camera's and projector's images, the
+uncertainty a measured point inherits from the calibration at three depths of its
+measuring volume, and its acceptance values; then the strongest correlations of the
+adjustment."""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+
+import numpy as np
+from markupsafe import Markup
+
+from fringecal.report import figures
+from fringecal.report.figures import Image
+from fringecal.report.formatting import PARAM_LABELS, PARAM_UNITS, finite, length, num, plus_minus, um
+from fringecal.report.rundata import Missing, RunData, guard
+from fringecal.report.sections.certificate import VERDICT_CLASSES
+from fringecal.report.tables import table
+from fringecal.sensor import PARAM_NAMES
+
+__all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths", "acceptance_values"]
+
+#: Cells across the camera image of an uncertainty map.
+MAP_CELLS = 24
+#: Maps drawn in this process, by the digests of what they are drawn from: a page rewritten
+#: from the same files (``fringecal serve``, a test's run directory) does not draw them again.
+_DRAWN: OrderedDict = OrderedDict()
+_DRAWN_MAX = 32
+
+
+def _drawn(key: tuple, draw):
+    """``draw()``, or what it gave for the same ``key`` before."""
+    if key in _DRAWN:
+        _DRAWN.move_to_end(key)
+        return _DRAWN[key]
+    value = draw()
+    _DRAWN[key] = value
+    while len(_DRAWN) > _DRAWN_MAX:
+        _DRAWN.popitem(last=False)
+    return value
+
+
+def _sha(f) -> str:
+    return hashlib.sha256(f.path.read_bytes()).hexdigest()
+
+
+def _value(rig, i: int, j: int):
+    value = float(rig.sensors[i].params[j])
+    if not rig.free[i, j]:
+        return Markup('<span class="fixed">{} (fixed)</span>').format(f"{value:.7g}")
+    return plus_minus(value, None if rig.uncertainty is None else float(rig.uncertainty[i, j]))
+
+
+def _parameters(rig, k: int):
+    """The parameter table of scanner ``k`` (camera and projector columns)."""
+    sc = rig.scanners[k]
+    first = 2 * k
+    sensors = range(first, first + len(sc.sensors))
+    rows = [[PARAM_LABELS[p], PARAM_UNITS[p], *(_value(rig, i, j) for i in sensors)] for j, p in enumerate(PARAM_NAMES)]
+    return table(["Parameter", "Unit"] + [f"{s.name} ({s.role})" for s in sc.sensors], rows, left=2)
+
+
+def residual_maps(run: RunData, scanner: str) -> dict:
+    """The residual and coverage maps of one scanner (``tables/residuals_binned.csv``)."""
+    t = run.table(run.rd.residuals_binned)
+    mine = t[t["scanner"].astype(str) == scanner]
+    if mine.empty:
+        raise Missing(f"{run.rd.residuals_binned.rel} holds no control point of {scanner}")
+    rig = run.load(run.rd.calibration)
+    formats = {s.name: s.format for s in rig.scanner(scanner).sensors}
+    key = ("residuals", _sha(run.rd.residuals_binned), _sha(run.rd.calibration), scanner)
+    png = _drawn(key, lambda: figures.residual_maps_png(mine, formats))
+    n = int(mine[mine["role"] == "camera"]["n_points"].sum())
+    cells = {role: (int((g["n_points"] > 0).sum()), int(g["nx"].iloc[0] * g["ny"].iloc[0]))
+             for role, g in mine.groupby("role")}
+    return {"image": Image(png, f"residuals and control points over the images of {scanner}"), "n": n,
+            "covered": ", ".join(f"{role} {k} of {total} cells" for role, (k, total) in sorted(cells.items()))}
+
+
+def depths(run: RunData, scanner: str) -> tuple[list[float], str]:
+    """Near, middle and far depth (mm) of the scanner's measuring volume, and where the
+    volume comes from: the specification's (``acceptance.json``, else the run
+    configuration), else the depths of the artefact spheres that gave control points."""
+    spec = ((run.maybe_json(run.rd.acceptance) or {}).get("specification")
+            or (run.config().get("acceptance") or {}).get("specification") or {})
+    rng = spec.get("depth_range_mm") if isinstance(spec, dict) else None
+    source = "the specified measuring volume"
+    if not (isinstance(rng, (list, tuple)) and len(rng) == 2):
+        from fringecal.verification.plan import volumes_from_run  # lazy: reads the control points
+
+        try:
+            rng = volumes_from_run(run.rd)[scanner].depth_range_mm
+        except (KeyError, FileNotFoundError, OSError) as err:
+            raise Missing(f"no measuring volume of {scanner}: no specification and no control points ({err})")
+        source = "the depths of the artefact spheres that gave control points"
+    lo, hi = float(rng[0]), float(rng[1])
+    return [lo, (lo + hi) / 2, hi], source
+
+
+def uncertainty_maps(run: RunData, scanner: str) -> dict:
+    """The calibration's uncertainty of a measured point over the camera image at three
+    depths (:func:`fringecal.calibration.propagation.uncertainty_at_depth`, the
+    adjustment's and the artefact's covariance), relative to the frame the rig's sensors
+    realise (:func:`~fringecal.calibration.propagation.frame_free_covariance`: how the
+    world frame is fixed is no uncertainty of what is measured), as ``fringecal measure``
+    states it."""
+    from fringecal.calibration.propagation import (  # lazy: numba kernels
+        frame_free_covariance,
+        scanner_block,
+        uncertainty_at_depth,
+    )
+
+    cal = run.calibration_file()
+    if cal.covariances is None:
+        raise Missing(f"{run.rd.calibration.rel} holds no covariance of the sensor parameters")
+    rig = cal.rig
+    at, source = depths(run, scanner)
+
+    def draw():
+        cov = scanner_block(frame_free_covariance(rig, cal.covariances.total), rig, scanner)
+        maps = [uncertainty_at_depth(rig.scanner(scanner), cov, d, MAP_CELLS) for d in at]
+        return maps, figures.uncertainty_maps_png(maps, rig.scanner(scanner).camera.format)
+
+    maps, png = _drawn(("uncertainty", _sha(run.rd.calibration), scanner, tuple(at)), draw)
+    medians = [float(np.nanmedian(m.u_mm)) if np.isfinite(m.u_mm).any() else float("nan") for m in maps]
+    return {"image": Image(png, f"uncertainty of a measured point over the camera image of {scanner}"),
+            "source": source, "depths": ", ".join(num(d, ".0f", "mm") for d in at),
+            "medians": ", ".join(um(u, 1) for u in medians),
+            "largest": um(max((float(np.nanmax(m.u_mm)) for m in maps if np.isfinite(m.u_mm).any()),
+                              default=float("nan")))}
+
+
+def acceptance_values(run: RunData, scanner: str):
+    """The scanner's acceptance parameters (``acceptance.json``) with the depths of their positions."""
+    doc = run.json(run.rd.acceptance)
+    depth = {}
+    for v in doc.get("values") or []:
+        if v.get("scanner") == scanner and finite(v.get("depth_mm")):
+            lo = v.get("depth_near_mm") if finite(v.get("depth_near_mm")) else v["depth_mm"]
+            a, b = depth.get(v.get("parameter"), (lo, v["depth_mm"]))
+            depth[v.get("parameter")] = (min(a, lo), max(b, v["depth_mm"]))
+    rows = []
+    for p in doc.get("parameters") or []:
+        if p.get("scanner") != scanner:
+            continue
+        d = depth.get(p.get("name"))
+        verdict = str(p.get("verdict"))
+        rows.append([f"{p.get('name')} {p.get('title') or ''}".strip(), p.get("positions"),
+                     f"{num(d[0], '.0f')}-{num(d[1], '.0f')} mm" if d else "n/a", um(p.get("measured_mm")),
+                     um(p.get("U_mm")), length(p.get("mpe_mm")) if p.get("mpe_mm") is not None else "not limited",
+                     (verdict, VERDICT_CLASSES[verdict]) if verdict in VERDICT_CLASSES else verdict])
+    if not rows:
+        raise Missing(f"{run.rd.acceptance.rel} has no parameter of {scanner}")
+    return table(["Parameter", "Positions", "Camera depths", "Measured", "U (k = 2)", "MPE", "Verdict"], rows, left=1)
+
+
+def build(run: RunData) -> dict:
+    """One part per scanner of the calibration, and the correlations."""
+    rig = run.load(run.rd.calibration)
+    serials = (run.config().get("certificate") or {}).get("scanners") or {}
+    scanners = [{"name": sc.name, "serial": serials.get(sc.name), "parameters": _parameters(rig, k),
+                 "residuals": guard(residual_maps, run, sc.name), "uncertainty": guard(uncertainty_maps, run, sc.name),
+                 "acceptance": guard(acceptance_values, run, sc.name)}
+                for k, sc in enumerate(rig.scanners)]
+    return {"scanners": scanners, "correlations": guard(correlations, run)}
+
+
+def correlations(run: RunData, k: int = 10) -> dict:
+    """The ``k`` strongest correlations between sensor parameters, and how many pairs of
+    adjusted parameters (artefact poses included) correlate by more than 0.99."""
+    corr = run.json(run.rd.bundle_summary)["correlation"]
+    names = list(corr["names"])
+    m = np.asarray(corr["matrix"], float)
+    iu = np.triu_indices(len(names), 1)
+    r = m[iu]
+    sensor = np.array([not n.startswith("pose[") for n in names])
+    both = sensor[iu[0]] & sensor[iu[1]]
+    top = np.flatnonzero(both)[np.argsort(-np.abs(r[both]), kind="stable")[:k]]
+    rows = [[names[iu[0][t]], names[iu[1][t]], f"{r[t]:+.4f}"] for t in top]
+    return {"table": table(["Parameter", "Parameter", "Correlation"], rows, left=2),
+            "n_high": int((np.abs(r) > 0.99).sum())}
