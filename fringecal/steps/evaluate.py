@@ -105,7 +105,7 @@ class Evaluate(Step):
     name = "evaluate"
     title = "evaluation against truth"
     settings = ("bundle.gamma1", "bundle.gamma2", "verification", "extraction.rejection", "reference_scanner",
-                "control_points.max_incidence_deg")
+                "control_points.max_incidence_deg", "control_points.pixel_integration_px")
     modules = ("fringecal.calibration", "fringecal.verification.measure", "fringecal.verification.lengths")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
@@ -145,7 +145,7 @@ class Evaluate(Step):
             diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
             centres, failures, result, _ = verify_with_black_boxes(
                 ballbar_stores(rd), truth, true_boxes, rd.ballbar.load(), cfg.extraction.rejection, cfg.verification,
-                diagonal, cfg.control_points.max_incidence_deg)
+                diagonal, cfg.control_points.max_incidence_deg, cfg.control_points.pixel_integration_px)
             rd.ballbar_centres_true.save(centres)
             doc["verification_true_params"] = {**result, "failures": failures.to_dict("records")}
         elif stores_of_kind(rd, "ballbar") and rd.ballbar.exists():

@@ -34,7 +34,8 @@ def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
 class Verify(Step):
     name = "verify"
     title = "verification"
-    settings = ("verification", "extraction.rejection", "control_points.max_incidence_deg")
+    settings = ("verification", "extraction.rejection", "control_points.max_incidence_deg",
+                "control_points.pixel_integration_px")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
@@ -74,7 +75,8 @@ class Verify(Step):
         """Modelled and black-box scanners together (:mod:`fringecal.verification.black_box`)."""
         centres, failures, result, budget = verify_with_black_boxes(
             ballbar_stores(rd), rd.calibration.load(), rd.black_boxes.load(), rd.ballbar.load(),
-            cfg.extraction.rejection, cfg.verification, diagonal, cfg.control_points.max_incidence_deg)
+            cfg.extraction.rejection, cfg.verification, diagonal, cfg.control_points.max_incidence_deg,
+            cfg.control_points.pixel_integration_px)
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner or "-", f.reason)
         rd.ballbar_centres.save(centres)

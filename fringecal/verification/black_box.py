@@ -10,7 +10,15 @@ make a position, and every pair of sightings of the two spheres one length (as
 :func:`.lengths.ballbar_lengths` pairs them).
 
 A modelled scanner's sighting is refitted as the modelled-only verification refits it
-(certified radius, rod masked: :func:`.ballbar.refit_sighting`).
+(certified radius, rod masked: :func:`.ballbar.refit_sighting`) and then once more
+from its phases corrected for the pixel-integration bias
+(:func:`fringecal.spheres.pixel_integration.phase_integration_bias`, the footprint of
+``control_points.pixel_integration_px``), as its control points were corrected before
+the bundle adjustment: its centre then means what the calibration's poses mean. A
+black box's sighting cannot be corrected (no sensors), and need not be: its transform
+was fitted to its own artefact centres, which carry the same bias (a sphere of the same
+size in the same field), so the transform carries it into the world and the bar
+sphere's bias cancels, up to how the bias varies across the field.
 
 Each length's uncertainty (k: the verification's coverage factor) is propagated to
 first order through the joint covariance of every sensor parameter and every black
@@ -18,12 +26,17 @@ box's transform and scale (``black_boxes.json`` ``joint_covariance``: the adjust
 of the black boxes together with the bundle's parameters), with each modelled
 sighting's centre linearised in its scanner's 28 parameters
 (:func:`.budget.sighting_model`) and each black-box centre in its scanner's 7; plus
-each sphere fit's own covariance (the black box's carried into the world) and the
-certificate's standard uncertainty. A scanner seeing both spheres contributes once
+each sphere fit's own covariance (the black box's carried into the world), for a
+black-box sighting its scanner's measured scatter between spheres (``rms_mm`` of the
+adjustment's residuals per coordinate: what differs from sphere to sphere and pose to
+pose, such as the bias's variation across the field, which one sighting does not
+average), and the certificate's standard uncertainty. A scanner seeing both spheres contributes once
 (its translation cancels).
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -33,12 +46,15 @@ from fringecal.calibration.blackbox import BlackBoxScanner, scanners_from_docume
 from fringecal.rig import Rig
 from fringecal.scancloud import load_points
 from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere
-from fringecal.spheres.robust import RejectionConfig
+from fringecal.spheres.pixel_integration import phase_integration_bias
+from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
+from fringecal.store import open_store
+from fringecal.triangulation import triangulate
 from fringecal.verification.lengths import evaluate_ballbar
 from fringecal.spheres.fit import FitError
 from fringecal.verification.ballbar import refit_sighting
 from fringecal.verification.budget import sighting_model
-from fringecal.verification.measure import store_sightings
+from fringecal.verification.measure import store_scanner, store_sightings
 from fringecal.verification.uncertainty import iso14253_verdict, sighting_points
 
 __all__ = ["black_box_scanners_of", "verify_with_black_boxes"]
@@ -78,7 +94,7 @@ def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Arte
                 c = np.array([f.x_mm, f.y_mm, f.z_mm])
                 M = box.matrix()[:3, :3]
                 out.append({"scanner": scanner, "centre": transform_points(box, c[None])[0],
-                            "C_fit": M @ np.diag([f.u_x_mm, f.u_y_mm, f.u_z_mm]) ** 2 @ M.T,
+                            "C_fit": M @ np.diag([f.u_x_mm, f.u_y_mm, f.u_z_mm]) ** 2 @ M.T + _scatter(box),
                             "box": box, "local": c, "radius_mm": f.radius_mm, "rms_mm": f.rms_mm,
                             "n_points": int(f.n_points), "points": points})
         else:
@@ -87,6 +103,38 @@ def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Arte
             out += [{"scanner": scanner, "centre": np.asarray(x.centre, float), "sighting": x, "store": store,
                      "box": None} for x in found]
     return out, failures
+
+
+def _scatter(box: BlackBoxScanner) -> np.ndarray:
+    """A black box's measured scatter of sphere centres about the adjusted artefact,
+    per coordinate (``rms_mm`` / sqrt 3), as a covariance (3, 3) of one sighting; zero
+    when the document carries none (true transforms)."""
+    rms = box.rms_mm if np.isfinite(box.rms_mm) else 0.0
+    return (rms**2 / 3.0) * np.eye(3)
+
+
+def corrected_centre(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, footprint_px: float,
+                     rejection: RejectionConfig | None = None, rounds: int = 2):
+    """A modelled sighting's sphere refitted (certified radius) from its kept pixels'
+    phases less their predicted pixel-integration bias, predicted on the sphere found
+    in the round before (the bias hardly changes over the few tens of micrometres the
+    centre moves). Returns the :class:`fringecal.spheres.robust.RobustSphereFit`;
+    ``footprint_px`` 0 refits the phases as decoded."""
+    rows, cols = (np.asarray(a, int) for a in pixels)
+    with open_store(store) as ds:
+        sc = store_scanner(ds, rig.scanner(scanner))
+        tau = np.stack([ds["tau_x"].values[rows, cols], ds["tau_y"].values[rows, cols]], axis=-1).astype(float)
+    uv = np.stack([cols, rows], axis=-1).astype(float)
+    c = np.asarray(centre, float)
+    fit = None
+    for _ in range(max(1, rounds)):
+        bias = phase_integration_bias(sc.camera, sc.projector, uv, np.repeat(c[None], len(uv), axis=0),
+                                      np.full(len(uv), float(radius_mm)), footprint_px)
+        ok = np.isfinite(bias).all(axis=1)
+        points, _ = triangulate(sc.camera, sc.projector, uv[ok], tau[ok] - bias[ok])
+        fit = fit_sphere_robust(points, radius_mm, expected_radius=radius_mm, config=rejection)
+        c = np.asarray(fit.model.centre, float)
+    return fit
 
 
 def _refit_box(sighting: dict, other: np.ndarray, radius: float, rejection: RejectionConfig,
@@ -101,15 +149,20 @@ def _refit_box(sighting: dict, other: np.ndarray, radius: float, rejection: Reje
     m = fit.model
     c = np.asarray(m.centre, float)
     return {**sighting, "local": c, "centre": transform_points(box, c[None])[0],
-            "C_fit": M @ m.covariance[:3, :3] @ M.T, "radius_mm": m.radius, "rms_mm": m.rms,
+            "C_fit": M @ m.covariance[:3, :3] @ M.T + _scatter(box), "radius_mm": m.radius, "rms_mm": m.rms,
             "n_points": int(m.n_points)}
 
 
 def _refit_modelled(sighting: dict, other: np.ndarray, radius: float, rig: Rig, std: np.ndarray,
-                    rejection: RejectionConfig) -> dict:
-    """A modelled sighting refitted (certified radius, rod masked) with its linear model."""
+                    rejection: RejectionConfig, footprint_px: float) -> dict:
+    """A modelled sighting refitted (certified radius, rod masked), then from its phases
+    corrected for pixel integration (:func:`corrected_centre`), with its linear model."""
     axis = other - sighting["centre"]
     m = refit_sighting(sighting["sighting"], radius, axis / np.linalg.norm(axis), rejection)
+    if footprint_px > 0:
+        fit = corrected_centre(sighting["store"], rig, sighting["scanner"], m.pixels, m.centre, radius, footprint_px,
+                               rejection)
+        m = replace(m, centre=np.asarray(fit.model.centre, float), rms_mm=float(fit.model.rms))
     points = sighting_points(sighting["store"], rig, sighting["scanner"], m.pixels, m.centre, m.radius_mm,
                              m.rms_mm)
     block = points.block
@@ -151,12 +204,14 @@ def _length_u(a: dict, b: dict, joint: dict, u_certificate: float) -> tuple[floa
 
 
 def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: Artefact, rejection: dict, settings,
-                            diagonal_mm: float, max_incidence_deg: float | None = 60.0
-                            ) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
+                            diagonal_mm: float, max_incidence_deg: float | None = 60.0,
+                            pixel_integration_px: float = 0.0) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
     """Centres, failures, the evaluated lengths (:func:`.lengths.evaluate_ballbar`
     as a dict) and the lengths' budgets of every position (``stores``: position ->
     scanner -> store path), modelled and black-box scanners together
-    (``black_boxes``: the document of ``black_boxes.json``)."""
+    (``black_boxes``: the document of ``black_boxes.json``); ``pixel_integration_px``:
+    the footprint the modelled sightings' phases are corrected with (the control
+    points', ``control_points.pixel_integration_px``; 0: as decoded)."""
     rejection = RejectionConfig(**rejection)
     boxes = black_box_scanners_of(black_boxes)
     joint = dict(black_boxes["joint_covariance"])
@@ -182,7 +237,7 @@ def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: 
                 try:
                     if sightings[i]["box"] is None:
                         sightings[i] = _refit_modelled(sightings[i], means[1 - k], float(radii[sid]), rig, std,
-                                                       rejection)
+                                                       rejection, pixel_integration_px)
                     else:
                         sightings[i] = _refit_box(sightings[i], means[1 - k], float(radii[sid]), rejection,
                                                   max_incidence_deg)
