@@ -22,14 +22,20 @@ then
 Each is measured on the same ball-bar sightings
 (:func:`fringecal.verification.black_box.verify_with_black_boxes`), so the lengths
 differ only by the transforms. Reported: E_max of each, the joint's U and coverage.
+
+``--smoke`` (no data set): a synthetic data set of two black boxes written into a
+temporary folder (the clouds of ``benchmarks/cloud_speed.py``: three artefact poses, 20 000
+points each at 0.4 points per mm^2 on the caps, no plan; one ball-bar position, each
+sphere seen by both): the figures mean nothing, every path runs.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -52,6 +58,7 @@ from fringecal.spheres.poses_and_links import label_pose_link, sphere_fit_row  #
 from fringecal.spheres.robust import rod_directions  # noqa: E402
 from fringecal.verification.black_box import verify_with_black_boxes  # noqa: E402
 from fringecal.verification.settings import VerificationConfig  # noqa: E402
+from _common import add_options, conditions, finish  # noqa: E402
 
 NAMES = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad", "scale")
 
@@ -125,23 +132,69 @@ def ballbar(ds: DataSet, boxes: dict, settings: VerificationConfig) -> dict:
             "failures": failures.to_dict("records")}
 
 
-def main() -> None:
+def smoke_dataset(root: Path) -> Path:
+    """The tiny synthetic data set of ``--smoke`` (module notes); its truth beside it
+    (``<root>-truth/scanner_frames.csv``)."""
+    import yaml
+
+    from cloud_speed import ARTEFACT, SCANNERS, cloud, poses
+    from fringecal.frames import frame_rows
+    from fringecal.scancloud import write_scanner_cloud
+
+    rng = np.random.default_rng(7)
+    thesis = ROOT / "configs" / "thesis"
+    root.mkdir(parents=True)
+    (root / "dataset.yaml").write_text(yaml.safe_dump({"name": "black-box-smoke", "reference_scanner": "bbA"}))
+    shutil.copy(thesis / "artefact_cmm1.csv", root / "artefact.csv")
+    for m, pose in poses(3, rng).items():
+        for s, frame in SCANNERS.items():
+            (root / "measurements" / m).mkdir(parents=True, exist_ok=True)
+            write_scanner_cloud(root / "measurements" / m / f"{s}.ply", cloud(pose, frame, 20_000, rng, 0.4))
+    bar = load_artefact(thesis / "ballbar.csv")
+    (root / "verification").mkdir()
+    shutil.copy(thesis / "ballbar.csv", root / "verification" / "ballbar.csv")
+    for k, y in enumerate((0.0,)):
+        world = bar.centres - bar.centres.mean(axis=0) + [375.0, y, 3400.0]
+        for s, frame in SCANNERS.items():
+            (root / "verification" / f"bb{k + 1}").mkdir(exist_ok=True)
+            pts = []
+            for c, r in zip(frame.to_local(world), bar.radii):
+                u = rng.normal(size=(4000, 3))
+                u /= np.linalg.norm(u, axis=1, keepdims=True)
+                u = u[u @ (-c / np.linalg.norm(c)) > 0.2][:800]
+                pts.append(c + (r + rng.normal(0, 0.05, (len(u), 1))) * u)
+            write_scanner_cloud(root / "verification" / f"bb{k + 1}" / f"{s}.ply", np.concatenate(pts))
+    truth = Path(f"{root}-truth")
+    truth.mkdir()
+    frame_rows(SCANNERS, key="scanner").to_csv(truth / "scanner_frames.csv", index=False)
+    return root
+
+
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset", type=Path)
+    ap.add_argument("dataset", type=Path, nargs="?", help="the data set (fringecal simulate's; not with --smoke)")
     ap.add_argument("--truth", type=Path, help="the truth folder (default: DATASET-truth)")
-    ap.add_argument("--out", type=Path)
-    args = ap.parse_args()
-    ds = DataSet.open(args.dataset)
+    args = add_options(ap).parse_args(argv)
+    if args.smoke:
+        with tempfile.TemporaryDirectory(prefix="bbrow-") as tmp:
+            return _main(args, argv, smoke_dataset(Path(tmp) / "ds"))
+    if args.dataset is None:
+        ap.error("a data set is needed (or --smoke)")
+    return _main(args, argv, args.dataset)
+
+
+def _main(args, argv, dataset: Path) -> dict:
+    doc = conditions("black_box_row", argv, args.smoke)
+    ds = DataSet.open(dataset)
     reference = ds.config.reference_scanner
     cal = calibrate(ds, reference)
     settings = VerificationConfig(mpe_mm=0.1)
-    truth = truth_boxes(args.truth or Path(f"{args.dataset}-truth"), reference, cal["joint"].scanners)
+    truth = truth_boxes(args.truth or Path(f"{dataset}-truth"), reference, cal["joint"].scanners)
     out = {
+        **doc,
         "what": "three black-box scanners in a row (configs/run_row3_blackbox.yaml, 768 px, simulation profile "
                 "ideal): ball-bar lengths with the joint adjustment, with each scanner registered on its own "
                 "(pairwise SVD) and with the true transforms, on the same sightings",
-        "command": "PYTHONPATH=. python benchmarks/black_box_row.py DS (DS: fringecal simulate -c "
-                   "configs/run_row3_blackbox.yaml)",
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
         "views_labelled": int((cal["labels"]["status"] == "labelled").sum()), "views": len(cal["labels"]),
         "centres": len(cal["centres"]), "s0": cal["joint"].s0, "seconds": cal["seconds"],
@@ -169,10 +222,7 @@ def main() -> None:
     out["summary"] = {"E_max_joint_um": 1e3 * j, "E_max_pairwise_svd_um": 1e3 * p, "E_max_true_um": 1e3 * t,
                       "joint_over_true": j / t, "svd_over_joint": p / j,
                       "coverage_joint": float(np.mean([e["covered"] for e in out["joint"]["lengths"]]))}
-    text = json.dumps(out, indent=1, default=float)
-    if args.out:
-        args.out.write_text(text + "\n")
-    print(text)
+    return finish(out, args.out)
 
 
 if __name__ == "__main__":

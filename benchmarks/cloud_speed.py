@@ -25,14 +25,16 @@ on two threads, as `fringecal run` schedules them on 2 cores:
 The file-system rate is reading the same files' bytes (``Path.read_bytes``), the PLY
 rate reading them with plyfile into float64 points; both with the files in the page
 cache (they were just written; dropping the cache needs root on a shared machine).
-Median of ``--repeats`` whole runs; load average before and after.
+Median of ``--repeats`` whole runs; the conditions (load average before and after,
+commit, numba's cache) as every benchmark records them (``benchmarks/_common.py``).
+
+``--smoke``: 6 clouds of 20 000 points (0.4 points per mm^2 on the caps), one repeat: the figures mean nothing, every
+path runs (``tests/test_benchmarks.py``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import tempfile
 import time
@@ -53,6 +55,7 @@ from fringecal.scancloud import (read_cloud_store, read_scanner_cloud, write_clo
 from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere  # noqa: E402
 from fringecal.spheres.fit import FitError  # noqa: E402
 from fringecal.spheres.poses_and_links import label_pose_link, sphere_fit_row  # noqa: E402
+from _common import add_options, conditions, finish  # noqa: E402
 
 ARTEFACT = load_artefact(ROOT / "configs" / "thesis" / "artefact_cmm1.csv")
 SCANNERS = {"bbA": Frame.from_params([0, 0, 0, 0, 0, 0]), "bbB": Frame.from_params([750, 0, 0, 0, -0.1, 0])}
@@ -70,13 +73,13 @@ def poses(n: int, rng) -> dict:
     return out
 
 
-def cloud(pose: Frame, scanner: Frame, n_points: int, rng) -> np.ndarray:
+def cloud(pose: Frame, scanner: Frame, n_points: int, rng, density: float = DENSITY) -> np.ndarray:
     """The scanner's cloud of the artefact at ``pose``: visible caps in its field and a backdrop."""
     centres = scanner.to_local(pose.to_world(ARTEFACT.centres))
     inside = (np.abs(centres[:, 0]) < FIELD_MM / 2) & (np.abs(centres[:, 1]) < FIELD_MM / 2)
     parts = []
     for c, r in zip(centres[inside], ARTEFACT.radii[inside]):
-        n = int(DENSITY * np.pi * r**2)
+        n = int(density * np.pi * r**2)
         u = rng.normal(size=(4 * n, 3))
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u = u[u @ (-c / np.linalg.norm(c)) > 0.1][:n]
@@ -140,22 +143,24 @@ def one_run(files: dict, planned: dict, workdir: Path) -> dict:
     return t
 
 
-def main() -> None:
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clouds", type=int, default=24)
     ap.add_argument("--points", type=int, default=2_000_000)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--out", type=Path)
-    args = ap.parse_args()
+    args = add_options(ap).parse_args(argv)
+    if args.smoke:
+        args.clouds, args.points, args.repeats = 6, 20_000, 1
+    doc = conditions("cloud_speed", argv, args.smoke)
+    density = 0.4 if args.smoke else DENSITY
     rng = np.random.default_rng(2026)
     planned = poses(args.clouds // len(SCANNERS), rng)
-    load0 = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="cloudspeed-") as tmp:
         tmp = Path(tmp)
         files = {}
         for m, pose in planned.items():
             for s, frame in SCANNERS.items():
-                files[(m, s)] = write_scanner_cloud(tmp / f"{m}-{s}.ply", cloud(pose, frame, args.points, rng))
+                files[(m, s)] = write_scanner_cloud(tmp / f"{m}-{s}.ply", cloud(pose, frame, args.points, rng, density))
         size = sum(p.stat().st_size for p in files.values())
         t0 = time.perf_counter()
         for p in files.values():
@@ -171,21 +176,16 @@ def main() -> None:
             work.mkdir()
             runs.append(one_run(files, planned, work))
     median = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
-    out = {
-        "what": f"{args.clouds} synthetic black-box clouds of {args.points:,} points (binary float32 PLY) through "
+    doc.update({
+        "what": f"{len(files)} synthetic black-box clouds of {args.points:,} points (binary float32 PLY) through "
                 "reading, the store, sphere candidates, labelling, the second pass and the joint adjustment, "
                 "on two threads",
-        "command": "PYTHONPATH=. python benchmarks/cloud_speed.py",
-        "cpus": os.cpu_count(), "load_average_start": list(load0), "load_average_end": list(os.getloadavg()),
         "cache": "warm (files just written, in the page cache)",
         "median": median, "runs": runs,
         "bytes": size, "filesystem_read_mb_s": size / fs_s / 1e6, "ply_read_mb_s": size / ply_s / 1e6,
-        "ply_read_points_per_s": args.clouds * args.points / ply_s,
-    }
-    text = json.dumps(out, indent=1)
-    if args.out:
-        args.out.write_text(text + "\n")
-    print(text)
+        "ply_read_points_per_s": len(files) * args.points / ply_s,
+    })
+    return finish(doc, args.out)
 
 
 if __name__ == "__main__":

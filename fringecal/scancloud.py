@@ -12,7 +12,9 @@ Every problem raises one :class:`CloudFileError` (a ``ValueError``) whose messag
 starts with the file:
 
 * not a PLY file, or a PLY without a vertex element or without ``x``, ``y``, ``z``;
-* an empty cloud;
+* an empty cloud, or one of more than :data:`fringecal.schemas.MAX_POINTS` points (every
+  pixel of a 4096 x 4096 camera: the bound every points input has), refused from the
+  header before any point is read;
 * points with a NaN or infinite coordinate (the count and the first point's index);
 * a cloud in metres: a header comment ``units: m`` (or any unit other than mm), or a
   cloud whose extent is smaller than a sphere it should hold: a scanner that sees an
@@ -30,6 +32,7 @@ import numpy as np
 import xarray as xr
 
 from fringecal.atomic import atomic_paths
+from fringecal.schemas import MAX_POINTS
 from fringecal.store import open_store, store_attributes, write_store
 
 __all__ = ["CLOUD_SUFFIXES", "CloudFileError", "ScannerCloud", "read_scanner_cloud", "write_scanner_cloud",
@@ -118,9 +121,16 @@ def check_cloud_header(path) -> int:
     data = _ply(path)
     vertex, _ = _vertex(path, data)
     _header_units(path, data.comments + data.obj_info)
-    if vertex.count == 0:
-        raise CloudFileError(f"{path}: empty cloud (0 vertices)")
+    _check_count(path, int(vertex.count))
     return int(vertex.count)
+
+
+def _check_count(path: Path, n: int) -> None:
+    if n == 0:
+        raise CloudFileError(f"{path}: empty cloud (0 vertices)")
+    if n > MAX_POINTS:
+        raise CloudFileError(f"{path}: {n} points; at most {MAX_POINTS} can be used (every pixel of a 4096 x 4096 "
+                             "camera): thin the cloud")
 
 
 def read_scanner_cloud(path, min_extent_mm: float = 0.0) -> ScannerCloud:
@@ -140,6 +150,7 @@ def read_scanner_cloud(path, min_extent_mm: float = 0.0) -> ScannerCloud:
         data = _ply(path)
         vertex, props = _vertex(path, data)
         _header_units(path, data.comments + data.obj_info)
+        _check_count(path, int(vertex.count))
         v = vertex.data
         try:
             pts = np.empty((len(v), 3))
@@ -192,6 +203,7 @@ def _e57(path: Path) -> ScannerCloud:
         raise CloudFileError(f"{path}: corrupt E57 file ({err})") from None
     pts = np.concatenate([np.column_stack([s["cartesianX"], s["cartesianY"], s["cartesianZ"]]) for s in scans]
                          ) if scans else np.zeros((0, 3))
+    _check_count(path, len(pts))
     # E57 stores metres (ASTM E2807): fringecal works in mm
     return ScannerCloud(1000.0 * pts, None, None, path)
 

@@ -132,6 +132,24 @@ def test_a_bad_cloud_stops_the_run_with_one_line_naming_it(dataset, tmp_path, ed
     assert sorted(tmp_path.rglob("*")) == before
 
 
+def test_a_cloud_beyond_the_points_bound_is_refused_from_its_header(dataset, tmp_path, monkeypatch):
+    """2**24 points (every pixel of a 4096 x 4096 camera) is every points input's bound;
+    shown with a small one: refused before a point is read, one line, nothing written."""
+    import fringecal.scancloud as scancloud
+
+    ds, path = _bad(dataset, tmp_path, lambda p: p)
+    points = read_scanner_cloud(path).points
+    write_scanner_cloud(path, np.concatenate([points, points[:10]]))  # 10 points more than the others
+    n = len(points) + 10
+    monkeypatch.setattr(scancloud, "MAX_POINTS", n - 1)
+    before = sorted(tmp_path.rglob("*"))
+    res = CliRunner().invoke(app, ["run", "--dataset", str(ds), "--out", str(tmp_path / "run")])
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and f"{path}: {n} points; at most {n - 1} can be used" in lines[0], res.output
+    assert sorted(tmp_path.rglob("*")) == before
+
+
 def test_a_run_of_black_boxes_only_is_refused_before_it_starts(dataset, tmp_path):
     res = CliRunner().invoke(app, ["run", "--dataset", str(dataset), "--out", str(tmp_path / "run")])
     assert res.exit_code == 2, res.output

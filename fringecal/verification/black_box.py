@@ -57,7 +57,7 @@ from fringecal.verification.budget import sighting_model
 from fringecal.verification.measure import store_scanner, store_sightings
 from fringecal.verification.uncertainty import iso14253_verdict, sighting_points
 
-__all__ = ["black_box_scanners_of", "verify_with_black_boxes"]
+__all__ = ["black_box_scanners_of", "corrected_centre", "corrected_sphere", "verify_with_black_boxes"]
 
 
 def black_box_scanners_of(doc: dict) -> dict[str, BlackBoxScanner]:
@@ -114,24 +114,34 @@ def _scatter(box: BlackBoxScanner) -> np.ndarray:
 
 
 def corrected_centre(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, footprint_px: float,
-                     rejection: RejectionConfig | None = None, rounds: int = 2):
-    """A modelled sighting's sphere refitted (certified radius) from its kept pixels'
-    phases less their predicted pixel-integration bias, predicted on the sphere found
-    in the round before (the bias hardly changes over the few tens of micrometres the
-    centre moves). Returns the :class:`fringecal.spheres.robust.RobustSphereFit`;
-    ``footprint_px`` 0 refits the phases as decoded."""
+                     rejection: RejectionConfig | None = None):
+    """A modelled sighting's sphere refitted from its kept ``pixels`` (rows, cols) of
+    ``store``, their phases corrected for pixel integration (:func:`corrected_sphere`)."""
     rows, cols = (np.asarray(a, int) for a in pixels)
     with open_store(store) as ds:
         sc = store_scanner(ds, rig.scanner(scanner))
         tau = np.stack([ds["tau_x"].values[rows, cols], ds["tau_y"].values[rows, cols]], axis=-1).astype(float)
     uv = np.stack([cols, rows], axis=-1).astype(float)
+    return corrected_sphere(sc.camera, sc.projector, uv, tau, centre, radius_mm, footprint_px, rejection)
+
+
+def corrected_sphere(camera, projector, uv, tau, centre, radius_mm: float, footprint_px: float,
+                     rejection: RejectionConfig | None = None, rounds: int = 2):
+    """The sphere (certified radius ``radius_mm``) of camera pixels ``uv`` (n, 2) whose
+    decoded phases ``tau`` (n, 2) are first corrected for their pixel-integration bias
+    (:func:`fringecal.spheres.pixel_integration.phase_integration_bias`, predicted on
+    ``centre`` and then on the sphere found in the round before: the bias hardly changes
+    over the few tens of micrometres the centre moves). ``footprint_px`` 0 fits the
+    phases as decoded. Returns the :class:`fringecal.spheres.robust.RobustSphereFit`."""
+    uv = np.asarray(uv, float)
+    tau = np.asarray(tau, float)
     c = np.asarray(centre, float)
     fit = None
     for _ in range(max(1, rounds)):
-        bias = phase_integration_bias(sc.camera, sc.projector, uv, np.repeat(c[None], len(uv), axis=0),
+        bias = phase_integration_bias(camera, projector, uv, np.repeat(c[None], len(uv), axis=0),
                                       np.full(len(uv), float(radius_mm)), footprint_px)
         ok = np.isfinite(bias).all(axis=1)
-        points, _ = triangulate(sc.camera, sc.projector, uv[ok], tau[ok] - bias[ok])
+        points, _ = triangulate(camera, projector, uv[ok], tau[ok] - bias[ok])
         fit = fit_sphere_robust(points, radius_mm, expected_radius=radius_mm, config=rejection)
         c = np.asarray(fit.model.centre, float)
     return fit
