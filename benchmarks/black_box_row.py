@@ -6,15 +6,15 @@ its own by its sphere centres, on the ball-bar; prints one JSON object.
 
 The data set (``configs/run_row3_blackbox.yaml``: the three-scanner row, every scanner a
 black box that delivers its triangulated points in its own frame, 768 px, ideal
-simulation profile) is calibrated with fringecal's own steps in-process: each cloud's
-sphere candidates (:func:`fringecal.spheres.cloud_spheres.cloud_sphere_fits`), labelled,
-posed and linked with the planned poses (:func:`fringecal.spheres.poses_and_links.label_pose_link`),
-each labelled sphere refitted in its cloud (:func:`fringecal.spheres.cloud_spheres.refit_cloud_sphere`),
-then
+simulation profile) is calibrated by the run's own steps in-process, as ``fringecal run
+--dataset DS`` calibrates it (:func:`fringecal.steps.run_pipeline` up to the bundle step,
+without Prefect): each cloud's sphere candidates, labelling, poses and links, each
+labelled sphere refitted in its cloud, then
 
-* joint: every scanner's exterior and every artefact pose adjusted at once
-  (:func:`fringecal.calibration.blackbox.adjust_black_boxes`, reference scanner1);
-* pairwise SVD: each scanner registered on its own
+* joint: every scanner's exterior and every artefact pose adjusted at once (the bundle
+  step's black boxes, :func:`fringecal.calibration.blackbox.adjust_black_boxes`,
+  reference scanner1: ``black_boxes.json``);
+* pairwise SVD: each scanner registered on its own on the same refitted centres
   (:func:`fringecal.calibration.blackbox.pairwise_svd`: per shared measurement the SVD
   pose of the artefact in it and in the reference, averaged);
 * truth: the true transforms (each scanner's camera frame in scanner1's).
@@ -45,17 +45,10 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fringecal.artefact import load_artefact, load_rods  # noqa: E402
-from fringecal.calibration.blackbox import adjust_black_boxes, pairwise_svd  # noqa: E402
-from fringecal.calibration.initial import poses_from_table  # noqa: E402
+from fringecal.artefact import load_artefact  # noqa: E402
+from fringecal.calibration.blackbox import pairwise_svd, scanners_from_document  # noqa: E402
 from fringecal.dataset import DataSet  # noqa: E402
 from fringecal.frames import Frame, frames_from_rows  # noqa: E402
-from fringecal.schemas import PosePlanTable, read_table  # noqa: E402
-from fringecal.scancloud import read_scanner_cloud  # noqa: E402
-from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere  # noqa: E402
-from fringecal.spheres.fit import FitError  # noqa: E402
-from fringecal.spheres.poses_and_links import label_pose_link, sphere_fit_row  # noqa: E402
-from fringecal.spheres.robust import rod_directions  # noqa: E402
 from fringecal.verification.black_box import verify_with_black_boxes  # noqa: E402
 from fringecal.verification.settings import VerificationConfig  # noqa: E402
 from _common import add_options, conditions, finish  # noqa: E402
@@ -73,37 +66,27 @@ def doc_of(boxes: dict) -> dict:
             "joint_covariance": {"n_sensor_parameters": 0, "black_boxes": names, "matrix": C.tolist()}}
 
 
-def calibrate(ds: DataSet, reference: str) -> dict:
+def calibrate(dataset: Path, workdir: Path) -> dict:
+    """The data set through the run's own steps up to the bundle step (what ``fringecal
+    run --dataset`` does, without Prefect): the joint adjustment's black boxes, the
+    labelled and refitted centres (``tables/fits_final``) for the pairwise baseline."""
+    from fringecal.run.config import load_run_config
+    from fringecal.rundir import RunDir
+    from fringecal.steps import run_pipeline
+    from fringecal.steps.base import stores_of
+
     t0 = time.perf_counter()
-    artefact = load_artefact(ds.artefact)
-    rods = load_rods(ds.rods, artefact) if ds.rods else None
-    radius = float(np.median(artefact.radii))
-    clouds, fits = {}, []
-    for src in ds.measurements:
-        clouds[(src.group, src.scanner)] = read_scanner_cloud(src.path).points
-        f, _ = cloud_sphere_fits(clouds[(src.group, src.scanner)], src.group, src.scanner, radius)
-        fits.append(f)
-    t_fit = time.perf_counter() - t0
-    planned = frames_from_rows(read_table(ds.poses_planned, PosePlanTable)) if ds.poses_planned else None
-    res = label_pose_link(pd.concat(fits, ignore_index=True), artefact, reference, planned=planned)
-    poses = poses_from_table(res.poses.poses)
-    finals = []
-    for r in res.fits[res.fits["sphere_id"] != ""].itertuples():
-        T = poses.get((r.measurement, r.scanner))
-        axes = rod_directions(artefact, rods, r.sphere_id, T) if rods is not None else None
-        try:
-            fit = refit_cloud_sphere(clouds[(r.measurement, r.scanner)], np.array([r.x_mm, r.y_mm, r.z_mm]),
-                                     float(artefact.radii[artefact.ids.index(r.sphere_id)]), axes)
-        except (FitError, ValueError):
-            continue
-        finals.append(sphere_fit_row(r.measurement, r.scanner, r.candidate, fit, sphere_id=r.sphere_id))
-    finals = pd.DataFrame(finals)
-    links = {str(r.scanner): Frame.from_params([getattr(r, c) for c in NAMES[:6]])
-             for r in res.links_table().itertuples()}
-    joint = adjust_black_boxes(finals, artefact, reference, {s: (links[s], 1.0) for s in ds.black_boxes})
-    t_joint = time.perf_counter() - t0
-    return {"joint": joint, "svd": pairwise_svd(finals, artefact, reference), "centres": finals,
-            "labels": res.labels, "seconds": {"spheres": t_fit, "total": t_joint}}
+    cfg = load_run_config(dataset=dataset)
+    rd = RunDir(workdir / "run").create()
+    run_pipeline(rd, cfg, workers=2, until="bundle")
+    finals = pd.concat([f for f in (rd.fits_final(m).load() for m in stores_of(rd, "artefact", black_box=True))
+                        if len(f)], ignore_index=True)
+    boxes = scanners_from_document(rd.black_boxes.load())
+    doc = rd.black_boxes.load()
+    artefact = rd.artefact.load()
+    return {"joint": boxes, "s0": doc["s0"], "reference": cfg.reference_scanner,
+            "svd": pairwise_svd(finals, artefact, cfg.reference_scanner), "centres": finals,
+            "labels": rd.label_outcomes.load(), "seconds": {"total": time.perf_counter() - t0}}
 
 
 def truth_boxes(truth_dir: Path, reference: str, like: dict) -> dict:
@@ -137,7 +120,7 @@ def smoke_dataset(root: Path) -> Path:
     (``<root>-truth/scanner_frames.csv``)."""
     import yaml
 
-    from cloud_speed import ARTEFACT, SCANNERS, cloud, poses
+    from cloud_speed import SCANNERS, cloud, poses
     from fringecal.frames import frame_rows
     from fringecal.scancloud import write_scanner_cloud
 
@@ -186,10 +169,11 @@ def main(argv=None) -> dict:
 def _main(args, argv, dataset: Path) -> dict:
     doc = conditions("black_box_row", argv, args.smoke)
     ds = DataSet.open(dataset)
-    reference = ds.config.reference_scanner
-    cal = calibrate(ds, reference)
+    with tempfile.TemporaryDirectory(prefix="bbrow-run-") as work:
+        cal = calibrate(dataset, Path(work))
+    reference = cal["reference"]
     settings = VerificationConfig(mpe_mm=0.1)
-    truth = truth_boxes(args.truth or Path(f"{dataset}-truth"), reference, cal["joint"].scanners)
+    truth = truth_boxes(args.truth or Path(f"{dataset}-truth"), reference, cal["joint"])
     out = {
         **doc,
         "what": "three black-box scanners in a row (configs/run_row3_blackbox.yaml, 768 px, simulation profile "
@@ -197,13 +181,13 @@ def _main(args, argv, dataset: Path) -> dict:
                 "(pairwise SVD) and with the true transforms, on the same sightings",
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
         "views_labelled": int((cal["labels"]["status"] == "labelled").sum()), "views": len(cal["labels"]),
-        "centres": len(cal["centres"]), "s0": cal["joint"].s0, "seconds": cal["seconds"],
-        "joint": ballbar(ds, cal["joint"].scanners, settings),
+        "centres": len(cal["centres"]), "s0": cal["s0"], "seconds": cal["seconds"],
+        "joint": ballbar(ds, cal["joint"], settings),
         "pairwise_svd": ballbar(ds, cal["svd"], settings),
         "true_transforms": ballbar(ds, truth, settings),
         "transform_errors": {},
     }
-    for s, b in cal["joint"].scanners.items():
+    for s, b in cal["joint"].items():
         d = b.params - truth[s].params
         e = cal["svd"][s].params - truth[s].params
         out["transform_errors"][s] = {"joint_mm": float(np.linalg.norm(d[:3])), "joint_mrad": float(1e3 * np.abs(

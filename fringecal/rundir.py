@@ -440,8 +440,9 @@ class RunDir:
 
     @property
     def sensors_prior(self) -> RigFile:
-        """Each scanner's own calibration in its own frame (the reference scanner's is the world)."""
-        return self._at(RigFile, "tables/sensors_prior.csv")
+        """Each modelled scanner's own calibration in its own frame (the reference scanner's
+        is the world); absent in a rig of black boxes only."""
+        return self._at(RigFile, "tables/sensors_prior.csv", optional=True)
 
     @property
     def poses_planned(self) -> TableFile:

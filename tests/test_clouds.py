@@ -150,12 +150,6 @@ def test_a_cloud_beyond_the_points_bound_is_refused_from_its_header(dataset, tmp
     assert sorted(tmp_path.rglob("*")) == before
 
 
-def test_a_run_of_black_boxes_only_is_refused_before_it_starts(dataset, tmp_path):
-    res = CliRunner().invoke(app, ["run", "--dataset", str(dataset), "--out", str(tmp_path / "run")])
-    assert res.exit_code == 2, res.output
-    assert "every scanner is a black box (bbA, bbB)" in res.stderr and not (tmp_path / "run").exists()
-
-
 def test_a_scanner_gives_clouds_or_stacks_not_both(dataset, tmp_path):
     ds, _ = _bad(dataset, tmp_path, lambda p: p)
     (ds / "measurements" / "2" / "bbB.zarr").mkdir()

@@ -48,7 +48,7 @@ import scipy.optimize
 from fringecal.artefact import Artefact
 from fringecal.frames import Frame
 from fringecal.registration import kabsch, umeyama
-from fringecal.rotation import angles_from_matrix, rotation_derivatives, rotation_matrix
+from fringecal.rotation import rotation_derivatives, rotation_matrix
 
 __all__ = ["BlackBoxResult", "BlackBoxScanner", "ModelPrior", "adjust_black_boxes", "pairwise_svd", "start_poses",
            "transform_points", "EXPORT_COLUMNS", "export_table", "inconsistent_views", "registration_noise",
@@ -115,7 +115,7 @@ class BlackBoxResult:
     def to_dict(self) -> dict:
         out = {"reference": self.reference, "scale": self.scale, "s0": self.s0, "dof": self.dof,
                "scanners": [s.to_dict() for s in self.scanners.values()]}
-        if self.joint is not None:
+        if self.joint is not None and self.joint["max_shift_sigma"] is not None:
             out["modelled_shift_max_sigma"] = self.joint["max_shift_sigma"]
         return out
 
@@ -423,10 +423,12 @@ def adjust_black_boxes(centres: pd.DataFrame, artefact: Artefact, reference: str
     res = pd.DataFrame({"measurement": obs["measurement"], "scanner": obs["scanner"],
                         "sphere_id": np.asarray(artefact.ids)[obs["sphere"]],
                         "dx_mm": d[:, 0], "dy_mm": d[:, 1], "dz_mm": d[:, 2]})
-    joint = None
     if prior is not None:
         joint = _conditioned(prior, cov, x, lay, pose_free, pose_at)
-        joint["free"] = {s: lay.free[s] for s in scanners}
+    else:  # black boxes only: their transforms' covariance, cross-covariances included
+        joint = {"covariance": cov[:lay.n_boxes, :lay.n_boxes], "n_model": 0, "x": np.zeros(0),
+                 "max_shift_sigma": None}
+    joint["free"] = {s: lay.free[s] for s in scanners}
     return BlackBoxResult(out, pose_df, pose_std, s0, int(dof), reference, bool(scale), res, joint)
 
 

@@ -55,6 +55,9 @@ class Acceptance(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for kind in ACCEPTANCE_KINDS for m in stores_of_kind(rd, kind)]
+        if not rd.sensors_prior.exists():  # black boxes only: E from the ball-bar
+            return [rd.sensors_prior, rd.verification, rd.acceptance_standards, rd.acquisition,
+                    rd.truth.acceptance_positions]
         return [rd.calibration, rd.covariance, rd.verification, rd.acceptance_standards, rd.acquisition,
                 rd.truth.acceptance_positions] + stores
 
@@ -62,7 +65,8 @@ class Acceptance(Step):
         return [rd.acceptance, rd.acceptance_values]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        stores = acceptance_stores(rd)
+        modelled = rd.sensors_prior.exists()
+        stores = acceptance_stores(rd) if modelled else {}
         standards = (AcceptanceStandards(**rd.acceptance_standards.load()) if rd.acceptance_standards.exists()
                      else AcceptanceStandards())
         verified = rd.verification.exists()
@@ -72,8 +76,9 @@ class Acceptance(Step):
             log.warning("no acceptance test: %s", "acceptance.enabled is false" if not cfg.acceptance.enabled
                         else "no acceptance objects and no verified ball-bar")
             return
-        doc, values = acceptance_document(rd.calibration.load(), standards, cfg.acceptance, cfg.extraction.rejection,
-                                          cfg.verification.uncertainty, rd.covariance.load(), stores,
+        doc, values = acceptance_document(rd.calibration.load() if modelled else None, standards, cfg.acceptance,
+                                          cfg.extraction.rejection, cfg.verification.uncertainty,
+                                          rd.covariance.load() if modelled else None, stores,
                                           rd.verification.load() if verified else None, _positions(rd))
         for f in doc["failures"]:
             log.warning("acceptance %s position %s, scanner %s: %s", f["test"], f["position"], f["scanner"],

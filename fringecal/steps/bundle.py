@@ -67,11 +67,16 @@ class Bundle(Step):
     modules = ("fringecal.calibration",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
+        if not rd.sensors_prior.exists():  # black boxes only
+            return [rd.sensors_prior, rd.artefact, rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
+                [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)]
         boxes = [rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
             [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)] if black_box_scanners(rd) else []
         return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
+        if not rd.sensors_prior.exists():
+            return [rd.black_boxes, rd.black_boxes_export, rd.bundle_summary]
         boxes = [rd.black_boxes, rd.black_boxes_export] if black_box_scanners(rd) else []
         return [rd.calibration, rd.calibration.xml, rd.sensors_calibrated, rd.poses_calibrated,
                 rd.residuals_per_sphere, rd.residuals_per_measurement, rd.residuals_binned, rd.histogram("eps1"),
@@ -79,6 +84,8 @@ class Bundle(Step):
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         b = cfg.bundle
+        if not rd.sensors_prior.exists():
+            return self.run_black_boxes_only(rd, cfg)
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         t0, c0 = time.perf_counter(), compile_clock.thread_seconds()
         result = bundle_adjust(problem, b)
@@ -114,6 +121,29 @@ class Bundle(Step):
             rd.black_boxes.save({**boxes.to_dict(), "joint_covariance": joint_covariance(result, boxes)})
             rd.black_boxes_export.save(export_table(boxes.scanners.values()))
 
+    def run_black_boxes_only(self, rd: RunDir, cfg: Settings) -> None:
+        """A rig of black boxes only: every transform (the reference's fixed) and every
+        artefact pose adjusted at once (:func:`fringecal.calibration.blackbox.adjust_black_boxes`
+        without a prior); ``bundle_summary.json`` says so (``black_boxes_only``)."""
+        t0 = time.perf_counter()
+        boxes = black_box_adjustment(rd, None, cfg.reference_scanner, cfg.bundle.black_box_scale)
+        residuals = boxes.residuals[["dx_mm", "dy_mm", "dz_mm"]].to_numpy(float)
+        rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))) if len(residuals) else float("nan")
+        artefact = rd.artefact.load()
+        placed = np.concatenate([Frame.from_params([getattr(r, c) for c in POSE_COLUMNS]).to_world(artefact.centres)
+                                 for r in boxes.poses.itertuples()])
+        diagonal = cfg.bundle.volume_diagonal_mm or float(np.linalg.norm(placed.max(axis=0) - placed.min(axis=0)))
+        doc = {"black_boxes_only": True, "converged": True, "n_control_points": int(len(residuals)),
+               "volume_diagonal_mm": diagonal,
+               "volume_diagonal_source": "given (bundle.volume_diagonal_mm)" if cfg.bundle.volume_diagonal_mm
+               else "bounding box of the artefact's sphere centres at the adjusted poses",
+               "n_centres": int(len(residuals)), "rms_centre_mm": rms, "bundle_seconds": time.perf_counter() - t0,
+               "black_boxes": {"s0": boxes.s0, "dof": boxes.dof,
+                               "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()}}}
+        rd.black_boxes.save({**boxes.to_dict(), "joint_covariance": joint_covariance(None, boxes)})
+        rd.black_boxes_export.save(export_table(boxes.scanners.values()))
+        rd.bundle_summary.save(doc)
+
     def provenance(self, rd: RunDir, cfg: Settings, item: str) -> dict:
         """What the calibration was computed from: its input files' digests, its
         settings (and their digest), the package versions."""
@@ -124,7 +154,8 @@ class Bundle(Step):
 
 def black_box_adjustment(rd: RunDir, result, reference: str, scale: bool):
     """Each black-box scanner's transform (and scale) with every artefact pose, on the
-    poses the bundle adjustment found with their covariance
+    poses the bundle adjustment found with their covariance (``result``; None: a rig of
+    black boxes only, the reference among them)
     (:func:`fringecal.calibration.blackbox.adjust_black_boxes`); None without black boxes."""
     boxes = black_box_scanners(rd)
     if not boxes:
@@ -148,6 +179,9 @@ def black_box_adjustment(rd: RunDir, result, reference: str, scale: bool):
                           f"another linked scanner saw (why spheres were not labelled: {rd.label_outcomes.path})")
     finals = [rd.fits_final(m).load() for m in stores_of(rd, "artefact", black_box=True)]
     fits = pd.concat([f for f in finals if len(f)], ignore_index=True)
+    if result is None:
+        return adjust_black_boxes(fits, rd.artefact.load(), reference, {s: (links[s], 1.0) for s in boxes},
+                                  scale=scale)
     lay = result.layout
     prior = ModelPrior(result.x, result.uncertainty.covariance, lay.pose_index, result.poses,
                        result.problem.measurements, lay.names)
@@ -174,8 +208,9 @@ def with_black_box_update(result, boxes):
 def joint_covariance(result, boxes) -> dict:
     """The covariance of every sensor parameter (n_sensors * 14, rig order, fixed ones
     zero) and every black box's 7 parameters together, from the joint adjustment
-    (what a length measured by a modelled and a black-box scanner needs)."""
-    idx = result.layout.sensor_index.reshape(-1)
+    (what a length measured by a modelled and a black-box scanner needs); ``result``
+    None: a rig of black boxes only (no sensor parameters)."""
+    idx = np.zeros(0, int) if result is None else result.layout.sensor_index.reshape(-1)
     n_s = idx.size
     names = list(boxes.scanners)
     C = boxes.joint["covariance"]  # [bundle's free parameters, black boxes' free parameters]

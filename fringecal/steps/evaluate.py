@@ -80,8 +80,9 @@ def true_black_boxes(estimated: dict, frames: dict, T_world_reference, truth) ->
         names = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
         scanners.append({"scanner": d["scanner"], **dict(zip(names, map(float, T.params))), "scale": 1.0,
                          "covariance": np.zeros((7, 7)).tolist(), "rms_mm": 0.0, "n_centres": 0})
-    n = 14 * len(truth.sensors) + 7 * len(scanners)
-    return {"scanners": scanners, "joint_covariance": {"n_sensor_parameters": 14 * len(truth.sensors),
+    n_sensor = 0 if truth is None else 14 * len(truth.sensors)  # None: black boxes only
+    n = n_sensor + 7 * len(scanners)
+    return {"scanners": scanners, "joint_covariance": {"n_sensor_parameters": n_sensor,
                                                        "black_boxes": [d["scanner"] for d in scanners],
                                                        "matrix": np.zeros((n, n)).tolist()}}
 
@@ -110,6 +111,9 @@ class Evaluate(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         boxes = [rd.black_boxes, rd.sensors_prior] if black_box_scanners(rd) else []
+        if not rd.sensors_prior.exists():  # black boxes only
+            return [rd.truth.scanner_frames, rd.ballbar, rd.bundle_summary, rd.acquisition] + \
+                [rd.store(m) for m in stores_of_kind(rd, "ballbar")] + boxes
         return [rd.truth.sensors, rd.truth.poses, rd.truth.scanner_frames, rd.calibration, rd.control_points,
                 rd.artefact, rd.ballbar, rd.bundle_summary, rd.acquisition] + \
             [rd.store(m) for m in stores_of_kind(rd, "ballbar")] + boxes
@@ -118,6 +122,8 @@ class Evaluate(Step):
         return [rd.evaluation, rd.ballbar_centres_true]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        if not rd.sensors_prior.exists():
+            return self.run_black_boxes_only(rd, cfg)
         calibrated = rd.calibration.load()
         frames = frames_from_rows(rd.truth.scanner_frames.load(), key="scanner")
         T_world_reference = frames[cfg.reference_scanner]
@@ -154,6 +160,29 @@ class Evaluate(Step):
                                                           cfg.extraction.rejection, cfg.verification, diagonal)
             rd.ballbar_centres_true.save(centres)
             doc["verification_true_params"] = {**result.to_dict(), "failures": failures.to_dict("records")}
+        else:
+            rd.ballbar_centres_true.remove()
+        rd.evaluation.save(doc)
+
+    def run_black_boxes_only(self, rd: RunDir, cfg: Settings) -> None:
+        """A rig of black boxes only: each transform against the truth, and the ball-bar
+        measured on the same sightings with the true transforms (no sensor model: no
+        residual floor)."""
+        frames = frames_from_rows(rd.truth.scanner_frames.load(), key="scanner")
+        estimated = rd.black_boxes.load()
+        true_boxes = true_black_boxes(estimated, frames, frames[cfg.reference_scanner], None)
+        errors = black_box_errors(estimated, true_boxes)
+        doc = {"black_boxes_only": True, "black_boxes": errors,
+               "max_position_error_mm": max(e["position_error_mm"] for e in errors),
+               "max_angle_error_rad": max(e["angle_error_rad"] for e in errors),
+               "rms_f_mm_true_params": None, "rms_eps1_mm_true_params": None, "rms_eps2_mm_true_params": None}
+        if stores_of_kind(rd, "ballbar") and rd.ballbar.exists():
+            centres, failures, result, _ = verify_with_black_boxes(
+                ballbar_stores(rd), None, true_boxes, rd.ballbar.load(), cfg.extraction.rejection, cfg.verification,
+                rd.bundle_summary.load()["volume_diagonal_mm"], cfg.control_points.max_incidence_deg,
+                cfg.control_points.pixel_integration_px)
+            rd.ballbar_centres_true.save(centres)
+            doc["verification_true_params"] = {**result, "failures": failures.to_dict("records")}
         else:
             rd.ballbar_centres_true.remove()
         rd.evaluation.save(doc)

@@ -23,13 +23,19 @@ class Initialise(Step):
     modules = ("fringecal.calibration.initial",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
+        if not rd.sensors_prior.exists():  # black boxes only: nothing to start (docs/blackbox.md)
+            return [rd.sensors_prior]
         return [rd.sensors_prior, rd.sphere_centres, rd.poses, rd.scanner_links, rd.artefact] + \
             [rd.control_points_of(m) for m in modelled_items(rd)]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
+        if not rd.sensors_prior.exists():
+            return []
         return [rd.control_points, rd.poses_initial, rd.sensors_initial, rd.dlt]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        if not rd.sensors_prior.exists():  # black boxes only: the bundle step adjusts their transforms alone
+            return
         centres = rd.sphere_centres.load()
         try:
             init = initial_calibration(rd.sensors_prior.load(cfg.reference_scanner), centres,

@@ -20,7 +20,6 @@ from __future__ import annotations
 import pandas as pd
 
 from fringecal.acceptance.plan import PLAN_COLUMNS
-from fringecal.config import ConfigError
 from fringecal.frames import frame_rows
 from fringecal.rundir import RunDir
 from fringecal.simulate.black_box import without_black_boxes
@@ -79,11 +78,10 @@ class SimulatePrepare(Step):
         save_or_remove(rd.rods, sr.rods)
         rd.ballbar.save(sr.ballbar)
         modelled = without_black_boxes(sr.prior, cfg.simulate.outputs)
-        if modelled is None:
-            raise ConfigError("simulate.outputs: every scanner is a black box; a run calibrates rigs with at least "
-                              "one modelled scanner (a black-box-only rig: `fringecal simulate` writes its data set, "
-                              "benchmarks/black_box_row.py calibrates it)")
-        rd.sensors_prior.save(modelled)
+        if modelled is None:  # every scanner a black box: no prior calibration (docs/blackbox.md)
+            rd.sensors_prior.remove()
+        else:
+            rd.sensors_prior.save(modelled)
         rd.poses_planned.save(frame_rows(sr.planned))
         table = acquisition_table(sr)
         table.insert(4, "store", [rd.store(m).rel for m in table["measurement"]])

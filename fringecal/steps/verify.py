@@ -40,6 +40,8 @@ class Verify(Step):
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
         boxes = [rd.black_boxes, rd.sensors_prior] if black_box_scanners(rd) else []
+        if not rd.sensors_prior.exists():  # black boxes only
+            return [rd.ballbar, rd.bundle_summary, rd.acquisition] + stores + boxes
         return [rd.calibration, rd.covariance, rd.crossval, rd.crossval_halves, rd.ballbar, rd.bundle_summary,
                 rd.acquisition] + stores + boxes
 
@@ -74,7 +76,8 @@ class Verify(Step):
     def run_black_boxes(self, rd: RunDir, cfg: Settings, diagonal: float) -> None:
         """Modelled and black-box scanners together (:mod:`fringecal.verification.black_box`)."""
         centres, failures, result, budget = verify_with_black_boxes(
-            ballbar_stores(rd), rd.calibration.load(), rd.black_boxes.load(), rd.ballbar.load(),
+            ballbar_stores(rd), rd.calibration.load() if rd.sensors_prior.exists() else None, rd.black_boxes.load(),
+            rd.ballbar.load(),
             cfg.extraction.rejection, cfg.verification, diagonal, cfg.control_points.max_incidence_deg,
             cfg.control_points.pixel_integration_px)
         for f in failures.itertuples():
