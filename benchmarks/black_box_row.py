@@ -19,9 +19,10 @@ labelled sphere refitted in its cloud, then
   pose of the artefact in it and in the reference, averaged);
 * truth: the true transforms (each scanner's camera frame in scanner1's).
 
-Each is measured on the same ball-bar sightings
-(:func:`fringecal.verification.black_box.verify_with_black_boxes`), so the lengths
-differ only by the transforms. Reported: E_max of each, the joint's U and coverage.
+Each is measured on the same ball-bar sightings as the run's verification step measures
+them (:func:`fringecal.verification.black_box.verify_with_black_boxes` with the run's
+settings; the joint one with the transforms' joint covariance), so the lengths differ
+only by the transforms. Reported: E_max of each, the joint's U and coverage.
 
 ``--smoke`` (no data set): a synthetic data set of two black boxes written into a
 temporary folder (the clouds of ``benchmarks/cloud_speed.py``: three artefact poses, 20 000
@@ -50,7 +51,6 @@ from fringecal.calibration.blackbox import pairwise_svd, scanners_from_document 
 from fringecal.dataset import DataSet  # noqa: E402
 from fringecal.frames import Frame, frames_from_rows  # noqa: E402
 from fringecal.verification.black_box import verify_with_black_boxes  # noqa: E402
-from fringecal.verification.settings import VerificationConfig  # noqa: E402
 from _common import add_options, conditions, finish  # noqa: E402
 
 NAMES = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad", "scale")
@@ -84,7 +84,7 @@ def calibrate(dataset: Path, workdir: Path) -> dict:
     boxes = scanners_from_document(rd.black_boxes.load())
     doc = rd.black_boxes.load()
     artefact = rd.artefact.load()
-    return {"joint": boxes, "s0": doc["s0"], "reference": cfg.reference_scanner,
+    return {"joint": boxes, "joint_doc": doc, "config": cfg, "s0": doc["s0"], "reference": cfg.reference_scanner,
             "svd": pairwise_svd(finals, artefact, cfg.reference_scanner), "centres": finals,
             "labels": rd.label_outcomes.load(), "seconds": {"total": time.perf_counter() - t0}}
 
@@ -102,12 +102,15 @@ def truth_boxes(truth_dir: Path, reference: str, like: dict) -> dict:
     return out
 
 
-def ballbar(ds: DataSet, boxes: dict, settings: VerificationConfig) -> dict:
+def ballbar(ds: DataSet, doc: dict, cfg) -> dict:
+    """The ball-bar measured with the black boxes of ``doc`` (a ``black_boxes.json``
+    document) as the run's verification step measures it (its settings)."""
     stores = {}
     for src in ds.verification:
         stores.setdefault(src.group, {})[src.scanner] = src.path
-    _, failures, result, budget = verify_with_black_boxes(stores, None, doc_of(boxes), load_artefact(ds.ballbar),
-                                                          {}, settings, float("nan"))
+    _, failures, result, budget = verify_with_black_boxes(
+        stores, None, doc, load_artefact(ds.ballbar), cfg.extraction.rejection, cfg.verification, float("nan"),
+        cfg.control_points.max_incidence_deg, cfg.control_points.pixel_integration_px)
     return {"max_abs_error_mm": result["max_abs_error_mm"],
             "lengths": [{"measurement": e["measurement"], "scanners": [e["scanner_a"], e["scanner_b"]],
                          "error_mm": e["error_mm"], "U_mm": e["U_mm"], "covered": e["covered"]}
@@ -172,7 +175,6 @@ def _main(args, argv, dataset: Path) -> dict:
     with tempfile.TemporaryDirectory(prefix="bbrow-run-") as work:
         cal = calibrate(dataset, Path(work))
     reference = cal["reference"]
-    settings = VerificationConfig(mpe_mm=0.1)
     truth = truth_boxes(args.truth or Path(f"{dataset}-truth"), reference, cal["joint"])
     out = {
         **doc,
@@ -182,9 +184,9 @@ def _main(args, argv, dataset: Path) -> dict:
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
         "views_labelled": int((cal["labels"]["status"] == "labelled").sum()), "views": len(cal["labels"]),
         "centres": len(cal["centres"]), "s0": cal["s0"], "seconds": cal["seconds"],
-        "joint": ballbar(ds, cal["joint"], settings),
-        "pairwise_svd": ballbar(ds, cal["svd"], settings),
-        "true_transforms": ballbar(ds, truth, settings),
+        "joint": ballbar(ds, cal["joint_doc"], cal["config"]),
+        "pairwise_svd": ballbar(ds, doc_of(cal["svd"]), cal["config"]),
+        "true_transforms": ballbar(ds, doc_of(truth), cal["config"]),
         "transform_errors": {},
     }
     for s, b in cal["joint"].items():
