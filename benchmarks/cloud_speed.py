@@ -18,8 +18,9 @@ Prefect's start included), from its start to its end, with the steps' own times 
 pass, labelling with the plan, the second pass, the black boxes' adjustment and the report.
 
 The file-system rate is reading the same files' bytes (``Path.read_bytes``), the PLY
-rate reading them with plyfile into float64 points; both with the files in the page
-cache (they were just written; dropping the cache needs root on a shared machine).
+rate reading them with plyfile into float64 points, the E57 rate the first four clouds
+written as E57 (when the optional pye57 is installed) read by fringecal's E57 path; all
+with the files in the page cache (they were just written; dropping the cache needs root on a shared machine).
 Median of ``--repeats`` whole runs; the conditions (load average before and after,
 commit, numba's cache) as every benchmark records them (``benchmarks/_common.py``).
 
@@ -138,6 +139,37 @@ def one_run(dataset: Path, out: Path, in_process: bool) -> dict:
     return t
 
 
+def e57_rates(plys: list, folder: Path) -> dict:
+    """The same clouds (the first few) written as E57 with pye57 (metres, as E57 holds
+    them): bytes from the file system and points through
+    :func:`fringecal.scancloud.read_scanner_cloud`; skipped without the optional reader."""
+    try:
+        import pye57
+    except ImportError:
+        return {"skipped": "pye57 not installed (pip install 'fringecal[e57]')"}
+    folder.mkdir()
+    paths, n = [], 0
+    for p in plys:
+        pts = read_scanner_cloud(p).points / 1000.0
+        path = folder / (p.stem + ".e57")
+        f = pye57.E57(str(path), mode="w")
+        f.write_scan_raw({"cartesianX": pts[:, 0], "cartesianY": pts[:, 1], "cartesianZ": pts[:, 2]})
+        f.close()
+        paths.append(path)
+        n += len(pts)
+    size = sum(p.stat().st_size for p in paths)
+    t0 = time.perf_counter()
+    for p in paths:
+        p.read_bytes()
+    fs_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for p in paths:
+        read_scanner_cloud(p)
+    read_s = time.perf_counter() - t0
+    return {"files": len(paths), "bytes": size, "filesystem_read_mb_s": size / fs_s / 1e6,
+            "e57_read_mb_s": size / read_s / 1e6, "e57_read_points_per_s": n / read_s}
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clouds", type=int, default=24)
@@ -161,6 +193,7 @@ def main(argv=None) -> dict:
         for p in files.values():
             read_scanner_cloud(p)
         ply_s = time.perf_counter() - t0
+        e57 = e57_rates(list(files.values())[:4], tmp / "e57")
         runs = [one_run(tmp / "ds", tmp / f"run{i}", args.smoke) for i in range(args.repeats)]
     median = {k: float(np.median([r[k] for r in runs])) for k in runs[0] if k != "steps_s"}
     doc.update({
@@ -172,6 +205,7 @@ def main(argv=None) -> dict:
         "median": median, "runs": runs,
         "bytes": size, "filesystem_read_mb_s": size / fs_s / 1e6, "ply_read_mb_s": size / ply_s / 1e6,
         "ply_read_points_per_s": len(files) * args.points / ply_s,
+        "e57": e57,
     })
     return finish(doc, args.out)
 

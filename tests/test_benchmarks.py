@@ -87,6 +87,7 @@ def _cloud_speed(doc):
     m = doc["median"]
     assert m["views_labelled"] == 6 and m["bbB_error_mm"] < 0.1  # the second black box found where it is
     assert doc["ply_read_mb_s"] > 0 and doc["filesystem_read_mb_s"] > 0
+    assert "pye57" in doc["e57"].get("skipped", "pye57") and (doc["e57"].get("e57_read_mb_s", 1) > 0)
 
 
 def _black_box_row(doc):
