@@ -17,7 +17,7 @@ import logging
 from fringecal.acceptance.document import acceptance_document
 from fringecal.acceptance.standards import AcceptanceStandards
 from fringecal.rundir import RunDir
-from fringecal.steps.base import Settings, Step, black_box_scanners, stores_of_kind
+from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
 
 __all__ = ["Acceptance", "acceptance_stores", "ACCEPTANCE_KINDS"]
 
@@ -55,7 +55,7 @@ class Acceptance(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for kind in ACCEPTANCE_KINDS for m in stores_of_kind(rd, kind)]
-        if not rd.sensors_prior.exists():  # black boxes only: E from the ball-bar
+        if black_boxes_only(rd):  # black boxes only: E from the ball-bar
             return [rd.sensors_prior, rd.verification, rd.acceptance_standards, rd.acquisition,
                     rd.truth.acceptance_positions]
         return [rd.calibration, rd.covariance, rd.verification, rd.acceptance_standards, rd.acquisition,
@@ -65,7 +65,7 @@ class Acceptance(Step):
         return [rd.acceptance, rd.acceptance_values]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        modelled = rd.sensors_prior.exists()
+        modelled = not black_boxes_only(rd)
         stores = acceptance_stores(rd) if modelled else {}
         standards = (AcceptanceStandards(**rd.acceptance_standards.load()) if rd.acceptance_standards.exists()
                      else AcceptanceStandards())

@@ -33,6 +33,7 @@ from fringecal.rundir import RunDir, RunFile, TableFile
 from fringecal.schemas import read_csv_text
 
 __all__ = ["Step", "Rows", "Value", "Settings", "StepError", "DataProblem", "Read", "store_row", "store_fields",
+           "black_boxes_only",
            "stores_of_kind", "save_or_remove", "black_box_scanners", "stores_of"]
 
 
@@ -208,6 +209,13 @@ def black_box_scanners(rd: RunDir) -> list[str]:
     table = _raw_table(rd.acquisition.path)
     modelled = set(_raw_table(rd.sensors_prior.path)["scanner"]) if rd.sensors_prior.exists() else set()
     return [s for s in dict.fromkeys(table["scanner"]) if s not in modelled]
+
+
+def black_boxes_only(rd: RunDir) -> bool:
+    """Whether the run's rig is black boxes only: an acquisition table of black boxes and
+    no prior calibration (a run directory without an acquisition table, one written for
+    ``fringecal calibrate`` from control points, is not)."""
+    return not rd.sensors_prior.exists() and bool(black_box_scanners(rd))
 
 
 def stores_of(rd: RunDir, kind: str, black_box: bool) -> list[str]:

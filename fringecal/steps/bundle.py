@@ -32,7 +32,7 @@ from fringecal.frames import Frame
 from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
-from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners, stores_of
+from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners, black_boxes_only, stores_of
 
 __all__ = ["Bundle", "load_problem"]
 
@@ -67,7 +67,7 @@ class Bundle(Step):
     modules = ("fringecal.calibration",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        if not rd.sensors_prior.exists():  # black boxes only
+        if black_boxes_only(rd):  # black boxes only
             return [rd.sensors_prior, rd.artefact, rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
                 [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)]
         boxes = [rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
@@ -75,7 +75,7 @@ class Bundle(Step):
         return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
-        if not rd.sensors_prior.exists():
+        if black_boxes_only(rd):
             return [rd.black_boxes, rd.black_boxes_export, rd.bundle_summary]
         boxes = [rd.black_boxes, rd.black_boxes_export] if black_box_scanners(rd) else []
         return [rd.calibration, rd.calibration.xml, rd.sensors_calibrated, rd.poses_calibrated,
@@ -84,7 +84,7 @@ class Bundle(Step):
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         b = cfg.bundle
-        if not rd.sensors_prior.exists():
+        if black_boxes_only(rd):
             return self.run_black_boxes_only(rd, cfg)
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         t0, c0 = time.perf_counter(), compile_clock.thread_seconds()

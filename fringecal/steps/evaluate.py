@@ -20,7 +20,7 @@ from fringecal.frames import Frame, frame_rows, frames_from_rows
 from fringecal.rig import Rig, Scanner
 from fringecal.rundir import RunDir
 from fringecal.sensor import sensor_in_frame
-from fringecal.steps.base import Settings, Step, black_box_scanners, stores_of_kind
+from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
 from fringecal.steps.verify import ballbar_stores
 from fringecal.verification.black_box import verify_with_black_boxes
 from fringecal.verification.verify import verify_ballbar
@@ -111,7 +111,7 @@ class Evaluate(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         boxes = [rd.black_boxes, rd.sensors_prior] if black_box_scanners(rd) else []
-        if not rd.sensors_prior.exists():  # black boxes only
+        if black_boxes_only(rd):  # black boxes only
             return [rd.truth.scanner_frames, rd.ballbar, rd.bundle_summary, rd.acquisition] + \
                 [rd.store(m) for m in stores_of_kind(rd, "ballbar")] + boxes
         return [rd.truth.sensors, rd.truth.poses, rd.truth.scanner_frames, rd.calibration, rd.control_points,
@@ -122,7 +122,7 @@ class Evaluate(Step):
         return [rd.evaluation, rd.ballbar_centres_true]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        if not rd.sensors_prior.exists():
+        if black_boxes_only(rd):
             return self.run_black_boxes_only(rd, cfg)
         calibrated = rd.calibration.load()
         frames = frames_from_rows(rd.truth.scanner_frames.load(), key="scanner")

@@ -10,7 +10,7 @@ import pandas as pd
 
 from fringecal.calibration.initial import UnlinkedScanners, initial_calibration
 from fringecal.rundir import RunDir
-from fringecal.steps.base import DataProblem, Settings, Step
+from fringecal.steps.base import DataProblem, Settings, Step, black_boxes_only
 from fringecal.steps.spheres_first import modelled_items
 
 __all__ = ["Initialise"]
@@ -23,18 +23,18 @@ class Initialise(Step):
     modules = ("fringecal.calibration.initial",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        if not rd.sensors_prior.exists():  # black boxes only: nothing to start (docs/blackbox.md)
+        if black_boxes_only(rd):  # black boxes only: nothing to start (docs/blackbox.md)
             return [rd.sensors_prior]
         return [rd.sensors_prior, rd.sphere_centres, rd.poses, rd.scanner_links, rd.artefact] + \
             [rd.control_points_of(m) for m in modelled_items(rd)]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
-        if not rd.sensors_prior.exists():
+        if black_boxes_only(rd):
             return []
         return [rd.control_points, rd.poses_initial, rd.sensors_initial, rd.dlt]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        if not rd.sensors_prior.exists():  # black boxes only: the bundle step adjusts their transforms alone
+        if black_boxes_only(rd):  # black boxes only: the bundle step adjusts their transforms alone
             return
         centres = rd.sphere_centres.load()
         try:

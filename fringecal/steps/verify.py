@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 
 from fringecal.rundir import RunDir
-from fringecal.steps.base import Settings, Step, black_box_scanners, stores_of_kind
+from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
 from fringecal.verification.black_box import verify_with_black_boxes
 from fringecal.verification.verify import verify_ballbar
 
@@ -40,7 +40,7 @@ class Verify(Step):
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
         boxes = [rd.black_boxes, rd.sensors_prior] if black_box_scanners(rd) else []
-        if not rd.sensors_prior.exists():  # black boxes only
+        if black_boxes_only(rd):  # black boxes only
             return [rd.ballbar, rd.bundle_summary, rd.acquisition] + stores + boxes
         return [rd.calibration, rd.covariance, rd.crossval, rd.crossval_halves, rd.ballbar, rd.bundle_summary,
                 rd.acquisition] + stores + boxes
@@ -76,7 +76,7 @@ class Verify(Step):
     def run_black_boxes(self, rd: RunDir, cfg: Settings, diagonal: float) -> None:
         """Modelled and black-box scanners together (:mod:`fringecal.verification.black_box`)."""
         centres, failures, result, budget = verify_with_black_boxes(
-            ballbar_stores(rd), rd.calibration.load() if rd.sensors_prior.exists() else None, rd.black_boxes.load(),
+            ballbar_stores(rd), None if black_boxes_only(rd) else rd.calibration.load(), rd.black_boxes.load(),
             rd.ballbar.load(),
             cfg.extraction.rejection, cfg.verification, diagonal, cfg.control_points.max_incidence_deg,
             cfg.control_points.pixel_integration_px)
