@@ -41,7 +41,8 @@ def validate_run_config(config: Path | dict | None, overrides: dict | None = Non
     if cfg.source == "dataset":
         from fringecal.dataset import DataSet
 
-        DataSet.open(cfg.dataset).check_frames()  # every frame's header, and one frame per orientation decoded
+        ds = DataSet.open(cfg.dataset)
+        ds.check_frames()  # every frame's header, and one frame per orientation decoded
     else:
         check_simulation(cfg.simulate, cfg.acceptance.specification.depth_range_mm)
     return cfg
@@ -118,13 +119,18 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
     source = summary.get("dataset") or "simulated rig"
     if summary.get("simulation_profile"):
         source += f", {summary['simulation_profile']} profile"
-    rows = [
-        ("source", str(source)),
-        ("measurements / control points", f"{summary['n_measurements']} / {summary['n_control_points']:,}"),
-        ("RMS F before -> after", f"{summary['rms_F_mm_before']:.3f} mm -> {1000 * summary['rms_F_mm_after']:.1f} um"),
-        ("RMS eps1 / eps2 after", f"{1000 * summary['rms_eps1_mm_after']:.1f} / {1000 * summary['rms_eps2_mm_after']:.1f} um"),
-        ("one part in (1.96 sigma eps2)", f"{summary['one_part_in']:,.0f}"),
-    ]
+    if summary.get("black_boxes_only"):  # no sensor model: no F, eps1, eps2
+        rows = [("source", str(source)),
+                ("measurements / sphere centres", f"{summary['n_measurements']} / {summary['n_control_points']:,}"),
+                ("black boxes only: RMS of the centres", f"{1000 * summary['rms_centre_mm']:.1f} um")]
+    else:
+        rows = [
+            ("source", str(source)),
+            ("measurements / control points", f"{summary['n_measurements']} / {summary['n_control_points']:,}"),
+            ("RMS F before -> after", f"{summary['rms_F_mm_before']:.3f} mm -> {1000 * summary['rms_F_mm_after']:.1f} um"),
+            ("RMS eps1 / eps2 after", f"{1000 * summary['rms_eps1_mm_after']:.1f} / {1000 * summary['rms_eps2_mm_after']:.1f} um"),
+            ("one part in (1.96 sigma eps2)", f"{summary['one_part_in']:,.0f}"),
+        ]
     if v:
         rows.append((f"ball-bar max |error| (MPE {1000 * v['mpe_mm']:.0f} um)",
                      f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "
@@ -138,8 +144,9 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
             rows.append(("  [red]not covered by the budget[/]", ", ".join(v["not_covered"])))
     rows.append(verdict_row(summary.get("verdict")))
     if tr:
-        rows += [("truth: eps1 / eps2 floor", f"{1000 * tr['rms_eps1_mm_true_params']:.1f} / "
-                                              f"{1000 * tr['rms_eps2_mm_true_params']:.1f} um")]
+        if tr.get("rms_eps1_mm_true_params") is not None:
+            rows += [("truth: eps1 / eps2 floor", f"{1000 * tr['rms_eps1_mm_true_params']:.1f} / "
+                                                  f"{1000 * tr['rms_eps2_mm_true_params']:.1f} um")]
         if tr.get("verification_max_abs_error_true_params_mm") is not None:
             rows.append(("truth: ball-bar max |error|",
                          f"{1000 * tr['verification_max_abs_error_true_params_mm']:.1f} um"))

@@ -44,6 +44,7 @@ def user_errors() -> tuple[type[BaseException], ...]:
     from fringecal.fringe.sequence import SequenceError
     from fringecal.names import OutsideFolderError, UnsafeNameError
     from fringecal.run.resume import RunDirBusy
+    from fringecal.scancloud import CloudFileError
     from fringecal.schemas import TableError
     from fringecal.steps.base import DataProblem
     from fringecal.steps.keys import RunFileChanged
@@ -51,7 +52,7 @@ def user_errors() -> tuple[type[BaseException], ...]:
 
     return (UserInputError, TableError, ConfigError, DataSetError, FileNotFoundError, CalibrationFileError,
             FrameStackError, SequenceError, StoreError, UnsafeNameError, OutsideFolderError, RunDirBusy,
-            RunFileChanged, DataProblem)
+            RunFileChanged, DataProblem, CloudFileError)
 
 
 #: where the command writes and roughly how much (``needs_space``), for a full disk's line

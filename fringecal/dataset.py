@@ -33,6 +33,9 @@ contract::
                                                    (see :mod:`fringecal.fringe.importer`)
       measurements/<measurement>/<scanner>.zarr    or a decoded store with tau_x, tau_y, valid
                                                    and attrs["sequence"] (see :mod:`fringecal.store`)
+      measurements/<measurement>/<scanner>.ply     or a black-box scanner's point cloud: x, y, z in
+                                                   mm in its own frame (:mod:`fringecal.scancloud`;
+                                                   ``.e57`` with the optional pye57)
       verification/ballbar.csv                     optional folder: the ball-bar's CMM table
                                                    (artefact table, exactly spheres A and B)
       verification/<position>/<scanner>/           image stacks (or <scanner>.zarr) of the ball-bar
@@ -52,7 +55,8 @@ contract::
                                                    stack (or <scanner>.zarr) per scanner that saw it
 
 A *measurement* is one artefact pose seen by every scanner: every measurement folder
-holds a stack for every scanner of ``sensors_prior.csv``. The stack of (measurement
+holds a stack for every scanner of ``sensors_prior.csv`` and a cloud for every
+black-box scanner. The stack of (measurement
 ``m``, scanner ``s``) has the id ``f"{m}-{s}"`` (:attr:`StackSource.id`). A *position*
 is one placement of the ball-bar or of an acceptance object; its stack of scanner ``s``
 has the id ``f"{position}-{s}"``.
@@ -83,6 +87,26 @@ Decisions
   (:class:`~fringecal.fringe.importer.FrameStackError`) and store problems
   (:class:`~fringecal.store.StoreError`) propagate unchanged: they already name the
   file, line and column. All of them are ``ValueError``.
+
+Black-box scanners (point clouds)
+---------------------------------
+- A scanner whose files are clouds (``<scanner>.ply``, ``<scanner>.e57``) is a
+  *black-box* scanner: it needs no row in ``sensors_prior.csv`` (which may be absent
+  when every scanner is a black box); it is the reference scanner only when every
+  scanner is a black box. A scanner of
+  ``sensors_prior.csv`` gives image stacks or stores, never clouds; a scanner gives
+  clouds everywhere or nowhere (both refused naming the file).
+- Clouds sit where stacks sit: in measurement folders, ball-bar position folders and
+  acceptance position folders; black-box scanners are listed after the modelled ones,
+  in name order.
+- :meth:`DataSet.open` reads each cloud's header (a vertex element with x, y, z, a
+  ``units`` comment other than mm refused, at least one vertex);
+  :meth:`DataSet.check_frames` reads every point: NaN or infinite coordinates and a
+  cloud spanning less than half the artefact's smallest sphere (a cloud in metres)
+  are refused naming the file (:func:`fringecal.scancloud.read_scanner_cloud`).
+- A swapped cloud (another scanner's file) is not decidable from the file: the
+  labelling's consistency check refuses it (``inconsistent``) when the scanners are
+  linked.
 
 Verification and acceptance
 ---------------------------
@@ -140,6 +164,7 @@ from fringecal.fringe.importer import SEQUENCE_FILE, check_levels, check_stack
 from fringecal.fringe.sequence import FringeSequence, SequenceError
 from fringecal.names import name_problem
 from fringecal.rig import Rig, load_rig
+from fringecal.scancloud import CLOUD_SUFFIXES, CloudFileError, check_cloud_header, read_scanner_cloud
 from fringecal.schemas import HexapodMovesTable, PosePlanTable, TableError, read_table
 from fringecal.store import store_attributes, verify_store
 
@@ -218,20 +243,21 @@ class StackSource:
     scanner : str
     path : Path
         The frame folder or the ``.zarr`` store.
-    format : {"frames", "store"}
+    format : {"frames", "store", "cloud"}
     width_px, height_px : int
-        Image size (from ``sequence.yaml`` or the store's array metadata).
-    sequence : FringeSequence
+        Image size (from ``sequence.yaml`` or the store's array metadata); 0 for a cloud.
+    sequence : FringeSequence or None
+        None for a cloud.
     """
 
     kind: Literal["artefact", "ballbar", "sphere", "dumbbell", "flat"]
     group: str
     scanner: str
     path: Path
-    format: Literal["frames", "store"]
+    format: Literal["frames", "store", "cloud"]
     width_px: int
     height_px: int
-    sequence: FringeSequence
+    sequence: Optional[FringeSequence]
 
     @property
     def id(self) -> str:
@@ -257,7 +283,7 @@ class DataSet:
     config: DatasetConfig
     artefact: Path
     rods: Optional[Path]
-    sensors_prior: Path
+    sensors_prior: Optional[Path]
     poses_planned: Optional[Path]
     ballbar: Optional[Path]
     scanners: tuple[str, ...]
@@ -266,6 +292,8 @@ class DataSet:
     hexapod_moves: Optional[Path] = None
     acceptance_standards: Optional[Path] = None
     acceptance: tuple[StackSource, ...] = ()
+    black_boxes: tuple[str, ...] = ()
+    min_sphere_diameter_mm: float = 0.0
 
     @classmethod
     def open(cls, root) -> "DataSet":
@@ -287,21 +315,34 @@ class DataSet:
         rods = _optional_file(root / RODS_FILE)
         if rods is not None:
             load_rods(rods, artefact)
-        prior = _required_file(root / SENSORS_PRIOR_FILE, "each scanner's prior calibration")
-        rig = _load_prior(prior, root / DATASET_FILE, config.reference_scanner)
-        measurements = _open_measurements(root / MEASUREMENTS_DIR, rig, prior)
+        black_boxes = _black_boxes(root)
+        prior_path = root / SENSORS_PRIOR_FILE
+        if black_boxes and not prior_path.exists():
+            prior, rig = None, None
+        else:
+            prior = _required_file(prior_path, "each scanner's prior calibration")
+            rig = _load_prior(prior, root / DATASET_FILE, config.reference_scanner, black_boxes)
+        rig = _Scanners(rig, black_boxes, prior or prior_path)
+        if config.reference_scanner not in rig.names:
+            raise DataSetError(f"{root / DATASET_FILE}: reference_scanner {config.reference_scanner!r} is not a "
+                               f"scanner of the data set (scanners: {', '.join(rig.names)})")
+        if rig.modelled and config.reference_scanner not in rig.modelled:
+            raise DataSetError(f"{root / DATASET_FILE}: reference_scanner {config.reference_scanner!r} is a black "
+                               f"box; with modelled scanners ({', '.join(rig.modelled)}) the reference is one of them")
+        measurements = _open_measurements(root / MEASUREMENTS_DIR, rig, rig.prior)
         poses = _optional_file(root / POSES_PLANNED_FILE)
         if poses is not None:
             _check_planned(poses, root / MEASUREMENTS_DIR, measurements)
         moves = _optional_file(root / HEXAPOD_MOVES_FILE)
         if moves is not None:
             _check_moves(moves, root / MEASUREMENTS_DIR, measurements)
-        ballbar, verification, standards, acceptance = _open_verification(root / VERIFICATION_DIR, rig, prior)
+        ballbar, verification, standards, acceptance = _open_verification(root / VERIFICATION_DIR, rig, rig.prior)
         _check_sequences(measurements + verification + acceptance)
         _check_unique_ids(measurements + verification + acceptance)
         _check_unique_positions(verification + acceptance)
-        return cls(root, config, artefact_path, rods, prior, poses, ballbar,
-                   tuple(s.name for s in rig.scanners), measurements, verification, moves, standards, acceptance)
+        return cls(root, config, artefact_path, rods, prior, poses, ballbar, rig.names, measurements,
+                   verification, moves, standards, acceptance, black_boxes,
+                   float(2 * min(load_artefact(artefact_path).radii)))
 
     def stacks(self) -> tuple[StackSource, ...]:
         """Every stack: measurements, then ball-bar positions, then acceptance positions."""
@@ -316,7 +357,11 @@ class DataSet:
         of decoding, run before it (``fringecal run --dataset``)."""
         from concurrent.futures import ThreadPoolExecutor
 
-        jobs = [(check_levels if s.format == "frames" else verify_store, s.path) for s in self.stacks()]
+        def cloud(path):
+            read_scanner_cloud(path, self.min_sphere_diameter_mm / 2)
+
+        checks = {"frames": check_levels, "store": verify_store, "cloud": cloud}
+        jobs = [(checks[s.format], s.path) for s in self.stacks()]
         with ThreadPoolExecutor(max_workers=threads or _cores()) as pool:
             futures = [pool.submit(check, path) for check, path in jobs]
             errors = [e for e in (f.exception() for f in futures) if e is not None]
@@ -377,7 +422,7 @@ def _optional_file(path: Path) -> Optional[Path]:
     return path if path.exists() else None
 
 
-def _load_prior(path: Path, config_path: Path, reference: str) -> Rig:
+def _load_prior(path: Path, config_path: Path, reference: str, black_boxes: tuple = ()) -> Rig:
     try:
         rig = load_rig(path)
     except TableError:
@@ -385,10 +430,42 @@ def _load_prior(path: Path, config_path: Path, reference: str) -> Rig:
     except ValueError as err:
         raise DataSetError(f"{path}: {err}") from None
     names = [s.name for s in rig.scanners]
-    if reference not in names:
+    if reference not in names and reference not in black_boxes:
         raise DataSetError(f"{config_path}: reference_scanner {reference!r} is not a scanner of {path} "
                            f"(scanners: {', '.join(names)})")
     return rig
+
+
+class _Scanners:
+    """The scanners of a data set: the modelled ones of ``sensors_prior.csv`` (``rig``,
+    None without the file) in its order, then the black-box scanners in name order."""
+
+    def __init__(self, rig: Optional[Rig], black_boxes: tuple, prior: Path):
+        self.rig, self.black_boxes, self.prior = rig, tuple(black_boxes), prior
+        self.modelled = tuple(s.name for s in rig.scanners) if rig is not None else ()
+        self.names = self.modelled + tuple(b for b in self.black_boxes if b not in self.modelled)
+
+
+def _cloud_scanner(entry: Path) -> Optional[str]:
+    """The scanner of a cloud file's name (``scanner2.ply`` -> ``scanner2``), else None."""
+    if not entry.is_file() or entry.name.startswith("."):
+        return None
+    suffix = entry.suffix.lower()
+    return entry.name[: -len(suffix)] if suffix in CLOUD_SUFFIXES else None
+
+
+def _black_boxes(root: Path) -> tuple[str, ...]:
+    """Names of the scanners that give clouds anywhere in ``measurements/`` and
+    ``verification/`` (their groups' files), in natural order."""
+    found = set()
+    for top in (root / MEASUREMENTS_DIR, root / VERIFICATION_DIR):
+        if not top.is_dir():
+            continue
+        for pattern in ("*/*", f"{ACCEPTANCE_DIR}/*/*/*"):
+            for entry in top.glob(pattern):
+                if (scanner := _cloud_scanner(entry)) is not None:
+                    found.add(scanner)
+    return tuple(sorted(found, key=natural_key))
 
 
 def _cores() -> int:
@@ -414,13 +491,30 @@ def _groups(sources: Iterable[StackSource]) -> list[str]:
 
 # -- stacks ------------------------------------------------------------------
 
-def _scan_group(folder: Path, rig: Rig, prior: Path) -> dict[str, tuple[Path, str]]:
+def _scan_group(folder: Path, rig: _Scanners, prior: Path) -> dict[str, tuple[Path, str]]:
     """Stacks of one measurement or position folder: scanner -> (path, format), rig order."""
-    known = [s.name for s in rig.scanners]
+    known = list(rig.modelled)
     found: dict[str, tuple[Path, str]] = {}
+    for entry in sorted(folder.iterdir(), key=lambda p: natural_key(p.name)):
+        scanner = _cloud_scanner(entry)
+        if scanner is None:
+            continue
+        if (problem := name_problem(scanner)) is not None:
+            raise DataSetError(f"{entry}: file name: {problem}; rename the file")
+        if scanner in known:
+            raise DataSetError(f"{entry}: a point cloud of scanner {scanner!r}, which has a prior calibration "
+                               f"in {prior}: a scanner gives image stacks or stores, or clouds (a black box, "
+                               "without a row in sensors_prior.csv), not both")
+        if scanner in found:
+            raise DataSetError(f"{folder}: ambiguous: two clouds of scanner {scanner!r} ({found[scanner][0].name} "
+                               f"and {entry.name}); keep one")
+        found[scanner] = (entry, "cloud")
     for entry in _entries(folder):
         is_store = entry.name.endswith(STORE_SUFFIX)
         scanner = entry.name[: -len(STORE_SUFFIX)] if is_store else entry.name
+        if scanner in rig.black_boxes:
+            raise DataSetError(f"{entry}: {'a decoded store' if is_store else 'frames'} of scanner {scanner!r}, "
+                               "which gives point clouds elsewhere: a scanner gives clouds everywhere or nowhere")
         if scanner not in known:
             kind = "a decoded store" if is_store else "frames"
             raise DataSetError(f"{entry}: {kind} but no prior calibration: scanner {scanner!r} is not in {prior} "
@@ -430,10 +524,16 @@ def _scan_group(folder: Path, rig: Rig, prior: Path) -> dict[str, tuple[Path, st
             raise DataSetError(f"{folder}: ambiguous: scanner {scanner!r} is given both as frame folder "
                                f"{names[0]}/ and as store {names[1]}; keep one")
         found[scanner] = (entry, "store" if is_store else "frames")
-    return {s: found[s] for s in known if s in found}
+    return {s: found[s] for s in rig.names if s in found}
 
 
 def _read_source(kind: str, group: str, scanner: str, path: Path, fmt: str) -> StackSource:
+    if fmt == "cloud":
+        try:
+            check_cloud_header(path)
+        except CloudFileError as err:
+            raise DataSetError(str(err)) from None
+        return StackSource(kind, group, scanner, path, "cloud", 0, 0, None)
     if fmt == "frames":
         spec, _, _ = check_stack(path)
         return StackSource(kind, group, scanner, path, "frames", spec.width_px, spec.height_px, spec.sequence)
@@ -478,7 +578,7 @@ def _array_size(store: Path, name: str) -> tuple[int, int]:
 
 # -- measurements ------------------------------------------------------------
 
-def _open_measurements(folder: Path, rig: Rig, prior: Path) -> tuple[StackSource, ...]:
+def _open_measurements(folder: Path, rig: _Scanners, prior: Path) -> tuple[StackSource, ...]:
     if not folder.is_dir():
         raise DataSetError(f"{folder}: missing; a data set needs {MEASUREMENTS_DIR}/<measurement>/<scanner>/")
     groups = {m.name: _scan_group(m, rig, prior) for m in _entries(folder)}
@@ -492,7 +592,7 @@ def _open_measurements(folder: Path, rig: Rig, prior: Path) -> tuple[StackSource
     return sources
 
 
-def _check_complete(folder: Path, groups: dict, rig: Rig, prior: Path) -> None:
+def _check_complete(folder: Path, groups: dict, rig: _Scanners, prior: Path) -> None:
     """Every measurement holds a stack of every scanner (rule: one pose seen by all)."""
     seen: dict[str, Path] = {}
     for stacks in groups.values():
@@ -506,13 +606,15 @@ def _check_complete(folder: Path, groups: dict, rig: Rig, prior: Path) -> None:
             if s not in stacks:
                 raise DataSetError(f"{folder / m}: no stack of scanner {s!r}, which other measurements have "
                                    f"(e.g. {seen[s]}); every measurement needs every scanner")
-    for s in rig.scanners:
-        if s.name not in seen:
-            raise DataSetError(f"{prior}: scanner {s.name!r} has no frames in any measurement folder of {folder}")
+    for s in rig.modelled:
+        if s not in seen:
+            raise DataSetError(f"{prior}: scanner {s!r} has no frames in any measurement folder of {folder}")
 
 
-def _check_size(src: StackSource, rig: Rig, prior: Path) -> None:
-    camera = rig.scanner(src.scanner).camera
+def _check_size(src: StackSource, rig: _Scanners, prior: Path) -> None:
+    if src.format == "cloud":
+        return
+    camera = rig.rig.scanner(src.scanner).camera
     W, H = camera.format.width_px, camera.format.height_px
     w, h = src.width_px, src.height_px
     where = f"{src.sequence_source}: image is {w}x{h} px"
@@ -526,6 +628,9 @@ def _check_size(src: StackSource, rig: Rig, prior: Path) -> None:
 
 
 def _check_sequences(sources: tuple[StackSource, ...]) -> None:
+    sources = tuple(s for s in sources if s.format != "cloud")
+    if not sources:
+        return
     first = sources[0]
     for src in sources[1:]:
         a, b = first.sequence, src.sequence
@@ -569,7 +674,7 @@ def _check_moves(path: Path, folder: Path, sources: tuple[StackSource, ...]) -> 
 
 # -- verification --------------------------------------------------------------
 
-def _open_verification(folder: Path, rig: Rig, prior: Path
+def _open_verification(folder: Path, rig: _Scanners, prior: Path
                        ) -> tuple[Optional[Path], tuple[StackSource, ...], Optional[Path], tuple[StackSource, ...]]:
     """(ballbar.csv, ball-bar stacks, standards.yaml, acceptance stacks) of ``verification/``."""
     if not folder.exists():
@@ -594,7 +699,7 @@ def _open_verification(folder: Path, rig: Rig, prior: Path
     return ballbar, ballbar_sources, standards, acceptance
 
 
-def _open_ballbar(folder: Path, positions: list[Path], rig: Rig, prior: Path
+def _open_ballbar(folder: Path, positions: list[Path], rig: _Scanners, prior: Path
                   ) -> tuple[Path, tuple[StackSource, ...]]:
     ballbar = _required_file(folder / BALLBAR_FILE, "the ball-bar's CMM table, spheres A and B")
     spheres = load_artefact(ballbar)
@@ -619,7 +724,7 @@ def _open_ballbar(folder: Path, positions: list[Path], rig: Rig, prior: Path
     return ballbar, sources
 
 
-def _open_acceptance(folder: Path, rig: Rig, prior: Path) -> tuple[Path, tuple[StackSource, ...]]:
+def _open_acceptance(folder: Path, rig: _Scanners, prior: Path) -> tuple[Path, tuple[StackSource, ...]]:
     """``standards.yaml`` and the stacks of ``verification/acceptance/``."""
     tests = ", ".join(f"{t}/" for t in ACCEPTANCE_TESTS)
     if not any(not p.name.startswith(".") for p in folder.iterdir()):
@@ -652,7 +757,7 @@ def _open_acceptance(folder: Path, rig: Rig, prior: Path) -> tuple[Path, tuple[S
     return path, tuple(sources)
 
 
-def _open_test(folder: Path, test: str, standards, standards_path: Path, rig: Rig, prior: Path
+def _open_test(folder: Path, test: str, standards, standards_path: Path, rig: _Scanners, prior: Path
                ) -> list[StackSource]:
     """The stacks of one test folder (``sphere``, ``dumbbell`` or ``flat``)."""
     positions = _entries(folder)

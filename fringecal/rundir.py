@@ -440,8 +440,9 @@ class RunDir:
 
     @property
     def sensors_prior(self) -> RigFile:
-        """Each scanner's own calibration in its own frame (the reference scanner's is the world)."""
-        return self._at(RigFile, "tables/sensors_prior.csv")
+        """Each modelled scanner's own calibration in its own frame (the reference scanner's
+        is the world); absent in a rig of black boxes only."""
+        return self._at(RigFile, "tables/sensors_prior.csv", optional=True)
 
     @property
     def poses_planned(self) -> TableFile:
@@ -554,6 +555,19 @@ class RunDir:
     @property
     def bundle_summary(self) -> JsonFile:
         return self._at(JsonFile, "bundle_summary.json")
+
+    @property
+    def black_boxes(self) -> JsonFile:
+        """The black-box scanners' calibration: each one's transform, scale and
+        covariance (:meth:`fringecal.calibration.blackbox.BlackBoxResult.to_dict`);
+        absent without black boxes."""
+        return self._at(JsonFile, "black_boxes.json", optional=True)
+
+    @property
+    def black_boxes_export(self) -> TableFile:
+        """The simple export: scale and 4x4 T_world_scanner per black-box scanner
+        (:func:`fringecal.calibration.blackbox.export_table`); absent without black boxes."""
+        return self._table("scanner_transforms.csv", None, optional=True)
 
     @property
     def covariance(self) -> ArraysFile:

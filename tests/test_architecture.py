@@ -37,7 +37,7 @@ LAYERS = (
     ("fringecal.spheres",),
     ("fringecal.calibration",),
     ("fringecal.fringe", "fringecal.engineering", "fringecal.hexapod"),
-    ("fringecal.rig", "fringecal.artefact", "fringecal.pointcloud", "fringecal.registration"),
+    ("fringecal.rig", "fringecal.artefact", "fringecal.pointcloud", "fringecal.registration", "fringecal.scancloud"),
     ("fringecal.schemas",),
     ("fringecal.sensor", "fringecal.frames", "fringecal.rotation", "fringecal.lens", "fringecal.triangulation"),
     ("fringecal.atomic", "fringecal.store", "fringecal.digests", "fringecal.config", "fringecal.lifeline",

@@ -25,7 +25,7 @@ SCRIPTS = sorted(p.stem for p in BENCH.glob("*.py") if not p.stem.startswith("_"
 #: scripts smoke-tested on tests/test_run_flow.py's finished run (they read a run directory)
 ON_A_RUN = ("coverage_split", "extraction_accuracy", "thesis_scale")
 #: scripts that make whole runs themselves: the slow tier
-WHOLE_RUNS = ("first_run", "length_coverage")
+WHOLE_RUNS = ("first_run", "length_coverage", "black_box_coverage")
 
 
 def run_benchmark(name: str, args: list[str], out: Path) -> dict:
@@ -83,8 +83,24 @@ def _busy_neighbours(doc):
     assert b["busy_over_idle"]["bootstrap_s"] > 0 and "skipped" in doc["whole_run"]
 
 
+def _cloud_speed(doc):
+    m = doc["median"]
+    assert m["views_labelled"] == 6 and m["bbB_error_mm"] < 0.1  # the second black box found where it is
+    assert doc["ply_read_mb_s"] > 0 and doc["filesystem_read_mb_s"] > 0
+    assert "pye57" in doc["e57"].get("skipped", "pye57") and (doc["e57"].get("e57_read_mb_s", 1) > 0)
+
+
+def _black_box_row(doc):
+    s = doc["summary"]
+    assert doc["views_labelled"] == doc["views"] == 6 and not doc["joint"]["failures"]
+    # 0.05 mm noise, 800 points a cap: every transform within a few um of the lengths with the true ones
+    assert s["E_max_joint_um"] < 30 and s["E_max_true_um"] < 30 and doc["transform_errors"]["bbB"]["joint_mm"] < 0.1
+
+
 CHECKS = {
     "acquire": lambda d: d["widths"]["64"]["store_mb"] > 0,
+    "black_box_row": _black_box_row,
+    "cloud_speed": _cloud_speed,
     "bundle": _bundle,
     "busy_neighbours": _busy_neighbours,
     "ceres": _ceres,
@@ -114,6 +130,14 @@ def test_benchmark_smoke(name, tmp_path):
 def test_length_coverage_smoke(tmp_path):
     doc = run_benchmark("length_coverage", ["--smoke"], tmp_path / "coverage.json")
     assert doc["complete"] and doc["summary"]["seeds_ok"] == 1 and doc["summary"]["n_lengths"] == 1
+
+
+@pytest.mark.slow
+def test_black_box_coverage_smoke(tmp_path):
+    doc = run_benchmark("black_box_coverage", ["--smoke"], tmp_path / "black_box_coverage.json")
+    (seed,) = doc["seeds"]
+    assert seed["ok"], seed.get("traceback")
+    assert doc["n_lengths"] >= 1 and seed["e_max_true_mm"] > 0 and seed["black_box"][0]["scanner"] == "scanner2"
 
 
 @pytest.mark.slow

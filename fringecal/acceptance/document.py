@@ -148,14 +148,16 @@ def acceptance_document(rig: Rig, standards: AcceptanceStandards, config: Accept
     ``stores`` and ``rejection``, ``length_config``, ``covariance`` as for
     :func:`measure_acceptance`; E comes from ``verification`` (a ball-bar verification:
     ``calibrated`` positions and their ``uncertainty``, as ``verification.json`` holds
-    them) when given; ``positions`` are where the objects stood, for the report."""
+    them) when given; ``positions`` are where the objects stood, for the report. ``rig``
+    None: a rig of black boxes only, whose acceptance is the ball-bar's E alone (no
+    sensors to measure the objects with)."""
     values, failures = measure_acceptance(stores, rig, standards, config, rejection, length_config, covariance)
     values, outside = outside_volume(values, config.specification)
     failures += outside
     if verification is not None:
         e = _e_values(verification, config.coverage_factor)
         values = pd.concat([values, e], ignore_index=True) if len(values) else e
-    scanners = [s.name for s in rig.scanners]
+    scanners = [s.name for s in rig.scanners] if rig is not None else []
     doc = certificate(values, config.limits, config.coverage_factor, config.exclude_fraction, scanners, failures,
                       list(positions), config.specification)
     return doc, values

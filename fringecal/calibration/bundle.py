@@ -73,6 +73,8 @@ class BundleOptions(StrictModel):
     (:mod:`.bootstrap`); 0: none, the lengths are then not corrected for the
     adjustment's non-linearity. ``coarse_points``: subsample size of the first stage of
     large problems (0: off); ``chunk_size``: control points per parallel work item.
+    ``black_box_scale``: adjust a scale factor of every black-box scanner
+    (:mod:`.blackbox`) besides its exterior.
     """
 
     gamma1: float = Field(1.0, gt=0)
@@ -90,6 +92,7 @@ class BundleOptions(StrictModel):
     bootstrap_seed: int = 0
     chunk_size: int = Field(2048, ge=1)
     coarse_points: int = Field(150_000, ge=0)
+    black_box_scale: bool = False
 
     @field_validator("robust_scale_mm")
     @classmethod

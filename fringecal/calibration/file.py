@@ -195,6 +195,7 @@ class Calibration:
     covariances: object | None = None
     provenance: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
+    black_boxes: dict | None = None  # the black-box scanners (fringecal.calibration.blackbox), if any
 
 
 def _covariances(doc: dict, rig: Rig, source: str):
@@ -259,7 +260,7 @@ def read_calibration(path) -> Calibration:
     d = _json_document(path)
     rig = rig_from_dict(d, str(path))
     cov = _covariances(d["covariance"], rig, str(path)) if "covariance" in d else None
-    return Calibration(rig, cov, dict(d.get("provenance") or {}), dict(d.get("metadata") or {}))
+    return Calibration(rig, cov, dict(d.get("provenance") or {}), dict(d.get("metadata") or {}), d.get("black_boxes"))
 
 
 def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:

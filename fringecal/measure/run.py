@@ -7,12 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
+from fringecal.calibration.blackbox import point_uncertainty, scanners_from_document, transform_points
 from fringecal.calibration.file import read_calibration
 from fringecal.calibration.propagation import frame_free_covariance
-from fringecal.measure.cloud import Cloud, MeasureSettings, measure_cloud
+from fringecal.measure.cloud import POINT_DTYPE, Cloud, MeasureSettings, measure_cloud
 from fringecal.measure.files import CLOUD_SUFFIXES, write_cloud
 from fringecal.measure.overlap import overlap_report
 from fringecal.measure.sources import MeasurementSourceError, measurement_entries, open_entry
+from fringecal.scancloud import load_points
 
 __all__ = ["measure_folder", "check_output"]
 
@@ -37,6 +39,22 @@ def check_output(out) -> Path:
 
 
 DATUMS = ("rig", "calibration")
+
+
+def black_box_points(box, path, index: int, measurement: int, settings: MeasureSettings) -> np.ndarray:
+    """A black-box scanner's cloud file as points of the registered cloud: carried into
+    the world by its transform (:func:`fringecal.calibration.blackbox.transform_points`),
+    ``u_mm`` from the transform's covariance, ``eps1`` and ``modulation`` NaN (a cloud
+    has neither), every ``decimate**2``-th point (as ``decimate`` thins a map's rows and
+    columns)."""
+    points = load_points(path)[0][::settings.decimate ** 2]
+    world = transform_points(box, points)
+    pts = np.zeros(len(world), POINT_DTYPE)
+    pts["x"], pts["y"], pts["z"] = world[:, 0], world[:, 1], world[:, 2]
+    pts["scanner"], pts["measurement"] = index, measurement
+    pts["eps1"] = pts["modulation"] = np.nan
+    pts["u_mm"] = point_uncertainty(box, points) if settings.uncertainty else np.nan
+    return pts
 
 
 def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettings = MeasureSettings(),
@@ -64,7 +82,8 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         raise MeasurementSourceError(f"a measurement folder is given twice: {', '.join(map(str, folders))}")
     cal = read_calibration(calibration)
     out = check_output(out)
-    entries = [measurement_entries(f, cal.rig, kind) for f in folders]
+    boxes = scanners_from_document(cal.black_boxes) if cal.black_boxes else {}
+    entries = [measurement_entries(f, cal.rig, kind, tuple(boxes)) for f in folders]
     cov = None
     if settings.uncertainty and cal.covariances is not None:
         cov = cal.covariances.total
@@ -74,19 +93,25 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
     parts = []
     for group in entries:            # one measurement in memory at a time
         t = time.perf_counter()
-        stores = {name: open_entry(path, kind, decode_settings) for name, path in group.items()}
+        stores = {name: open_entry(path, kind, decode_settings) for name, path in group.items() if name not in boxes}
         t_read += time.perf_counter() - t
         t = time.perf_counter()
         try:
-            parts.append(measure_cloud(cal.rig, stores, settings, cov, measurement=len(parts)).points)
+            index = len(parts)
+            parts.append(measure_cloud(cal.rig, stores, settings, cov, measurement=index).points)
+            for k, (name, box) in enumerate(boxes.items()):
+                if name in group:
+                    parts.append(black_box_points(box, group[name], len(cal.rig.scanners) + k, index, settings))
         finally:
             for ds in stores.values():
                 ds.close()
         t_cloud += time.perf_counter() - t
     t = time.perf_counter()
     rig = cal.rig
-    cloud = Cloud(np.concatenate(parts), tuple(s.name for s in rig.scanners), tuple(f.name for f in folders))
-    overlap = [] if len(folders) > 1 else overlap_report(cloud, {s.name: s.camera.pinhole for s in rig.scanners})
+    cloud = Cloud(np.concatenate(parts), tuple(s.name for s in rig.scanners) + tuple(boxes),
+                  tuple(f.name for f in folders))
+    viewpoints = {s.name: s.camera.pinhole for s in rig.scanners} | {n: b.params[:3] for n, b in boxes.items()}
+    overlap = [] if len(folders) > 1 else overlap_report(cloud, viewpoints)
     comments = {"calibration": str(Path(calibration).resolve()),
                 "measurement_folders": [str(f.resolve()) for f in folders],
                 "calibration_inputs": cal.provenance.get("inputs", {}),
@@ -98,8 +123,9 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         p = cloud.points[cloud.points["scanner"] == i]
         if len(p) == 0:
             continue
+        eps1 = float(np.sqrt(np.mean(p["eps1"].astype(float) ** 2)))
         per[name] = {"sources": [str(g[name]) for g in entries if name in g], "points": int(len(p)),
-                     "eps1_rms_mm": float(np.sqrt(np.mean(p["eps1"].astype(float) ** 2))),
+                     "eps1_rms_mm": eps1 if np.isfinite(eps1) else None,
                      "u_mm_median": float(np.median(p["u_mm"])) if cov is not None else None}
     return {"out": str(out), "points": len(cloud), "measurements": [str(f) for f in folders], "scanners": per,
             "datum": datum,

@@ -3,7 +3,8 @@
 A measurement folder holds one entry per scanner, named after the scanner as in the
 calibration: either a frame folder ``<scanner>/`` (``sequence.yaml`` and the frames,
 :mod:`fringecal.fringe.importer`) or a decoded store ``<scanner>.zarr`` (the store
-format of a run's ``measurements/``, :mod:`fringecal.store`). Every entry is checked
+format of a run's ``measurements/``, :mod:`fringecal.store`); a black-box scanner's
+entry is its cloud ``<scanner>.ply`` (or ``.e57``) whatever the kind. Every entry is checked
 before anything is decoded or triangulated (names, kind, completeness, the camera's
 aspect ratio against the calibration), so a bad folder costs nothing.
 """
@@ -16,6 +17,7 @@ from fringecal.fringe.decode import decode
 from fringecal.fringe.importer import SEQUENCE_FILE, check_stack, read_frames
 from fringecal.fringe.measurement import check_decoded, measurement_dataset
 from fringecal.rig import Rig
+from fringecal.scancloud import CLOUD_SUFFIXES, check_cloud_header
 from fringecal.store import StoreError, is_complete, open_store
 
 __all__ = ["MeasurementSourceError", "measurement_entries", "open_entry"]
@@ -27,7 +29,7 @@ class MeasurementSourceError(ValueError):
     """A measurement folder that cannot be measured; the message names the entry."""
 
 
-def measurement_entries(folder, rig: Rig, kind: str) -> dict[str, Path]:
+def measurement_entries(folder, rig: Rig, kind: str, black_boxes=()) -> dict[str, Path]:
     """Scanner name -> frame folder (``kind="frames"``) or store (``kind="stores"``).
 
     Entries that are neither (hidden files, notes) are ignored; an entry of the other
@@ -42,6 +44,13 @@ def measurement_entries(folder, rig: Rig, kind: str) -> dict[str, Path]:
     out = {}
     for entry in sorted(folder.iterdir()):
         if entry.name.startswith("."):
+            continue
+        if entry.is_file() and entry.suffix.lower() in CLOUD_SUFFIXES:
+            scanner = entry.name[:-len(entry.suffix)]
+            if scanner not in black_boxes:
+                raise MeasurementSourceError(f"{entry}: a point cloud, but scanner {scanner!r} is not a black-box "
+                                             f"scanner of the calibration ({', '.join(black_boxes) or 'none'})")
+            out[scanner] = entry
             continue
         is_store = entry.name.endswith(STORE_SUFFIX)
         is_frames = entry.is_dir() and not is_store and (entry / SEQUENCE_FILE).is_file()
@@ -59,7 +68,10 @@ def measurement_entries(folder, rig: Rig, kind: str) -> dict[str, Path]:
         want = f"<scanner>/ frame folders with {SEQUENCE_FILE}" if kind == "frames" else f"<scanner>{STORE_SUFFIX} stores"
         raise MeasurementSourceError(f"{folder}: no {want} of the calibration's scanners ({', '.join(names)})")
     for scanner, entry in out.items():
-        _check_entry(entry, rig.scanner(scanner).camera, kind)
+        if scanner in black_boxes:
+            check_cloud_header(entry)
+        else:
+            _check_entry(entry, rig.scanner(scanner).camera, kind)
     return out
 
 

@@ -104,6 +104,7 @@ def run_summary(rd: RunDir, cfg) -> dict:
     run's verdict (:func:`fringecal.acceptance.verdict.run_verdict`) over its
     ball-bar verification and acceptance test."""
     b = rd.bundle_summary.load()
+    before, after = b.get("before", {}), b.get("after", {})
     v = _maybe(rd.verification)
     a = _maybe(rd.acceptance)
     t = _maybe(rd.evaluation)
@@ -112,10 +113,12 @@ def run_summary(rd: RunDir, cfg) -> dict:
         "name": cfg.name, "source": cfg.source, "dataset": None if cfg.dataset is None else str(cfg.dataset),
         "n_measurements": n_measurements,
         "n_control_points": b["n_control_points"],
-        "rms_F_mm_before": b["before"]["rms_f_mm"], "rms_F_mm_after": b["after"]["rms_f_mm"],
-        "rms_eps1_mm_before": b["before"]["rms_eps1_mm"], "rms_eps2_mm_before": b["before"]["rms_eps2_mm"],
-        "rms_eps1_mm_after": b["after"]["rms_eps1_mm"], "rms_eps2_mm_after": b["after"]["rms_eps2_mm"],
-        "one_part_in": b["one_part_in_1p96_sigma"], "volume_diagonal_mm": b["volume_diagonal_mm"],
+        # a rig of black boxes only has no sensor model: no F, eps1, eps2 (its centres' RMS instead)
+        "rms_F_mm_before": before.get("rms_f_mm"), "rms_F_mm_after": after.get("rms_f_mm"),
+        "rms_eps1_mm_before": before.get("rms_eps1_mm"), "rms_eps2_mm_before": before.get("rms_eps2_mm"),
+        "rms_eps1_mm_after": after.get("rms_eps1_mm"), "rms_eps2_mm_after": after.get("rms_eps2_mm"),
+        "black_boxes_only": bool(b.get("black_boxes_only", False)), "rms_centre_mm": b.get("rms_centre_mm"),
+        "one_part_in": b.get("one_part_in_1p96_sigma"), "volume_diagonal_mm": b["volume_diagonal_mm"],
         "bundle_seconds": b.get("bundle_seconds", b.get("elapsed_s")),
         "bundle_compile_seconds": b.get("bundle_compile_seconds", 0.0),
         "simulation_profile": simulation_profile(cfg),

@@ -54,7 +54,8 @@ from fringecal.names import check_name, confined
 from fringecal.rig import scaled_scanner
 from fringecal.rundir import TruthDir, measurement_id
 from fringecal.schemas import ArtefactTable, PosePlanTable, RodsTable, SensorParametersTable, read_table, write_table
-from fringecal.simulate.measurement import render_frames
+from fringecal.simulate.black_box import without_black_boxes, write_black_box_ply
+from fringecal.simulate.measurement import render_frames, simulate_measurement
 from fringecal.simulate.moves import move_hexapod, poses_table
 from fringecal.simulate.objects import object_truth
 from fringecal.simulate.scenes import acceptance_scene, artefact_scene
@@ -156,7 +157,10 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
         write_table(read_table(rc.artefact, ArtefactTable), tmp / layout.ARTEFACT_FILE)
         if rc.rods is not None:
             write_table(read_table(rc.rods, RodsTable), tmp / layout.RODS_FILE)
-        write_table(sr.prior.to_frame(), tmp / layout.SENSORS_PRIOR_FILE, SensorParametersTable)
+        boxes = sim.black_boxes()
+        modelled = without_black_boxes(sr.prior, sim.outputs)
+        if modelled is not None:  # black boxes only: no prior calibration at all
+            write_table(modelled.to_frame(), tmp / layout.SENSORS_PRIOR_FILE, SensorParametersTable)
         write_table(frame_rows(sr.planned), tmp / layout.POSES_PLANNED_FILE)
         verification = tmp / layout.VERIFICATION_DIR
         write_table(sr.ballbar.to_frame(), verification / layout.BALLBAR_FILE, ArtefactTable)
@@ -236,6 +240,17 @@ def write_dataset(cfg, out, truth_out, fmt: str = "png", workers: int = 2, on_st
 
         def render(job):
             mid, scanner, scene, settings, folder, errs = job
+            if scanner.name in boxes:  # a black box: its cloud, from the maps the simulated run stores
+                store = folder.parent / f".{folder.name}.decoded.zarr"
+                folder.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    simulate_measurement(mid, scanner, scene, settings, cfg.decode, store, errors=errs)
+                    write_black_box_ply(store, scanner, folder.parent / f"{folder.name}.ply")
+                finally:
+                    shutil.rmtree(store, ignore_errors=True)
+                if on_stack is not None:
+                    on_stack(mid)
+                return
             m = render_frames(mid, scanner, scene, settings, errs)
             write_frames(folder, m.frames, m.sequence, acq.render.bit_depth, fmt, scanner=scanner.name)
             if on_stack is not None:

@@ -112,6 +112,11 @@ class SimulationConfig(StrictModel):
     (:mod:`fringecal.simulate.objects`: a curved ``panel``, the ``artefact`` at a new
     pose); ``fringecal simulate`` writes them into the data set's ``objects/`` folder.
     The simulated run itself does not render them.
+
+    ``outputs`` (scanner -> ``images`` or ``cloud``; default images) makes a scanner a
+    black box: it delivers its triangulated points, with their noise, in its own frame
+    (its camera's), not fringe images, and has no prior calibration
+    (:mod:`fringecal.simulate.black_box`; ``fringecal simulate`` writes its ``.ply``).
     """
 
     rig: Path = Field(default_factory=lambda: thesis_dir() / "rig.yaml")
@@ -123,6 +128,11 @@ class SimulationConfig(StrictModel):
     errors: SimulationErrors = Field(default_factory=SimulationErrors)
     acceptance: SimulatedAcceptanceConfig = Field(default_factory=SimulatedAcceptanceConfig)
     objects: list[SimulatedObject] = Field(default_factory=list)
+    outputs: dict[str, Literal["images", "cloud"]] = Field(default_factory=dict)
+
+    def black_boxes(self) -> tuple[str, ...]:
+        """The scanners that deliver clouds (``outputs``), in name order."""
+        return tuple(sorted(s for s, o in self.outputs.items() if o == "cloud"))
 
     @field_validator("objects")
     @classmethod

@@ -77,5 +77,6 @@ class ControlPointConfig(StrictModel):
     max_incidence_deg: Optional[float] = Field(60.0, gt=0, le=90)
     #: side (px) of the camera pixel's uniform response: the decoded phases are
     #: corrected for its integration over the sphere (thesis chapter 5,
-    #: :mod:`fringecal.spheres.pixel_integration`); 0 leaves them as decoded
+    #: :mod:`fringecal.spheres.pixel_integration`), and in a rig with black boxes the
+    #: modelled scanners' ball-bar sightings too (docs/blackbox.md); 0 leaves them as decoded
     pixel_integration_px: float = Field(1.0, ge=0, le=10)

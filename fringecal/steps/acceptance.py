@@ -17,7 +17,7 @@ import logging
 from fringecal.acceptance.document import acceptance_document
 from fringecal.acceptance.standards import AcceptanceStandards
 from fringecal.rundir import RunDir
-from fringecal.steps.base import Settings, Step, stores_of_kind
+from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
 
 __all__ = ["Acceptance", "acceptance_stores", "ACCEPTANCE_KINDS"]
 
@@ -28,10 +28,12 @@ ACCEPTANCE_KINDS = ("sphere", "dumbbell", "flat")
 
 
 def acceptance_stores(rd: RunDir) -> dict[str, dict[str, dict[str, str]]]:
-    """kind -> position -> scanner -> store path of the run's acceptance measurements."""
+    """kind -> position -> scanner -> store path of the run's acceptance measurements
+    (a black-box scanner's clouds are not evaluated: the test measures with sensors)."""
     table = rd.acquisition.load()
+    boxes = black_box_scanners(rd)
     out: dict[str, dict[str, dict[str, str]]] = {k: {} for k in ACCEPTANCE_KINDS}
-    for r in table[table["kind"].isin(ACCEPTANCE_KINDS)].itertuples():
+    for r in table[table["kind"].isin(ACCEPTANCE_KINDS) & ~table["scanner"].isin(boxes)].itertuples():
         out[r.kind].setdefault(str(r.pose), {})[str(r.scanner)] = str(rd.store(r.measurement).path)
     return out
 
@@ -53,6 +55,9 @@ class Acceptance(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for kind in ACCEPTANCE_KINDS for m in stores_of_kind(rd, kind)]
+        if black_boxes_only(rd):  # black boxes only: E from the ball-bar
+            return [rd.sensors_prior, rd.verification, rd.acceptance_standards, rd.acquisition,
+                    rd.truth.acceptance_positions]
         return [rd.calibration, rd.covariance, rd.verification, rd.acceptance_standards, rd.acquisition,
                 rd.truth.acceptance_positions] + stores
 
@@ -60,7 +65,8 @@ class Acceptance(Step):
         return [rd.acceptance, rd.acceptance_values]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
-        stores = acceptance_stores(rd)
+        modelled = not black_boxes_only(rd)
+        stores = acceptance_stores(rd) if modelled else {}
         standards = (AcceptanceStandards(**rd.acceptance_standards.load()) if rd.acceptance_standards.exists()
                      else AcceptanceStandards())
         verified = rd.verification.exists()
@@ -70,8 +76,9 @@ class Acceptance(Step):
             log.warning("no acceptance test: %s", "acceptance.enabled is false" if not cfg.acceptance.enabled
                         else "no acceptance objects and no verified ball-bar")
             return
-        doc, values = acceptance_document(rd.calibration.load(), standards, cfg.acceptance, cfg.extraction.rejection,
-                                          cfg.verification.uncertainty, rd.covariance.load(), stores,
+        doc, values = acceptance_document(rd.calibration.load() if modelled else None, standards, cfg.acceptance,
+                                          cfg.extraction.rejection, cfg.verification.uncertainty,
+                                          rd.covariance.load() if modelled else None, stores,
                                           rd.verification.load() if verified else None, _positions(rd))
         for f in doc["failures"]:
             log.warning("acceptance %s position %s, scanner %s: %s", f["test"], f["position"], f["scanner"],

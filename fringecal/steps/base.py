@@ -33,7 +33,8 @@ from fringecal.rundir import RunDir, RunFile, TableFile
 from fringecal.schemas import read_csv_text
 
 __all__ = ["Step", "Rows", "Value", "Settings", "StepError", "DataProblem", "Read", "store_row", "store_fields",
-           "stores_of_kind", "save_or_remove"]
+           "black_boxes_only",
+           "stores_of_kind", "save_or_remove", "black_box_scanners", "stores_of"]
 
 
 class StepError(RuntimeError):
@@ -197,3 +198,30 @@ def stores_of_kind(rd: RunDir, kind: str) -> list[str]:
     """Ids of the run's ``artefact`` (calibration) or ``ballbar`` stores, in table order."""
     table = _raw_table(rd.acquisition.path)
     return list(table.loc[table["kind"] == kind, "measurement"])
+
+
+def black_box_scanners(rd: RunDir) -> list[str]:
+    """Scanners of the acquisition table without a prior calibration: the black boxes,
+    whose stores are point clouds (in table order); none in a run directory without an
+    acquisition table (one written for ``fringecal calibrate`` from control points)."""
+    if not rd.acquisition.exists():
+        return []
+    table = _raw_table(rd.acquisition.path)
+    modelled = set(_raw_table(rd.sensors_prior.path)["scanner"]) if rd.sensors_prior.exists() else set()
+    return [s for s in dict.fromkeys(table["scanner"]) if s not in modelled]
+
+
+def black_boxes_only(rd: RunDir) -> bool:
+    """Whether the run's rig is black boxes only: an acquisition table of black boxes and
+    no prior calibration (a run directory without an acquisition table, one written for
+    ``fringecal calibrate`` from control points, is not)."""
+    return not rd.sensors_prior.exists() and bool(black_box_scanners(rd))
+
+
+def stores_of(rd: RunDir, kind: str, black_box: bool) -> list[str]:
+    """Ids of the ``kind`` stores of the black-box scanners (``black_box``) or of the
+    modelled ones, in table order."""
+    table = _raw_table(rd.acquisition.path)
+    boxes = set(black_box_scanners(rd))
+    sel = (table["kind"] == kind) & (table["scanner"].isin(boxes) == black_box)
+    return list(table.loc[sel, "measurement"])

@@ -12,23 +12,27 @@ import io
 import json
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
+import pandas as pd
 
 from fringecal import compile_clock, threads
 from fringecal.atomic import atomic_paths
+from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.bundle import bundle_adjust
 from fringecal.calibration.file import rig_to_dict, xml_text
-from fringecal.calibration.model import BundleProblem
+from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
 from fringecal.calibration.results import binned_residuals, covariance_arrays, residual_tables, summary
 from fringecal.config import ConfigError
 from fringecal.digests import digest_path, digest_value
+from fringecal.frames import Frame
 from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
-from fringecal.steps.base import Settings, Step
+from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners, black_boxes_only, stores_of
 
 __all__ = ["Bundle", "load_problem"]
 
@@ -63,15 +67,25 @@ class Bundle(Step):
     modules = ("fringecal.calibration",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial]
+        if black_boxes_only(rd):  # black boxes only
+            return [rd.sensors_prior, rd.artefact, rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
+                [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)]
+        boxes = [rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
+            [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)] if black_box_scanners(rd) else []
+        return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
+        if black_boxes_only(rd):
+            return [rd.black_boxes, rd.black_boxes_export, rd.bundle_summary]
+        boxes = [rd.black_boxes, rd.black_boxes_export] if black_box_scanners(rd) else []
         return [rd.calibration, rd.calibration.xml, rd.sensors_calibrated, rd.poses_calibrated,
                 rd.residuals_per_sphere, rd.residuals_per_measurement, rd.residuals_binned, rd.histogram("eps1"),
-                rd.histogram("eps2"), rd.bundle_summary, rd.covariance]
+                rd.histogram("eps2"), rd.bundle_summary, rd.covariance] + boxes
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         b = cfg.bundle
+        if black_boxes_only(rd):
+            return self.run_black_boxes_only(rd, cfg)
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         t0, c0 = time.perf_counter(), compile_clock.thread_seconds()
         result = bundle_adjust(problem, b)
@@ -91,8 +105,44 @@ class Bundle(Step):
         u = cfg.verification.uncertainty
         covariances = parameter_covariances(arrays, abs(u.artefact_cte_per_c) * u.artefact_temperature_u_c,
                                             u.artefact_u_factor)
-        write_outputs(rd, result, {**summary(result, b.volume_diagonal_mm), **timing}, arrays, covariances,
-                      self.provenance(rd, cfg, item))
+        boxes = black_box_adjustment(rd, result, cfg.reference_scanner, b.black_box_scale)
+        doc = {**summary(result, b.volume_diagonal_mm), **timing}
+        if boxes is not None:
+            doc["black_boxes"] = {"s0": boxes.s0, "dof": boxes.dof,
+                                  "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()},
+                                  "modelled_shift_max_sigma": boxes.joint["max_shift_sigma"]}
+            result = with_black_box_update(result, boxes)
+        write_outputs(rd, result, doc, arrays, covariances, self.provenance(rd, cfg, item),
+                      None if boxes is None else boxes.to_dict())
+        if boxes is None:
+            rd.black_boxes.remove()
+            rd.black_boxes_export.remove()
+        else:
+            rd.black_boxes.save({**boxes.to_dict(), "joint_covariance": joint_covariance(result, boxes)})
+            rd.black_boxes_export.save(export_table(boxes.scanners.values()))
+
+    def run_black_boxes_only(self, rd: RunDir, cfg: Settings) -> None:
+        """A rig of black boxes only: every transform (the reference's fixed) and every
+        artefact pose adjusted at once (:func:`fringecal.calibration.blackbox.adjust_black_boxes`
+        without a prior); ``bundle_summary.json`` says so (``black_boxes_only``)."""
+        t0 = time.perf_counter()
+        boxes = black_box_adjustment(rd, None, cfg.reference_scanner, cfg.bundle.black_box_scale)
+        residuals = boxes.residuals[["dx_mm", "dy_mm", "dz_mm"]].to_numpy(float)
+        rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))) if len(residuals) else float("nan")
+        artefact = rd.artefact.load()
+        placed = np.concatenate([Frame.from_params([getattr(r, c) for c in POSE_COLUMNS]).to_world(artefact.centres)
+                                 for r in boxes.poses.itertuples()])
+        diagonal = cfg.bundle.volume_diagonal_mm or float(np.linalg.norm(placed.max(axis=0) - placed.min(axis=0)))
+        doc = {"black_boxes_only": True, "converged": True, "n_control_points": int(len(residuals)),
+               "volume_diagonal_mm": diagonal,
+               "volume_diagonal_source": "given (bundle.volume_diagonal_mm)" if cfg.bundle.volume_diagonal_mm
+               else "bounding box of the artefact's sphere centres at the adjusted poses",
+               "n_centres": int(len(residuals)), "rms_centre_mm": rms, "bundle_seconds": time.perf_counter() - t0,
+               "black_boxes": {"s0": boxes.s0, "dof": boxes.dof,
+                               "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()}}}
+        rd.black_boxes.save({**boxes.to_dict(), "joint_covariance": joint_covariance(None, boxes)})
+        rd.black_boxes_export.save(export_table(boxes.scanners.values()))
+        rd.bundle_summary.save(doc)
 
     def provenance(self, rd: RunDir, cfg: Settings, item: str) -> dict:
         """What the calibration was computed from: its input files' digests, its
@@ -102,7 +152,81 @@ class Bundle(Step):
                 "settings": settings, "settings_digest": digest_value(settings), "versions": package_versions()}
 
 
-def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict) -> list:
+def black_box_adjustment(rd: RunDir, result, reference: str, scale: bool):
+    """Each black-box scanner's transform (and scale) with every artefact pose, on the
+    poses the bundle adjustment found with their covariance (``result``; None: a rig of
+    black boxes only, the reference among them)
+    (:func:`fringecal.calibration.blackbox.adjust_black_boxes`); None without black boxes."""
+    boxes = black_box_scanners(rd)
+    if not boxes:
+        return None
+    links = {str(r.scanner): Frame.from_params([getattr(r, c) for c in POSE_COLUMNS])
+             for r in rd.scanner_links.load().itertuples()}
+    swapped = inconsistent_views(rd.label_outcomes.load(), boxes)
+    if len(swapped):
+        table = rd.acquisition.load()
+        sources = {(str(r.pose), str(r.scanner)): str(r.source) for r in table.itertuples()}
+        first = swapped.iloc[0]
+        more = f" (and {len(swapped) - 1} more view(s): {rd.label_outcomes.path})" if len(swapped) > 1 else ""
+        raise DataProblem(f"{sources.get((str(first.measurement), str(first.scanner)), first.scanner)}: the cloud of "
+                          f"black-box scanner {first.scanner} in measurement {first.measurement} does not fit where "
+                          f"the other scanners put the artefact; a cloud of another scanner (a swapped file?): "
+                          f"{first.message}{more}")
+    unlinked = [s for s in boxes if s not in links]
+    if unlinked:
+        raise DataProblem(f"{rd.scanner_links.path}: black-box scanner(s) {', '.join(unlinked)} not linked to the "
+                          f"reference scanner {reference}: each needs three labelled spheres in a measurement "
+                          f"another linked scanner saw (why spheres were not labelled: {rd.label_outcomes.path})")
+    finals = [rd.fits_final(m).load() for m in stores_of(rd, "artefact", black_box=True)]
+    fits = pd.concat([f for f in finals if len(f)], ignore_index=True)
+    if result is None:
+        return adjust_black_boxes(fits, rd.artefact.load(), reference, {s: (links[s], 1.0) for s in boxes},
+                                  scale=scale)
+    lay = result.layout
+    prior = ModelPrior(result.x, result.uncertainty.covariance, lay.pose_index, result.poses,
+                       result.problem.measurements, lay.names)
+    return adjust_black_boxes(fits, result.problem.artefact, reference, {s: (links[s], 1.0) for s in boxes},
+                              scale=scale, prior=prior)
+
+
+def with_black_box_update(result, boxes):
+    """The bundle's result with its sensors and poses as the joint adjustment with the
+    black boxes moved them (:func:`fringecal.calibration.blackbox._conditioned`): the
+    calibration written is the one adjustment's. Its covariance arrays, bootstrap and
+    residual tables stay the bundle's own."""
+    lay = result.layout
+    x = boxes.joint["x"]
+    sp, po = lay.unpack(x, result.rig.params, result.poses)
+    C = boxes.joint["covariance"][:lay.n, :lay.n]
+    std = np.sqrt(np.clip(np.diag(C), 0, None))
+    std_s = np.zeros_like(sp)
+    free = lay.sensor_index >= 0
+    std_s[free] = std[lay.sensor_index[free]]
+    return replace(result, x=x, rig=result.rig.with_params(sp, uncertainty=std_s), poses=po)
+
+
+def joint_covariance(result, boxes) -> dict:
+    """The covariance of every sensor parameter (n_sensors * 14, rig order, fixed ones
+    zero) and every black box's 7 parameters together, from the joint adjustment
+    (what a length measured by a modelled and a black-box scanner needs); ``result``
+    None: a rig of black boxes only (no sensor parameters)."""
+    idx = np.zeros(0, int) if result is None else result.layout.sensor_index.reshape(-1)
+    n_s = idx.size
+    names = list(boxes.scanners)
+    C = boxes.joint["covariance"]  # [bundle's free parameters, black boxes' free parameters]
+    pos = np.full(n_s + 7 * len(names), -1)
+    pos[:n_s] = idx
+    for b, name in enumerate(names):
+        free_idx, free_pos = boxes.joint["free"][name]
+        pos[n_s + 7 * b + free_idx] = boxes.joint["n_model"] + free_pos
+    out = np.zeros((pos.size, pos.size))
+    ok = pos >= 0
+    out[np.ix_(ok, ok)] = C[np.ix_(pos[ok], pos[ok])]
+    return {"n_sensor_parameters": int(n_s), "black_boxes": names, "matrix": out.tolist()}
+
+
+def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict,
+                  black_boxes: dict | None = None) -> list:
     """Write the calibration of ``result`` (a :class:`~fringecal.calibration.bundle.BundleResult`)
     into ``rd``, all or nothing: ``calibration.json`` (with ``covariances``, the
     :class:`~fringecal.calibration.propagation.ParameterCovariances`, and ``provenance``)
@@ -124,8 +248,10 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary, rd.covariance]
     with atomic_paths([f.path for f in files]) as tmps:
         tmp = dict(zip([f.rel for f in files], tmps))
-        tmp[rd.calibration.rel].write_text(json.dumps(rig_to_dict(result.rig, meta, covariances, provenance),
-                                                      indent=2) + "\n")
+        calibration = rig_to_dict(result.rig, meta, covariances, provenance)
+        if black_boxes is not None:
+            calibration["black_boxes"] = black_boxes
+        tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")
         tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta))
         for f, df in tables.items():
             df.to_csv(tmp[f.rel], index=False, float_format="%.10g")

@@ -15,7 +15,7 @@ import numpy as np
 from fringecal.calibration.crossval import cross_validate, split_measurements
 from fringecal.calibration.model import POSE_COLUMNS
 from fringecal.rundir import RunDir
-from fringecal.steps.base import Settings, Step
+from fringecal.steps.base import Settings, Step, black_boxes_only
 from fringecal.steps.bundle import load_problem
 
 __all__ = ["CrossValidate"]
@@ -30,6 +30,8 @@ class CrossValidate(Step):
     modules = ("fringecal.calibration",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
+        if black_boxes_only(rd):  # black boxes only
+            return [rd.sensors_prior]
         return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial, rd.calibration,
                 rd.poses_calibrated]
 
@@ -38,6 +40,11 @@ class CrossValidate(Step):
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         b = cfg.bundle
+        if black_boxes_only(rd):
+            rd.crossval.save({"verdict": "not possible", "reason": "a rig of black boxes only: no sensor model to "
+                                                                    "calibrate on half the measurements"})
+            rd.crossval_halves.remove()
+            return
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         try:
             split_measurements(problem)

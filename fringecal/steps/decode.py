@@ -6,7 +6,9 @@ dumbbell, flat).
 
 A frame folder (``sequence.yaml`` + frames) is read and decoded
 (:func:`fringecal.fringe.measurement.decode_folder`); a stack the data set already
-holds decoded (``<scanner>.zarr``) is copied in (hard links where possible). Either
+holds decoded (``<scanner>.zarr``) is copied in (hard links where possible); a
+black-box scanner's cloud (``<scanner>.ply``, ``.e57``) is read, checked and stored as
+the run's cloud store (:func:`fringecal.scancloud.cloud_store_from_file`). Either
 way the run gets ``measurements/<id>.zarr``, keyed by the content of its stack, so
 editing one frame re-decodes that measurement only.
 """
@@ -18,6 +20,7 @@ from pathlib import Path
 
 from fringecal.fringe.measurement import decode_folder
 from fringecal.rundir import RunDir
+from fringecal.scancloud import CLOUD_SUFFIXES, cloud_store_from_file
 from fringecal.steps.base import Settings, Step, store_fields, store_row, stores_of_kind
 from fringecal.store import copy_store
 
@@ -45,7 +48,9 @@ class Decode(Step):
         return Path(cfg.dataset) / store_fields(rd, item)["source"]
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
-        return [store_row(rd, item), self._source(rd, cfg, item)]
+        source = self._source(rd, cfg, item)
+        artefact = [rd.artefact] if source.suffix.lower() in CLOUD_SUFFIXES else []
+        return [store_row(rd, item), source] + artefact
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.store(item)]
@@ -55,6 +60,12 @@ class Decode(Step):
         source = self._source(rd, cfg, item)
         if source.suffix == ".zarr":
             copy_store(source, rd.store(item).path)
+            return
+        if source.suffix.lower() in CLOUD_SUFFIXES:
+            attrs = {"measurement": item, "pose": row["pose"], "scanner": row["scanner"], "kind": row["kind"],
+                     "source": row["source"]}
+            min_extent = float(rd.artefact.load().radii.min())
+            cloud_store_from_file(source, rd.store(item).path, min_extent, attrs)
             return
         attrs = {"measurement": item, "pose": row["pose"], "scanner": row["scanner"], "kind": row["kind"],
                  "source": row["source"]}

@@ -38,6 +38,14 @@ def _stacks(ds: DataSet) -> list[dict]:
             for s in ds.stacks()]
 
 
+def modelled_prior(path, reference: str):
+    """The modelled scanners' prior calibrations, the reference camera's exterior fixed."""
+    prior = load_rig(path, reference=reference)
+    free = prior.free.copy()
+    free[[s.name for s in prior.sensors].index(prior.scanner(prior.reference).camera.name), :6] = False
+    return replace(prior, free=free)
+
+
 class Ingest(Step):
     name = "ingest"
     title = "data set"
@@ -68,10 +76,10 @@ class Ingest(Step):
         save_or_remove(rd.acceptance_standards,
                        ds.acceptance_standards and load_standards(ds.acceptance_standards).model_dump(mode="json"))
         save_or_remove(rd.poses_planned, ds.poses_planned and read_table(ds.poses_planned, PosePlanTable))
-        prior = load_rig(ds.sensors_prior, reference=cfg.reference_scanner)
-        free = prior.free.copy()
-        free[[s.name for s in prior.sensors].index(prior.scanner(prior.reference).camera.name), :6] = False
-        rd.sensors_prior.save(replace(prior, free=free))
+        if ds.sensors_prior is None:  # black boxes only
+            rd.sensors_prior.remove()
+        else:
+            rd.sensors_prior.save(modelled_prior(ds.sensors_prior, cfg.reference_scanner))
         table = pd.DataFrame(_stacks(ds)).drop(columns="format")
         table.insert(4, "store", [rd.store(m).rel for m in table["measurement"]])
         rd.acquisition.save(table)

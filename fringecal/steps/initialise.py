@@ -10,8 +10,8 @@ import pandas as pd
 
 from fringecal.calibration.initial import UnlinkedScanners, initial_calibration
 from fringecal.rundir import RunDir
-from fringecal.steps.base import DataProblem, Settings, Step
-from fringecal.steps.spheres_first import artefact_items
+from fringecal.steps.base import DataProblem, Settings, Step, black_boxes_only
+from fringecal.steps.spheres_first import modelled_items
 
 __all__ = ["Initialise"]
 
@@ -23,20 +23,26 @@ class Initialise(Step):
     modules = ("fringecal.calibration.initial",)
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
+        if black_boxes_only(rd):  # black boxes only: nothing to start (docs/blackbox.md)
+            return [rd.sensors_prior]
         return [rd.sensors_prior, rd.sphere_centres, rd.poses, rd.scanner_links, rd.artefact] + \
-            [rd.control_points_of(m) for m in artefact_items(rd)]
+            [rd.control_points_of(m) for m in modelled_items(rd)]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
+        if black_boxes_only(rd):
+            return []
         return [rd.control_points, rd.poses_initial, rd.sensors_initial, rd.dlt]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
+        if black_boxes_only(rd):  # black boxes only: the bundle step adjusts their transforms alone
+            return
         centres = rd.sphere_centres.load()
         try:
             init = initial_calibration(rd.sensors_prior.load(cfg.reference_scanner), centres,
                                        rd.poses.load(), rd.scanner_links.load(), rd.artefact.load())
         except UnlinkedScanners as err:
             raise DataProblem(unlinked_message(rd, err.scanners, cfg.reference_scanner, centres)) from None
-        cps = [rd.control_points_of(m).load() for m in artefact_items(rd)]
+        cps = [rd.control_points_of(m).load() for m in modelled_items(rd)]
         rd.control_points.save(pd.concat([c for c in cps if len(c)], ignore_index=True))
         rd.poses_initial.save(init.poses)
         rd.sensors_initial.save(init.rig)

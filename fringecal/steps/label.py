@@ -47,6 +47,9 @@ class Label(Step):
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         fits = [rd.fits_first(m).load() for m in artefact_items(rd)]
         table = pd.concat([f for f in fits if len(f)], ignore_index=True)
+        # a cloud's fits (black boxes) have no image-space rejection counts: none rejected
+        counts = [c for c in table.columns if c.startswith("rejected_")]
+        table[counts] = table[counts].fillna(0).astype(int)
         planned = None
         if cfg.extraction.use_planned_poses and rd.poses_planned.exists():
             planned = frames_from_rows(rd.poses_planned.load())

@@ -22,6 +22,7 @@ import pandas as pd
 from fringecal.acceptance.plan import PLAN_COLUMNS
 from fringecal.frames import frame_rows
 from fringecal.rundir import RunDir
+from fringecal.simulate.black_box import without_black_boxes
 from fringecal.simulate.config import AcquisitionConfig
 from fringecal.simulate.errors import ARTEFACT_SWITCHES, errors_subset, switch_settings
 from fringecal.simulate.settings import SimulatedAcceptanceConfig, SimulatedVerificationConfig, SimulationConfig
@@ -55,7 +56,8 @@ class SimulatePrepare(Step):
                 "simulate.acquisition.camera_width_px", "simulate.verification.scheme",
                 "simulate.verification.per_pair", "simulate.verification.per_scanner", "simulate.verification.seed",
                 "simulate.acceptance.enabled", "simulate.acceptance.sphere", "simulate.acceptance.dumbbell",
-                "simulate.acceptance.flat", "simulate.acceptance.seed", "acceptance.specification.depth_range_mm") \
+                "simulate.acceptance.flat", "simulate.acceptance.seed", "acceptance.specification.depth_range_mm",
+                "simulate.outputs") \
         + switch_settings(ARTEFACT_SWITCHES)
     locations = ("simulate.rig", "simulate.verification.ballbar", "simulate.verification.positions",
                  "simulate.acceptance.standards")
@@ -75,7 +77,11 @@ class SimulatePrepare(Step):
         rd.artefact.save(sr.artefact)
         save_or_remove(rd.rods, sr.rods)
         rd.ballbar.save(sr.ballbar)
-        rd.sensors_prior.save(sr.prior)
+        modelled = without_black_boxes(sr.prior, cfg.simulate.outputs)
+        if modelled is None:  # every scanner a black box: no prior calibration (docs/blackbox.md)
+            rd.sensors_prior.remove()
+        else:
+            rd.sensors_prior.save(modelled)
         rd.poses_planned.save(frame_rows(sr.planned))
         table = acquisition_table(sr)
         table.insert(4, "store", [rd.store(m).rel for m in table["measurement"]])

@@ -20,11 +20,14 @@ import logging
 from fringecal.config import RigConfig, load_yaml_model, thesis_dir
 from fringecal.frames import frames_from_rows
 from fringecal.rundir import RunDir, TableFile
+from fringecal.scancloud import write_cloud_store
+from fringecal.simulate.black_box import store_points
 from fringecal.simulate.config import AcquisitionConfig
 from fringecal.simulate.errors import RENDER_SWITCHES, SESSION_SWITCHES, errors_subset, switch_settings
 from fringecal.simulate.measurement import simulate_measurement
 from fringecal.simulate.scenes import ArtefactHardware, Scene, artefact_scene
 from fringecal.simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
+from fringecal.store import store_attributes
 from fringecal.steps.base import Rows, Settings, Step, Value, store_fields, store_row, stores_of_kind
 
 __all__ = ["SimulateRender", "RenderStores", "ACQUISITION_SETTINGS", "hardware_file"]
@@ -34,7 +37,7 @@ log = logging.getLogger(__name__)
 #: What the rendering of a store depends on besides its scene and scanner.
 ACQUISITION_SETTINGS = ("simulate.acquisition.render", "simulate.acquisition.sequence",
                         "simulate.acquisition.seed", "simulate.acquisition.backdrop_mm",
-                        "simulate.acquisition.store_frames", "decode")
+                        "simulate.acquisition.store_frames", "decode", "simulate.outputs")
 
 
 def hardware_file(cfg: Settings):
@@ -106,6 +109,16 @@ class RenderStores(Step):
                                  self.errors(cfg, scanner, T, scene)).summary
         log.info("%s: render %.1f s, decode + store %.1f s, %.1f %% valid", item, s["render_s"], s["decode_store_s"],
                  100 * s["valid_fraction"])
+        if cfg.simulate.outputs.get(row["scanner"]) == "cloud":
+            store_black_box_cloud(rd.store(item).path, scanner)
+
+
+def store_black_box_cloud(path, scanner) -> None:
+    """Replace a black box's decoded store by its cloud (:mod:`fringecal.simulate.black_box`)."""
+    attrs = store_attributes(path)
+    points = store_points(path, scanner)
+    keep = {k: attrs[k] for k in ("source", "measurement", "scanner", "pose", "kind") if k in attrs}
+    write_cloud_store(path, points, attrs=keep)
 
 
 def poses_until(rd: RunDir, pose: str) -> list[str]:

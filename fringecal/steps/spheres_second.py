@@ -5,18 +5,34 @@ the phase (chapter 5).
 
 A measurement's key holds only its own rows of the labelled fits and poses, so a
 label that changes elsewhere does not redo it.
+
+A black-box scanner's labelled spheres are refitted in its cloud the same way
+(certified radius, rod cones, the rim beyond ``control_points.max_incidence_deg``
+left out: :func:`fringecal.spheres.cloud_spheres.refit_cloud_sphere`); its fits are
+its observations in the adjustment.
 """
 
 from __future__ import annotations
 
+import logging
+
+import numpy as np
+import pandas as pd
+
 from fringecal.calibration.initial import poses_from_table
 from fringecal.rundir import RunDir
+from fringecal.scancloud import read_cloud_store
+from fringecal.spheres.cloud_spheres import refit_cloud_sphere
+from fringecal.spheres.fit import FitError
 from fringecal.spheres.passes import second_pass
-from fringecal.spheres.robust import RejectionConfig
+from fringecal.spheres.poses_and_links import sphere_fit_row
+from fringecal.spheres.robust import RejectionConfig, rod_directions
 from fringecal.steps.base import Rows, Settings, Step, store_fields, store_row
-from fringecal.steps.spheres_first import artefact_items
+from fringecal.steps.spheres_first import artefact_items, is_black_box
 
 __all__ = ["SpheresSecond"]
+
+log = logging.getLogger(__name__)
 
 
 class SpheresSecond(Step):
@@ -34,14 +50,22 @@ class SpheresSecond(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         own = self._own(rd, item)
+        if is_black_box(rd, item):
+            return [store_row(rd, item), rd.store(item), rd.artefact, rd.rods, rd.acquisition,
+                    Rows(rd.sphere_fits_labelled, own), Rows(rd.poses, own)]
         return [store_row(rd, item), rd.store(item), rd.maps(item), rd.sensors_prior, rd.artefact, rd.rods,
                 Rows(rd.sphere_fits_labelled, own), Rows(rd.poses, own)]
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
+        if is_black_box(rd, item):
+            return [rd.fits_final(item)]
         return [rd.fits_final(item), rd.control_points_of(item), rd.sphere_labels(item)]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         own = self._own(rd, item)
+        if is_black_box(rd, item):
+            self.run_cloud(rd, cfg, item, own)
+            return
         artefact = rd.artefact.load()
         rods = rd.rods.load(artefact) if rd.rods.exists() else None
         poses = Rows(rd.poses, own).load()
@@ -52,3 +76,28 @@ class SpheresSecond(Step):
                           rd.sphere_labels(item).path, rod_cones=cfg.extraction.second_pass_rod_cones)
         rd.fits_final(item).save(res.fits)
         rd.control_points_of(item).save(res.control_points)
+
+    def run_cloud(self, rd: RunDir, cfg: Settings, item: str, own: dict) -> None:
+        artefact = rd.artefact.load()
+        rods = rd.rods.load(artefact) if rd.rods.exists() else None
+        poses = Rows(rd.poses, own).load()
+        T = poses_from_table(poses).get((own["measurement"], own["scanner"])) if len(poses) else None
+        fits = Rows(rd.sphere_fits_labelled, own).load()
+        fits = fits[fits["sphere_id"].astype(str) != ""]
+        points, _ = read_cloud_store(rd.store(item).path)
+        rows = []
+        cones = rods is not None and cfg.extraction.second_pass_rod_cones
+        for f in fits.itertuples():
+            axes = rod_directions(artefact, rods, f.sphere_id, T) if cones else None
+            radius = float(artefact.radii[artefact.ids.index(str(f.sphere_id))])
+            try:
+                fit = refit_cloud_sphere(points, np.array([f.x_mm, f.y_mm, f.z_mm]), radius, axes,
+                                         RejectionConfig(**cfg.extraction.rejection),
+                                         cfg.control_points.max_incidence_deg)
+            except (FitError, ValueError) as err:
+                log.warning("measurement %s, black-box scanner %s, sphere %s: not refitted (%s)", own["measurement"],
+                            own["scanner"], f.sphere_id, err)
+                continue
+            rows.append(sphere_fit_row(own["measurement"], own["scanner"], f.candidate, fit,
+                                       sphere_id=str(f.sphere_id)))
+        rd.fits_final(item).save(pd.DataFrame(rows) if rows else pd.DataFrame(columns=list(fits.columns)))

@@ -13,7 +13,8 @@ from __future__ import annotations
 import logging
 
 from fringecal.rundir import RunDir
-from fringecal.steps.base import Settings, Step, stores_of_kind
+from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
+from fringecal.verification.black_box import verify_with_black_boxes
 from fringecal.verification.verify import verify_ballbar
 
 __all__ = ["Verify", "ballbar_stores"]
@@ -33,12 +34,16 @@ def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
 class Verify(Step):
     name = "verify"
     title = "verification"
-    settings = ("verification", "extraction.rejection")
+    settings = ("verification", "extraction.rejection", "control_points.max_incidence_deg",
+                "control_points.pixel_integration_px")
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for m in stores_of_kind(rd, "ballbar")]
+        boxes = [rd.black_boxes, rd.sensors_prior] if black_box_scanners(rd) else []
+        if black_boxes_only(rd):  # black boxes only
+            return [rd.ballbar, rd.bundle_summary, rd.acquisition] + stores + boxes
         return [rd.calibration, rd.covariance, rd.crossval, rd.crossval_halves, rd.ballbar, rd.bundle_summary,
-                rd.acquisition] + stores
+                rd.acquisition] + stores + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.verification, rd.ballbar_centres]
@@ -50,6 +55,9 @@ class Verify(Step):
             log.warning("no ball-bar measurements: the calibration is not verified")
             return
         diagonal = rd.bundle_summary.load()["volume_diagonal_mm"]
+        if black_box_scanners(rd):
+            self.run_black_boxes(rd, cfg, diagonal)
+            return
         halves = rd.crossval_halves.load() if rd.crossval_halves.exists() else None
         points_verdict = rd.crossval.load().get("verdict") if rd.crossval.exists() else None
         centres, failures, result, budget = verify_ballbar(ballbar_stores(rd), rd.calibration.load(), rd.ballbar.load(),
@@ -63,4 +71,17 @@ class Verify(Step):
                         "uncertainty budget does not hold", ", ".join(budget["not_covered"]))
         rd.verification.save({"calibrated": result.to_dict(), "uncertainty": budget,
                               "failures": failures.to_dict("records"),
+                              "recorded_by": {p: list(s) for p, s in ballbar_stores(rd).items()}})
+
+    def run_black_boxes(self, rd: RunDir, cfg: Settings, diagonal: float) -> None:
+        """Modelled and black-box scanners together (:mod:`fringecal.verification.black_box`)."""
+        centres, failures, result, budget = verify_with_black_boxes(
+            ballbar_stores(rd), None if black_boxes_only(rd) else rd.calibration.load(), rd.black_boxes.load(),
+            rd.ballbar.load(),
+            cfg.extraction.rejection, cfg.verification, diagonal, cfg.control_points.max_incidence_deg,
+            cfg.control_points.pixel_integration_px)
+        for f in failures.itertuples():
+            log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner or "-", f.reason)
+        rd.ballbar_centres.save(centres)
+        rd.verification.save({"calibrated": result, "uncertainty": budget, "failures": failures.to_dict("records"),
                               "recorded_by": {p: list(s) for p, s in ballbar_stores(rd).items()}})
