@@ -48,6 +48,7 @@ class Rig:
     free: np.ndarray = field(default=None, repr=False)
     uncertainty: np.ndarray | None = field(default=None, repr=False)
     prism_free: np.ndarray | None = field(default=None, repr=False)
+    prism_uncertainty: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         for s in self.scanners:  # names become file names (an export's <scanner>.yml, a run's stores)
@@ -114,7 +115,7 @@ class Rig:
                     s.projector.with_params(params[2 * i + 1], pr[2 * i + 1]))
             for i, s in enumerate(self.scanners)
         )
-        return replace(self, scanners=scanners, uncertainty=uncertainty)
+        return replace(self, scanners=scanners, uncertainty=uncertainty, prism_uncertainty=None)
 
     def with_prism_free(self, prism_free) -> "Rig":
         """The rig with other thin-prism free flags ((n_sensors, 4) or one bool for all)."""

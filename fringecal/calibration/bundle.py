@@ -73,6 +73,10 @@ class BundleOptions(StrictModel):
     (:mod:`.bootstrap`); 0: none, the lengths are then not corrected for the
     adjustment's non-linearity. ``coarse_points``: subsample size of the first stage of
     large problems (0: off); ``chunk_size``: control points per parallel work item.
+    ``sensor_model``: the sensors' model (:mod:`.models`: ``brown14`` the thesis's 14
+    parameters, ``thin_prism`` / ``thin_prism4`` with OpenCV's thin-prism terms, ``auto``
+    chosen by held-out measurements; :func:`bundle_adjust` itself adjusts the terms the
+    problem's rig frees, ``prism_free``).
     """
 
     gamma1: float = Field(1.0, gt=0)
@@ -90,6 +94,7 @@ class BundleOptions(StrictModel):
     bootstrap_seed: int = 0
     chunk_size: int = Field(2048, ge=1)
     coarse_points: int = Field(150_000, ge=0)
+    sensor_model: Literal["auto", "brown14", "thin_prism", "thin_prism4"] = "auto"
 
     @field_validator("robust_scale_mm")
     @classmethod
@@ -539,6 +544,10 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     std_prism = np.zeros_like(prism)
     m = layout.prism_index >= 0
     std_prism[m] = unc.std[layout.prism_index[m]]
+    if layout.prism_free:
+        from dataclasses import replace as _dc_replace
+
+        rig = _dc_replace(rig, prism_uncertainty=std_prism)
     rank_end = check_rank(e1.normal(*gamma), layout, problem, "solution", unc)
     diags = _post_diagnostics(problem, layout, unc, rig, found) + rank_end
     return BundleResult(problem, options, layout, x0, x, rig, po, std_p, e0.res, plain.res,
