@@ -128,6 +128,7 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
     sm = summary.get("sensor_model")
     if sm:
         how = "held-out data" if sm["chosen_by"].startswith("cross") else sm["chosen_by"].split(" (")[0]
+        how = "no residual pattern" if how == "residual pattern" else how
         rows.append(("sensor model (chosen by)", f"{sm['model']} ({how})"))
         if sm.get("residual_pattern_z") is not None:
             flag = "[red]lens model too simple[/]" if sm["lens_model_too_simple"] else "no pattern"

@@ -76,7 +76,8 @@ class BundleOptions(StrictModel):
     ``sensor_model``: the sensors' model (:mod:`.models`: ``brown14`` the thesis's 14
     parameters, ``thin_prism`` / ``thin_prism4`` with OpenCV's thin-prism terms, ``auto``
     chosen by held-out measurements; :func:`bundle_adjust` itself adjusts the terms the
-    problem's rig frees, ``prism_free``).
+    problem's rig frees, ``prism_free``); ``model_selection``: ``screened`` cross-validates
+    only when the 14-parameter residuals keep a pattern over the images, ``always`` every run.
     """
 
     gamma1: float = Field(1.0, gt=0)
@@ -95,6 +96,7 @@ class BundleOptions(StrictModel):
     chunk_size: int = Field(2048, ge=1)
     coarse_points: int = Field(150_000, ge=0)
     sensor_model: Literal["auto", "brown14", "thin_prism", "thin_prism4"] = "auto"
+    model_selection: Literal["screened", "always"] = "screened"
 
     @field_validator("robust_scale_mm")
     @classmethod

@@ -48,8 +48,19 @@ so where the 14 parameters describe the images (the ideal profile) the thesis's 
 stays and its figures are unchanged. Candidates are compared in order of size, each
 against the best so far.
 
+Screening (``bundle.model_selection``). Cross-validation costs four half-adjustments and
+four pose-only fits per candidate (the bundle step of the demo run: about 1.7 s alone,
+10-13 s with it on the loaded 2-core machine). With ``screened`` (default) it runs only
+when the 14-parameter residuals keep a pattern over the images, residual-pattern
+``Z > SCREEN_Z`` (3; :mod:`.adequacy`, whose verdict threshold is 5): without one there
+is nothing fixed to the image for a richer image model to absorb, and the 14 parameters
+stay (the record says so, with Z). ``always`` cross-validates every run.
+
 The result carries the choice and its evidence (``record``): every candidate's held-out
-RMS, per-measurement sums, the gain and t statistic, and the residual-pattern statistic
+RMS, per-measurement sums, the gain and t statistic, how much the richer model inflates
+the stated u of the 14 parameters in the half-adjustments (``u_inflation_max``,
+``u_inflation_median``: the thin-prism terms trade against p1, p2, the angles and the
+principal point, see above), and the residual-pattern statistic
 of :mod:`.adequacy` of the 14-parameter fit and of the chosen one. The cost is four
 half-adjustments and four pose-only fits per richer candidate, each from a solution
 close to its minimum.
@@ -67,7 +78,7 @@ from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adj
 from fringecal.calibration.crossval import split_measurements, subproblem
 from fringecal.calibration.model import BundleProblem, Evaluator
 
-__all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "prism_free_of", "held_out_error",
+__all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "SCREEN_Z", "prism_free_of", "held_out_error",
            "choose_sensor_model", "fit_model"]
 
 #: the candidates in order of size, with the thin-prism terms each frees (s1, s2, s3, s4)
@@ -78,6 +89,9 @@ SENSOR_MODELS = ("auto", *CANDIDATES)
 MIN_GAIN = 0.005
 #: smallest t statistic of the per-measurement held-out differences that chooses it
 T_MIN = 3.0
+#: residual-pattern Z of the 14-parameter fit below which ``model_selection: screened``
+#: keeps the 14 parameters without cross-validation
+SCREEN_Z = 3.0
 
 
 def prism_free_of(model: str, n_sensors: int) -> np.ndarray:
@@ -124,8 +138,10 @@ def held_out_error(problem: BundleProblem, options: BundleOptions, model: str, h
     count = {}
     sums = np.zeros(2)
     n = 0
+    u = []
     for fit_half, test_half in ((halves[0], halves[1]), (halves[1], halves[0])):
         fit = bundle_adjust(subproblem(full, fit_half), opts)
+        u.append(fit.rig.uncertainty)
         test = subproblem(problem, test_half)
         res = _predict(fit, test, opts)
         ok = np.all(np.isfinite(res), axis=1)
@@ -135,7 +151,7 @@ def held_out_error(problem: BundleProblem, options: BundleOptions, model: str, h
             count[m] = int(sel.sum())
         sums += np.sum(res[ok] ** 2, axis=0)
         n += int(ok.sum())
-    return {"model": model, "sum_squares_mm2": ss, "n_points": count,
+    return {"model": model, "sum_squares_mm2": ss, "n_points": count, "u_sensors": np.mean(u, axis=0).tolist(),
             "rms_f_mm": float(np.sqrt((g1 * sums[0] + g2 * sums[1]) / max(n, 1))),
             "rms_eps1_mm": float(np.sqrt(sums[0] / max(n, 1))), "rms_eps2_mm": float(np.sqrt(sums[1] / max(n, 1)))}
 
@@ -148,19 +164,24 @@ def _compare(simple: dict, rich: dict) -> dict:
     gain = float(d.sum() / total) if total > 0 else 0.0
     t = float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))) if len(d) > 1 and d.std(ddof=1) > 0 else 0.0
     better = gain >= MIN_GAIN and t >= T_MIN
+    us, ur = np.asarray(simple["u_sensors"]), np.asarray(rich["u_sensors"])
+    inflation = ur[us > 0] / us[us > 0]
     return {"simpler": simple["model"], "richer": rich["model"], "gain": gain, "t": t, "n_measurements": len(d),
-            "richer_chosen": bool(better)}
+            "richer_chosen": bool(better), "u_inflation_max": float(inflation.max()) if inflation.size else None,
+            "u_inflation_median": float(np.median(inflation)) if inflation.size else None}
 
 
-def choose_sensor_model(problem: BundleProblem, options: BundleOptions) -> tuple[BundleResult, dict]:
+def choose_sensor_model(problem: BundleProblem, options: BundleOptions, candidates=tuple(CANDIDATES),
+                        first: BundleResult | None = None) -> tuple[BundleResult, dict]:
     """The adjustment with the sensor model ``options.sensor_model`` (``auto``: chosen by
-    held-out measurements, see the module notes) and the record of that choice."""
+    held-out measurements among ``candidates``, see the module notes) and the record of
+    that choice. ``first``: the 14-parameter adjustment of ``problem`` if already done."""
     t0 = time.perf_counter()
     wanted = options.sensor_model
     # the 14 parameters first, whatever the model: the thin-prism terms are degenerate with
     # p1, p2, a tilt and the principal point where the distortion is zero (the module
     # notes), so a richer model is adjusted from the 14-parameter solution
-    first = fit_model(problem, options, "brown14")
+    first = fit_model(problem, options, "brown14") if first is None else first
     pattern_first = residual_pattern(first.problem, first.residuals, "brown14")
     if wanted != "auto":
         result, pattern = first, pattern_first
@@ -172,6 +193,13 @@ def choose_sensor_model(problem: BundleProblem, options: BundleOptions) -> tuple
                   "residual_pattern_brown14": pattern_first.to_dict(), "residual_pattern": pattern.to_dict(),
                   "seconds": time.perf_counter() - t0}
         return _with_pattern(result, pattern), record
+    if options.model_selection == "screened" and not pattern_first.z_max > SCREEN_Z:
+        record = {"model": "brown14",
+                  "chosen_by": f"residual pattern (Z = {pattern_first.z_max:.1f} <= {SCREEN_Z:g}: no pattern over "
+                               "the images for a richer model to absorb; cross-validation not run)",
+                  "screen_z": SCREEN_Z, "residual_pattern": pattern_first.to_dict(),
+                  "seconds": time.perf_counter() - t0}
+        return _with_pattern(first, pattern_first), record
     try:
         halves = split_measurements(problem)
     except ValueError as err:  # too few measurements per scanner for two halves
@@ -182,7 +210,7 @@ def choose_sensor_model(problem: BundleProblem, options: BundleOptions) -> tuple
     errors = {"brown14": held_out_error(start, options, "brown14", halves)}
     comparisons = []
     best = "brown14"
-    for model in list(CANDIDATES)[1:]:
+    for model in [m for m in CANDIDATES if m in candidates and m != "brown14"]:
         errors[model] = held_out_error(start, options, model, halves)
         cmp = _compare(errors[best], errors[model])
         comparisons.append(cmp)
