@@ -65,6 +65,8 @@ def test_prism_jacobian_matches_finite_differences(small):
     assert checked == 16
     # the normal equations of the 42-slot kernel are the dense products
     e = ev.evaluate(x, True)
+    np.testing.assert_allclose(e.N1, np.einsum("ni,nj->ij", Jd[:, 0], Jd[:, 0]), rtol=1e-9,
+                               atol=1e-12 * np.abs(e.N1).max())
     np.testing.assert_allclose(e.N2, np.einsum("ni,nj->ij", Jd[:, 1], Jd[:, 1]), rtol=1e-9,
                                atol=1e-12 * np.abs(e.N2).max())
     np.testing.assert_allclose(e.b, np.einsum("n,ni->i", res[:, 0], Jd[:, 0])

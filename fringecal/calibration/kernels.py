@@ -11,9 +11,9 @@ of the artefact in measurement m) the two residuals of thesis eqs. 2-24 and 6-15
 Each depends on at most 34 parameters: the 14 of the camera, the 14 of the projector
 (local slots 0..13 and 14..27) and the 6 of the pose (slots 28..33); alpha1 does not
 depend on the pose. With free thin-prism terms (s1..s4 of camera and projector,
-:mod:`fringecal.sensor`) there are 42: camera prism 28..31, projector prism 32..35 and
-the pose 36..41 (:func:`local_slots`); the kernels read which from their output shapes,
-and without prism terms run exactly the 34-slot arithmetic. The analytic derivatives:
+:mod:`fringecal.sensor`) there are 42: camera prism 34..37 and projector prism 38..41
+after the 34 (:func:`local_slots`); the kernels read which from their output shapes,
+and run the 34 slots' loops with constant bounds and the same arithmetic either way. The analytic derivatives:
 
 * ray of a sensor: direction D = R^T (-x, -y, c) (unnormalised; the midpoint and alpha1
   do not depend on the length of D), (x, y) the ideal image coordinates solving
@@ -254,8 +254,9 @@ def _sensor_ray_prism(p, sp, R, dR, mx, my, want_jac, D, dD):
 @njit(cache=True, nogil=True)
 def _control_point(pc, sc, Rc, dRc, pp, spr, Rp, dRp, tpose, Rpose, dRpose, centres, si, radius,
                    mcx, mcy, mpx, mpy, want_jac, npr, Dc, dDc, Dp, dDp, j1, j2, out):
-    """Residuals of one control point into out[0:2]; Jacobian rows into j1 (28 + 2 npr,),
-    j2 (34 + 2 npr,) (slot layout in :func:`local_slots`).
+    """Residuals of one control point into out[0:2]; Jacobian rows into j1 (28, or 42 with
+    zeros in the pose slots 28..33 when thin-prism terms are free) and j2 (34 + 2 npr)
+    (slot layout in :func:`local_slots`).
 
     Returns False where a ray cannot be formed or the rays are parallel.
     """
@@ -374,22 +375,21 @@ def _control_point(pc, sc, Rc, dRc, pp, spr, Rp, dRp, tpose, Rpose, dRpose, cent
         j1[17 + col] = e1dpx * dDp[0, col] + e1dpy * dDp[1, col] + e1dpz * dDp[2, col]
         j2[3 + col] = g2dcx * dDc[0, col] + g2dcy * dDc[1, col] + g2dcz * dDc[2, col]
         j2[17 + col] = g2dpx * dDp[0, col] + g2dpy * dDp[1, col] + g2dpz * dDp[2, col]
-    # thin-prism slots 28..28+npr-1 (camera), 28+npr..28+2npr-1 (projector)
-    for col in range(npr):
-        j1[28 + col] = e1dcx * dDc[0, 11 + col] + e1dcy * dDc[1, 11 + col] + e1dcz * dDc[2, 11 + col]
-        j1[28 + npr + col] = e1dpx * dDp[0, 11 + col] + e1dpy * dDp[1, 11 + col] + e1dpz * dDp[2, 11 + col]
-        j2[28 + col] = g2dcx * dDc[0, 11 + col] + g2dcy * dDc[1, 11 + col] + g2dcz * dDc[2, 11 + col]
-        j2[28 + npr + col] = g2dpx * dDp[0, 11 + col] + g2dpy * dDp[1, 11 + col] + g2dpz * dDp[2, 11 + col]
-    # pose slots po..po+5: alpha2 = |S - S_t| - r
-    po = 28 + 2 * npr
-    j2[po] = -qx
-    j2[po + 1] = -qy
-    j2[po + 2] = -qz
+    # pose slots 28..33: alpha2 = |S - S_t| - r
+    j2[28] = -qx
+    j2[29] = -qy
+    j2[30] = -qz
     for k in range(3):
         vx = dRpose[k, 0, 0] * c0 + dRpose[k, 1, 0] * c1 + dRpose[k, 2, 0] * c2
         vy = dRpose[k, 0, 1] * c0 + dRpose[k, 1, 1] * c1 + dRpose[k, 2, 1] * c2
         vz = dRpose[k, 0, 2] * c0 + dRpose[k, 1, 2] * c1 + dRpose[k, 2, 2] * c2
-        j2[po + 3 + k] = -(qx * vx + qy * vy + qz * vz)
+        j2[31 + k] = -(qx * vx + qy * vy + qz * vz)
+    # thin-prism slots 34..34+npr-1 (camera), 34+npr..34+2npr-1 (projector)
+    for col in range(npr):
+        j1[34 + col] = e1dcx * dDc[0, 11 + col] + e1dcy * dDc[1, 11 + col] + e1dcz * dDc[2, 11 + col]
+        j1[34 + npr + col] = e1dpx * dDp[0, 11 + col] + e1dpy * dDp[1, 11 + col] + e1dpz * dDp[2, 11 + col]
+        j2[34 + col] = g2dcx * dDc[0, 11 + col] + g2dcy * dDc[1, 11 + col] + g2dcz * dDc[2, 11 + col]
+        j2[34 + npr + col] = g2dpx * dDp[0, 11 + col] + g2dpy * dDp[1, 11 + col] + g2dpz * dDp[2, 11 + col]
     return True
 
 
@@ -405,6 +405,27 @@ def _loss(alpha, loss, scale):
         return 2.0 * scale * a - scale * scale, scale / a
     z = alpha * alpha / (scale * scale)  # Cauchy
     return scale * scale * np.log1p(z), 1.0 / (1.0 + z)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _accumulate_prism(ch, nl, f1, f2, w1, w2, j1, j2, A1, A2, bvec):
+    """The thin-prism slots' part of one control point's normal blocks: columns 34..nl-1
+    of the rows 0..33, and the rows 34..nl-1 (upper triangles; A1 skips the pose slots)."""
+    for i in range(34):
+        u2 = w2 * j2[i]
+        for j in range(34, nl):
+            A2[ch, i, j] += u2 * j2[j]
+        if i < 28:
+            u1 = w1 * j1[i]
+            for j in range(34, nl):
+                A1[ch, i, j] += u1 * j1[j]
+    for i in range(34, nl):
+        bvec[ch, i] += f1 * j1[i] + f2 * j2[i]
+        u1 = w1 * j1[i]
+        u2 = w2 * j2[i]
+        for j in range(i, nl):
+            A1[ch, i, j] += u1 * j1[j]
+            A2[ch, i, j] += u2 * j2[j]
 
 
 @njit(cache=True, parallel=True)
@@ -425,12 +446,13 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
     fails); A1 (n_chunks, n1, n1) = sum w1 j1 j1^T and A2 (n_chunks, nl, nl) = sum w2 j2 j2^T
     (upper triangles); bvec (n_chunks, nl) = sum gamma1 w1 alpha1 j1 + gamma2 w2 alpha2 j2.
     ``nl`` = bvec.shape[1] = 34 (``N_LOCAL``) or 42 with free thin-prism terms
-    (:func:`local_slots`), n1 = nl - 6; A1, A2 and bvec need only one chunk without ``want_jac``.
+    (:func:`local_slots`), n1 = A1.shape[1] = 28 or 42 (A1's pose rows and columns then
+    stay zero); A1, A2 and bvec need only one chunk without ``want_jac``.
     """
     n_chunks = chunk_start.shape[0]
     nl = bvec.shape[1]  # 34, or 42 with free thin-prism terms
     npr = (nl - N_LOCAL) // 2
-    n1 = nl - 6
+    n1 = A1.shape[1]  # 28, or 42
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
@@ -477,19 +499,23 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
             if want_jac:
                 f1 = gamma1 * w1 * a1
                 f2 = gamma2 * w2 * a2
-                for i in range(n1):
+                # the 34 slots of the thesis's model with constant bounds (vectorised as before
+                # the thin-prism terms existed), then the prism slots 34.. if free
+                for i in range(28):
                     bvec[ch, i] += f1 * j1[i] + f2 * j2[i]
                     u1 = w1 * j1[i]
                     u2 = w2 * j2[i]
-                    for j in range(i, n1):
+                    for j in range(i, 28):
                         A1[ch, i, j] += u1 * j1[j]
-                    for j in range(i, nl):
+                    for j in range(i, 34):
                         A2[ch, i, j] += u2 * j2[j]
-                for i in range(n1, nl):
+                for i in range(28, 34):
                     bvec[ch, i] += f2 * j2[i]
                     u2 = w2 * j2[i]
-                    for j in range(i, nl):
+                    for j in range(i, 34):
                         A2[ch, i, j] += u2 * j2[j]
+                if npr > 0:
+                    _accumulate_prism(ch, nl, f1, f2, w1, w2, j1, j2, A1, A2, bvec)
         chunk_cost[ch] = cost
 
 
@@ -518,7 +544,7 @@ def scatter(chunk_group, gmap, A1, A2, bvec, N1, N2, b):
                 N2[gi, gj] += v2
                 if gi != gj:
                     N2[gj, gi] += v2
-                if j < n1:
+                if j < n1 and (j < 28 or j >= 34) and (i < 28 or i >= 34):  # A1: no pose slots
                     v1 = A1[ch, i, j]
                     N1[gi, gj] += v1
                     if gi != gj:
@@ -534,7 +560,7 @@ def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, gr
     n_chunks = chunk_start.shape[0]
     nl = J.shape[2]
     npr = (nl - N_LOCAL) // 2
-    n1 = nl - 6
+    n1 = 28 if npr == 0 else nl
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
@@ -580,7 +606,7 @@ def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj
     R = flip.shape[0]
     nl = dgrad.shape[2]
     npr = (nl - N_LOCAL) // 2
-    n1 = nl - 6
+    n1 = 28 if npr == 0 else nl
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
@@ -623,10 +649,12 @@ def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj
             fb1 = gamma1 * out_b[0]
             fb2 = gamma2 * out_b[1]
             dc = fb1 * out_b[0] + fb2 * out_b[1] - fa1 * out_a[0] - fa2 * out_a[1]
-            for i in range(n1):
+            for i in range(28):
                 diff[i] = fb1 * jb1[i] + fb2 * jb2[i] - fa1 * ja1[i] - fa2 * ja2[i]
-            for i in range(n1, nl):
+            for i in range(28, 34):
                 diff[i] = fb2 * jb2[i] - fa2 * ja2[i]
+            for i in range(34, nl):
+                diff[i] = fb1 * jb1[i] + fb2 * jb2[i] - fa1 * ja1[i] - fa2 * ja2[i]
             for r in range(R):
                 if flip[r, k]:
                     dcost[ch, r] += dc

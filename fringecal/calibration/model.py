@@ -355,10 +355,10 @@ class Evaluator:
         for g, (s, m) in enumerate(zip(g_scan, g_meas)):
             gmap[g, :14] = lay.sensor_index[2 * s]
             gmap[g, 14:28] = lay.sensor_index[2 * s + 1]
+            gmap[g, 28:34] = lay.pose_index[m]
             if lay.prism_free:
-                gmap[g, 28:32] = lay.prism_index[2 * s]
-                gmap[g, 32:36] = lay.prism_index[2 * s + 1]
-            gmap[g, nl - 6:] = lay.pose_index[m]
+                gmap[g, 34:38] = lay.prism_index[2 * s]
+                gmap[g, 38:42] = lay.prism_index[2 * s + 1]
         self._arrays = dict(
             chunk_start=np.asarray(c_start, np.int64), chunk_stop=np.asarray(c_stop, np.int64),
             chunk_group=np.asarray(c_group, np.int64), group_cam=(2 * g_scan).astype(np.int64),
@@ -404,7 +404,8 @@ class Evaluator:
         cost = np.empty(nc)
         nl = self.n_local
         nb = nc if want_jac else 1
-        A1 = np.empty((nb, nl - 6, nl - 6))
+        n1 = 28 if nl == kernels.N_LOCAL else nl  # alpha1's slots (with the prism's: zero pose slots)
+        A1 = np.empty((nb, n1, n1))
         A2 = np.empty((nb, nl, nl))
         bv = np.empty((nb, nl))
         sp, ss, sR, sdR, pt, pR, pdR = self._geometry(x)
