@@ -183,6 +183,8 @@ def run_seed(profile: str, i: int, config_path: Path, workdir: Path, with_errors
                             "error_vs_true_mm": dev, "error_vs_certificate_mm": e["error_mm"],
                             "u_mm": e["u_mm"], "U_mm": e["U_mm"], "z": dev / e["u_mm"] if e["u_mm"] > 0 else None,
                             "covered": bool(abs(dev) <= e["U_mm"]), "budget_mm": e["budget_mm"]})
+        model = rd.bundle_summary.load().get("sensor_model") or {}
+        out["sensor_model"] = model.get("model")  # the model the run's data chose (issue 29)
         positions = sorted({str(p) for p in v.get("recorded_by", {})})
         measured = sorted({e["measurement"].split(":")[0] for e in budget["lengths"]})
         out.update(ok=True, true_length_mm=true, true_source=source, certified_length_mm=cert,
@@ -234,7 +236,9 @@ def summarise(seeds: list) -> dict:
                lengths_per_seed=sorted({int(s["n_lengths"]) for s in ok}),
                positions_not_measured={str(s["seed_index"]): s["positions_not_measured"]
                                        for s in ok if s["positions_not_measured"]},
-               seconds_per_seed_median=float(np.median([s["wall_seconds"] for s in seeds])))
+               seconds_per_seed_median=float(np.median([s["wall_seconds"] for s in seeds])),
+               sensor_models_chosen={m: sum(s.get("sensor_model") == m for s in ok)
+                                     for m in sorted({str(s.get("sensor_model")) for s in ok})})
     return out
 
 

@@ -131,6 +131,15 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
             ("RMS eps1 / eps2 after", f"{1000 * summary['rms_eps1_mm_after']:.1f} / {1000 * summary['rms_eps2_mm_after']:.1f} um"),
             ("one part in (1.96 sigma eps2)", f"{summary['one_part_in']:,.0f}"),
         ]
+    sm = summary.get("sensor_model")
+    if sm:
+        how = "held-out data" if sm["chosen_by"].startswith("cross") else sm["chosen_by"].split(" (")[0]
+        how = "no residual pattern" if how == "residual pattern" else how
+        rows.append(("sensor model (chosen by)", f"{sm['model']} ({how})"))
+        if sm.get("residual_pattern_z") is not None:
+            flag = "[red]lens model too simple[/]" if sm["lens_model_too_simple"] else "no pattern"
+            rows.append(("  residual pattern Z (threshold)",
+                         f"{sm['residual_pattern_z']:.1f} ({sm['residual_pattern_threshold']:g}): {flag}"))
     if v:
         rows.append((f"ball-bar max |error| (MPE {1000 * v['mpe_mm']:.0f} um)",
                      f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "

@@ -27,6 +27,10 @@ The fused kernel (numba, parallel over rows, compiled once and cached on disk)
 reads tau_x, tau_y and the valid mask and writes the four outputs in one pass; its
 pixel loop is branch-free so LLVM vectorises it (it is compute-bound: ~10x the time
 of streaming the same bytes, and ~60x faster than the numpy reference).
+Sensors with thin-prism terms (:mod:`fringecal.sensor`) go through the same kernels:
+their image points are first replaced by the points the sensor without the terms maps
+to the same rays (:meth:`fringecal.sensor.Sensor.brown_image_mm`, numpy, once per
+camera and per projector block; the 14-parameter path is untouched).
 Pixels that are invalid, NaN, on (near-)parallel rays (less than 1e-6 rad apart)
 or where the projector's distortion model cannot be inverted come out as NaN, each
 with its status code.
@@ -95,6 +99,20 @@ def _ideal_grid(width, height, sx, sy, xi_h, eta_h, k1, k2, k3, p1, p2, out):
         for u in range(width):
             xm = (u / (width - 1) - 0.5) * sx - xi_h
             x, y, ok = _undistort_point(xm, ym, k1, k2, k3, p1, p2)
+            out[0, v, u] = x if ok else np.nan
+            out[1, v, u] = y if ok else np.nan
+            bad += 0 if ok else 1
+    return bad
+
+
+@nb.njit(parallel=True, cache=True)
+def _ideal_points(xm, ym, k1, k2, k3, p1, p2, out):
+    """:func:`_ideal_grid` of given image points relative to the principal point (h, w)."""
+    bad = 0
+    for v in nb.prange(xm.shape[0]):
+        for u in range(xm.shape[1]):
+            x, y, ok = _undistort_point(xm[v, u], ym[v, u], k1, k2, k3, p1, p2)
+            ok = ok and xm[v, u] == xm[v, u]
             out[0, v, u] = x if ok else np.nan
             out[1, v, u] = y if ok else np.nan
             bad += 0 if ok else 1
@@ -228,9 +246,18 @@ class CameraRayCache:
         f = camera.format
         ideal = np.empty((2, f.height_px, f.width_px))
         k, p = camera.k, camera.p
-        bad = _ideal_grid(f.width_px, f.height_px, f.width_mm, f.height_mm,
-                          camera.principal_point[0], camera.principal_point[1],
-                          k[0], k[1], k[2], p[0], p[1], ideal)
+        if camera.has_prism:
+            # thin-prism terms: the pixel grid through the 14-parameter model's equivalent
+            # image points (Sensor.brown_image_mm), then the same compiled Newton
+            v, u = np.mgrid[0:f.height_px, 0:f.width_px]
+            grid = camera.brown_image_mm(camera.format.pixel_to_mm(np.stack([u, v], axis=-1)))
+            xm = np.ascontiguousarray(grid[..., 0] - camera.principal_point[0])
+            ym = np.ascontiguousarray(grid[..., 1] - camera.principal_point[1])
+            bad = _ideal_points(xm, ym, k[0], k[1], k[2], p[0], p[1], ideal)
+        else:
+            bad = _ideal_grid(f.width_px, f.height_px, f.width_mm, f.height_mm,
+                              camera.principal_point[0], camera.principal_point[1],
+                              k[0], k[1], k[2], p[0], p[1], ideal)
         # Pixels where the lens model folds over (none for real lenses) get no ray:
         # they stay NaN and every measurement reports them as invalid.
         ideal.setflags(write=False)
@@ -245,7 +272,8 @@ def _interior_key(camera: Sensor) -> bytes:
     head = np.array([f.width_px, f.height_px, f.width_mm, f.height_mm], float)
     # principal point and distortion; not c, which only enters the kernel's (-x, -y, c)
     p = np.asarray(camera.params, float)
-    return head.tobytes() + np.r_[p[6:8], p[9:14]].tobytes()
+    key = head.tobytes() + np.r_[p[6:8], p[9:14]].tobytes()
+    return key + camera.prism.tobytes() if camera.has_prism else key
 
 
 _CACHE: "OrderedDict[bytes, CameraRayCache]" = OrderedDict()
@@ -358,6 +386,9 @@ def triangulate_rows(camera: Sensor, projector: Sensor, tau_x, tau_y, valid, row
         out = PointMaps(*(np.empty((rows, cols), dtype) for _ in range(4)), np.empty((rows, cols), np.uint8))
     f = projector.format
     phase_scale = np.array([f.width_mm, f.height_mm]) / (2 * np.pi)
+    if projector.has_prism:  # the phases the projector without its thin-prism terms would give
+        tau = f.mm_to_phase(projector.brown_image_mm(f.phase_to_mm(np.stack([tau_x, tau_y], axis=-1))))
+        tau_x, tau_y = tau[..., 0].astype(tau_x.dtype), tau[..., 1].astype(tau_x.dtype)
     # Each argument must be C-contiguous: a strided view compiles to a kernel that
     # LLVM does not vectorise (7x slower). Row blocks of the planar cache are.
     _triangulate_kernel(
@@ -450,8 +481,8 @@ def triangulate_image_points(camera: Sensor, projector: Sensor, cam_mm, prj_mm) 
     loop (NaN where the model does not invert or the rays are parallel). Used where the
     same points are triangulated with many parameter sets (Monte Carlo, derivatives).
     """
-    cam_mm = np.ascontiguousarray(cam_mm, float).reshape(-1, 2)
-    prj_mm = np.ascontiguousarray(prj_mm, float).reshape(-1, 2)
+    cam_mm = np.ascontiguousarray(camera.brown_image_mm(cam_mm), float).reshape(-1, 2)
+    prj_mm = np.ascontiguousarray(projector.brown_image_mm(prj_mm), float).reshape(-1, 2)
     out = np.empty((len(cam_mm), 3))
     interior = lambda s: np.ascontiguousarray(np.r_[s.params[6:8], s.params[9:14]])  # noqa: E731
     _triangulate_points_kernel(cam_mm, prj_mm, np.ascontiguousarray(camera.R), camera.c,

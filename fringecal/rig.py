@@ -1,8 +1,10 @@
 """Scanners (one camera + one projector) and rigs of any number of scanners.
 
 A :class:`Rig` holds the sensors with their parameters and, per parameter, whether
-the bundle adjustment may change it (``free``, shape (n_sensors, 14)). It converts
-to and from the sensor-parameter table (docs/contracts.md).
+the bundle adjustment may change it (``free``, shape (n_sensors, 14)), and whether it
+adjusts each sensor's thin-prism terms (``prism_free``, (n_sensors, 4), all False unless
+the run's sensor model frees them). It converts to and from the sensor-parameter table
+(docs/contracts.md).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import pandas as pd
 
 from fringecal.names import check_name
 from fringecal.schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
-from fringecal.sensor import PARAM_COLUMNS, Sensor, SensorFormat, scaled_format, sensor_in_frame
+from fringecal.sensor import PARAM_COLUMNS, PRISM_COLUMNS, Sensor, SensorFormat, scaled_format, sensor_in_frame
 
 __all__ = ["Scanner", "Rig", "load_rig", "scaled_scanner", "scaled_rig", "rig_in_frame"]
 
@@ -45,6 +47,8 @@ class Rig:
     reference: str
     free: np.ndarray = field(default=None, repr=False)
     uncertainty: np.ndarray | None = field(default=None, repr=False)
+    prism_free: np.ndarray | None = field(default=None, repr=False)
+    prism_uncertainty: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         for s in self.scanners:  # names become file names (an export's <scanner>.yml, a run's stores)
@@ -64,6 +68,8 @@ class Rig:
             free = self.default_free(self.scanners, self.reference)
         free = np.asarray(free, bool).reshape(len(self.sensors), 14)
         object.__setattr__(self, "free", free)
+        pf = np.zeros((len(self.sensors), 4), bool) if self.prism_free is None else self.prism_free
+        object.__setattr__(self, "prism_free", np.asarray(pf, bool).reshape(len(self.sensors), 4))
 
     @staticmethod
     def default_free(scanners, reference) -> np.ndarray:
@@ -90,13 +96,31 @@ class Rig:
         """Parameters of every sensor, shape (n_sensors, 14)."""
         return np.stack([s.params for s in self.sensors])
 
-    def with_params(self, params, uncertainty=None) -> "Rig":
+    @property
+    def prism(self) -> np.ndarray:
+        """Thin-prism terms s1..s4 of every sensor, shape (n_sensors, 4)."""
+        return np.stack([s.prism for s in self.sensors])
+
+    @property
+    def has_prism(self) -> bool:
+        """Whether any sensor has thin-prism terms or may have them adjusted."""
+        return bool(self.prism_free.any() or np.any(self.prism != 0.0))
+
+    def with_params(self, params, uncertainty=None, prism=None) -> "Rig":
+        """The rig with other parameters (n_sensors, 14) and, if given, thin-prism terms (n_sensors, 4)."""
         params = np.asarray(params, float).reshape(len(self.sensors), 14)
+        pr = self.prism if prism is None else np.asarray(prism, float).reshape(len(self.sensors), 4)
         scanners = tuple(
-            Scanner(s.name, s.camera.with_params(params[2 * i]), s.projector.with_params(params[2 * i + 1]))
+            Scanner(s.name, s.camera.with_params(params[2 * i], pr[2 * i]),
+                    s.projector.with_params(params[2 * i + 1], pr[2 * i + 1]))
             for i, s in enumerate(self.scanners)
         )
-        return replace(self, scanners=scanners, uncertainty=uncertainty)
+        return replace(self, scanners=scanners, uncertainty=uncertainty, prism_uncertainty=None)
+
+    def with_prism_free(self, prism_free) -> "Rig":
+        """The rig with other thin-prism free flags ((n_sensors, 4) or one bool for all)."""
+        pf = np.broadcast_to(np.asarray(prism_free, bool), (len(self.sensors), 4)).copy()
+        return replace(self, prism_free=pf)
 
     # -- table conversion ------------------------------------------------
     def to_frame(self) -> pd.DataFrame:
@@ -107,6 +131,8 @@ class Rig:
             row = {"sensor": sensor.name, "scanner": scanner.name, "role": sensor.role}
             row.update(dict(zip(PARAM_COLUMNS, map(float, sensor.params))))
             row.update(dict(zip(FREE_COLUMNS, map(bool, self.free[si]))))
+            if self.has_prism:  # optional columns: a 14-parameter rig's table is unchanged
+                row.update(dict(zip(PRISM_COLUMNS, map(float, sensor.prism))))
             f = sensor.format
             row.update(width_px=f.width_px, height_px=f.height_px, width_mm=f.width_mm, height_mm=f.height_mm)
             if self.uncertainty is not None:
@@ -134,6 +160,7 @@ class Rig:
         free_rows = []
         unc_rows = []
         has_u = all(f"u_{c}" in df.columns for c in PARAM_COLUMNS)
+        prism_cols = [c for c in PRISM_COLUMNS if c in df.columns]
         for name, g in df.groupby("scanner", sort=False):
             roles = list(g["role"])
             if sorted(roles) != ["camera", "projector"]:
@@ -150,7 +177,8 @@ class Rig:
                                                                 "(width_px, height_px, width_mm, height_mm)"))
                         continue
                     fmt = SensorFormat(int(r["width_px"]), int(r["height_px"]), float(r["width_mm"]), float(r["height_mm"]))
-                pair[r["role"]] = (Sensor(r["sensor"], r["role"], fmt, r[list(PARAM_COLUMNS)].to_numpy(float)),
+                prism = [0.0 if c not in prism_cols or pd.isna(r[c]) else float(r[c]) for c in PRISM_COLUMNS]
+                pair[r["role"]] = (Sensor(r["sensor"], r["role"], fmt, r[list(PARAM_COLUMNS)].to_numpy(float), prism),
                                    r[list(FREE_COLUMNS)].to_numpy(bool),
                                    r[[f"u_{c}" for c in PARAM_COLUMNS]].to_numpy(float) if has_u else None)
             if len(pair) == 2:

@@ -18,6 +18,12 @@ Projection (world -> image plane, mm)::
     dy = y q + p2 (r^2 + 2 y^2) + 2 p1 x y
     xi = xi_H + x + dx,  eta = eta_H + y + dy    eq. 2-4
 
+Optional thin-prism terms (OpenCV's s1..s4, mm^-1 and mm^-3; ``Sensor.prism``, zero
+unless the model chosen for a run frees them, :mod:`fringecal.calibration.models`)
+add to the same distortion of the ideal coordinates::
+
+    dx += s1 r^2 + s2 r^4,   dy += s3 r^2 + s4 r^4
+
 Decision (the thesis leaves it open: eq. 2-2 evaluates the distortion at the measured
 coordinate, which then appears on both sides of eq. 2-4): distortion is a function of
 the *ideal* coordinates, as in Brown's model and OpenCV, so projecting a world point
@@ -45,6 +51,8 @@ __all__ = [
     "scaled_format",
     "PARAM_NAMES",
     "PARAM_COLUMNS",
+    "PRISM_NAMES",
+    "PRISM_COLUMNS",
     "SensorFormat",
     "Sensor",
     "distort",
@@ -62,6 +70,11 @@ PARAM_COLUMNS = (
     "xi_h_mm", "eta_h_mm", "c_mm", "k1_per_mm2", "k2_per_mm4", "k3_per_mm6",
     "p1_per_mm", "p2_per_mm",
 )
+
+#: OpenCV's thin-prism coefficients, outside the thesis's 14 parameters (zero by default).
+PRISM_NAMES = ("s1", "s2", "s3", "s4")
+PRISM_COLUMNS = ("s1_per_mm", "s2_per_mm3", "s3_per_mm", "s4_per_mm3")
+NO_PRISM = (0.0, 0.0, 0.0, 0.0)
 
 Role = Literal["camera", "projector"]
 
@@ -146,15 +159,58 @@ def _distortion_terms(x, y, k, p):
     return r2, q, dx, dy
 
 
-def distort(xy, k, p) -> np.ndarray:
-    """Ideal -> distorted coordinates relative to the principal point, (..., 2) mm."""
+def distort(xy, k, p, prism=None) -> np.ndarray:
+    """Ideal -> distorted coordinates relative to the principal point, (..., 2) mm
+    (``prism``: optional thin-prism s1..s4)."""
     xy = np.asarray(xy, float)
     x, y = xy[..., 0], xy[..., 1]
-    _, _, dx, dy = _distortion_terms(x, y, k, p)
+    r2, _, dx, dy = _distortion_terms(x, y, k, p)
+    if prism is not None and any(prism):
+        s1, s2, s3, s4 = prism
+        dx = dx + r2 * (s1 + s2 * r2)
+        dy = dy + r2 * (s3 + s4 * r2)
     return np.stack([x + dx, y + dy], axis=-1)
 
 
-def undistort(xy, k, p, tol: float = 1e-13, max_iter: int = 30) -> np.ndarray:
+def _undistort_prism(m, k, p, prism, tol, max_iter, strict=True) -> np.ndarray:
+    """Newton for ``u + d(u) = m`` with thin-prism terms (non-symmetric Jacobian)."""
+    mx, my = m[..., 0], m[..., 1]
+    x, y = mx.copy(), my.copy()
+    k1, k2, k3 = k
+    s1, s2, s3, s4 = prism
+    for _ in range(max_iter):
+        r2, q, dx, dy = _distortion_terms(x, y, k, p)
+        dx = dx + r2 * (s1 + s2 * r2)
+        dy = dy + r2 * (s3 + s4 * r2)
+        fx = x + dx - mx
+        fy = y + dy - my
+        g = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        t1 = 2 * (s1 + 2 * s2 * r2)
+        t3 = 2 * (s3 + 2 * s4 * r2)
+        j12 = 2 * x * y * g + 2 * p[0] * y + 2 * p[1] * x
+        a11 = 1 + q + 2 * x * x * g + 6 * p[0] * x + 2 * p[1] * y + x * t1
+        a22 = 1 + q + 2 * y * y * g + 6 * p[1] * y + 2 * p[0] * x + y * t3
+        a12 = j12 + y * t1
+        a21 = j12 + x * t3
+        det = a11 * a22 - a12 * a21
+        sx = (a22 * fx - a12 * fy) / det
+        sy = (a11 * fy - a21 * fx) / det
+        x = x - sx
+        y = y - sy
+        if np.all((np.abs(sx) + np.abs(sy) <= tol * (1 + np.abs(x) + np.abs(y))) | np.isnan(m).any(axis=-1)):
+            break
+    bad = ~(np.abs(sx) + np.abs(sy) <= 1e3 * tol * (1 + np.abs(x) + np.abs(y))) | ~((det > 0) & (a11 + a22 > 0))
+    if not strict:
+        return np.where(bad[..., None], np.nan, np.stack([x, y], axis=-1))
+    if np.any(bad):
+        raise UndistortError(
+            f"undistortion did not converge for {int(np.sum(bad))} point(s), e.g. "
+            f"{m[bad][:1].tolist()} mm: the distortion model folds over there"
+        )
+    return np.stack([x, y], axis=-1)
+
+
+def undistort(xy, k, p, tol: float = 1e-13, max_iter: int = 30, prism=None) -> np.ndarray:
     """Distorted -> ideal coordinates relative to the principal point, by Newton.
 
     Solves ``u + d(u) = m`` per point; converges quadratically (3-4 iterations for
@@ -166,6 +222,8 @@ def undistort(xy, k, p, tol: float = 1e-13, max_iter: int = 30) -> np.ndarray:
     True
     """
     m = np.asarray(xy, float)
+    if prism is not None and any(prism):
+        return _undistort_prism(m, k, p, tuple(float(v) for v in prism), tol, max_iter)
     if not any(k) and not any(p):
         return m.copy()
     mx, my = m[..., 0], m[..., 1]
@@ -200,7 +258,8 @@ def undistort(xy, k, p, tol: float = 1e-13, max_iter: int = 30) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Sensor:
-    """A camera or projector: format plus the 14 parameters.
+    """A camera or projector: format plus the 14 parameters, and optional thin-prism
+    terms ``prism`` = (s1, s2, s3, s4) (zero: the thesis's model).
 
     Examples
     --------
@@ -217,11 +276,15 @@ class Sensor:
     role: Role
     format: SensorFormat
     params: np.ndarray = field(repr=False)
+    prism: np.ndarray = field(default=NO_PRISM, repr=False)
 
     def __post_init__(self):
         p = np.asarray(self.params, float).reshape(14)
         p.setflags(write=False)
         object.__setattr__(self, "params", p)
+        s = np.asarray(self.prism, float).reshape(4)
+        s.setflags(write=False)
+        object.__setattr__(self, "prism", s)
         if self.role not in ("camera", "projector"):
             raise ValueError(f"sensor {self.name!r}: role must be camera or projector, not {self.role!r}")
 
@@ -260,11 +323,38 @@ class Sensor:
         """T_world_sensor."""
         return Frame(self.pinhole, self.angles)
 
-    def with_params(self, params) -> "Sensor":
-        return replace(self, params=np.asarray(params, float))
+    def with_params(self, params, prism=None) -> "Sensor":
+        """The sensor with other 14 parameters (and thin-prism terms, if given)."""
+        if prism is None:
+            return replace(self, params=np.asarray(params, float))
+        return replace(self, params=np.asarray(params, float), prism=np.asarray(prism, float))
+
+    @property
+    def has_prism(self) -> bool:
+        return bool(np.any(self.prism != 0.0))
 
     def as_dict(self) -> dict[str, float]:
-        return dict(zip(PARAM_NAMES, map(float, self.params)))
+        """Parameter name -> value; the thin-prism terms only where they are not zero."""
+        out = dict(zip(PARAM_NAMES, map(float, self.params)))
+        if self.has_prism:
+            out.update(zip(PRISM_NAMES, map(float, self.prism)))
+        return out
+
+    def brown_image_mm(self, image_mm) -> np.ndarray:
+        """Image-plane mm (..., 2) -> the image point that the same sensor *without* its
+        thin-prism terms maps to the same ray.
+
+        The compiled 14-parameter kernels (point clouds) then serve a sensor with
+        thin-prism terms unchanged: they invert ``u + d_brown(u) = m'`` and get the
+        ``u`` that solves ``u + d_brown(u) + d_prism(u) = m``. Identity without prism.
+        """
+        m = np.asarray(image_mm, float)
+        if not self.has_prism:
+            return m
+        h = self.principal_point
+        # NaN where the phases are NaN or the model folds over: the kernels mark those invalid
+        ideal = _undistort_prism(m - h, self.k, self.p, tuple(map(float, self.prism)), 1e-13, 30, strict=False)
+        return distort(ideal, self.k, self.p) + h
 
     # -- geometry -----------------------------------------------------------
     def to_sensor(self, points_world) -> np.ndarray:
@@ -281,7 +371,7 @@ class Sensor:
         with np.errstate(divide="ignore", invalid="ignore"):
             ideal = -self.c * xs[..., :2] / z[..., None]
         ideal = np.where((z > 0)[..., None], ideal, np.nan)
-        return distort(ideal, self.k, self.p) + self.principal_point
+        return distort(ideal, self.k, self.p, self.prism) + self.principal_point
 
     def in_view(self, points_world, margin_mm=0.0) -> np.ndarray:
         """Whether each point (..., 3) is imaged inside the format, ``margin_mm`` (scalar
@@ -294,7 +384,7 @@ class Sensor:
         front = z > 0
         with np.errstate(divide="ignore", invalid="ignore"):
             ideal = -self.c * xs[..., :2] / np.where(front, z, 1.0)[..., None]
-        image = distort(ideal, self.k, self.p) + self.principal_point
+        image = distort(ideal, self.k, self.p, self.prism) + self.principal_point
         half = np.array([self.format.width_mm, self.format.height_mm]) / 2 - np.asarray(margin_mm, float)[..., None]
         inside = np.all(np.abs(image) <= half, axis=-1) & np.all(np.abs(ideal + self.principal_point) <= 1.1 * half,
                                                                   axis=-1)
@@ -302,7 +392,7 @@ class Sensor:
 
     def directions_local(self, image_mm) -> np.ndarray:
         """Image-plane mm (..., 2) -> unnormalised ray directions (-x, -y, c) in the sensor frame."""
-        ideal = undistort(np.asarray(image_mm, float) - self.principal_point, self.k, self.p)
+        ideal = undistort(np.asarray(image_mm, float) - self.principal_point, self.k, self.p, prism=self.prism)
         d = np.empty(ideal.shape[:-1] + (3,))
         d[..., :2] = -ideal
         d[..., 2] = self.c

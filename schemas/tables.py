@@ -328,7 +328,10 @@ class SensorParametersTable(_Base):
 
     Free flags are columns ``free_<name>`` (``free_x0`` .. ``free_p2``), true when
     the bundle adjustment may change the parameter. ``u_<column>`` columns, when
-    present, hold standard uncertainties.
+    present, hold standard uncertainties. Optional thin-prism columns ``s1_per_mm``,
+    ``s2_per_mm3``, ``s3_per_mm``, ``s4_per_mm3`` (OpenCV's s1..s4; empty or absent: 0)
+    give start values of terms outside the 14 parameters (whether they are adjusted is
+    the run's model choice, ``bundle.sensor_model``).
     """
 
     sensor: Series[str] = pa.Field(unique=True)
@@ -362,6 +365,10 @@ class SensorParametersTable(_Base):
     free_k3: Series[bool] = pa.Field()
     free_p1: Series[bool] = pa.Field()
     free_p2: Series[bool] = pa.Field()
+    s1_per_mm: Optional[Series[float]] = pa.Field(nullable=True)
+    s2_per_mm3: Optional[Series[float]] = pa.Field(nullable=True)
+    s3_per_mm: Optional[Series[float]] = pa.Field(nullable=True)
+    s4_per_mm3: Optional[Series[float]] = pa.Field(nullable=True)
     width_px: Optional[Series[int]] = pa.Field(gt=1)
     height_px: Optional[Series[int]] = pa.Field(gt=1)
     width_mm: Optional[Series[float]] = pa.Field(gt=0)

@@ -161,10 +161,12 @@ def test_import_of_a_plain_stereo_calibration_and_of_richer_models(tmp_path, the
     want = sensor_in_frame(s.projector, scanner_frames(thesis_rig)[s.name].inverse(), near=np.zeros(3))
     assert np.abs(rig.sensors[1].params[:3] - want.params[:3]).max() < 1e-6     # CSV keeps 10 digits
     assert np.abs(rig.sensors[1].params[3:6] - want.params[3:6]).max() < 1e-9
-    for extra, worst in (([0.05, 0.0, 0.0], 1e-3), ([0, 0, 0, 1e-4, 0, 0, 0], 0.03)):
-        dist = np.concatenate([cam.dist, extra])
-        imp = from_opencv(cam.K, dist, cam.R, cam.t, cam.image_size, name="C1", role="camera", width_mm=15.1)
-        assert imp.fitted and 1e-6 < imp.worst_px < worst and imp.rms_px < imp.worst_px
+    dist = np.concatenate([cam.dist, [0.05, 0.0, 0.0]])  # rational k4: fitted, the difference stated
+    imp = from_opencv(cam.K, dist, cam.R, cam.t, cam.image_size, name="C1", role="camera", width_mm=15.1)
+    assert imp.fitted and 1e-6 < imp.worst_px < 1e-3 and imp.rms_px < imp.worst_px
+    dist = np.concatenate([cam.dist, [0, 0, 0, 1e-4, 0, 0, 0]])  # thin prism s1: fringecal's model, exact
+    imp = from_opencv(cam.K, dist, cam.R, cam.t, cam.image_size, name="C1", role="camera", width_mm=15.1)
+    assert not imp.fitted and imp.worst_px < 1e-6 and imp.sensor.prism[0] == pytest.approx(1e-4 / imp.sensor.c)
 
 
 def test_a_model_that_folds_over_in_the_corners_still_exports_exactly(thesis_rig):

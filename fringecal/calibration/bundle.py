@@ -75,6 +75,11 @@ class BundleOptions(StrictModel):
     large problems (0: off); ``chunk_size``: control points per parallel work item.
     ``black_box_scale``: adjust a scale factor of every black-box scanner
     (:mod:`.blackbox`) besides its exterior.
+    ``sensor_model``: the sensors' model (:mod:`.models`: ``brown14`` the thesis's 14
+    parameters, ``thin_prism`` / ``thin_prism4`` with OpenCV's thin-prism terms, ``auto``
+    chosen by held-out measurements; :func:`bundle_adjust` itself adjusts the terms the
+    problem's rig frees, ``prism_free``); ``model_selection``: ``screened`` cross-validates
+    only when the 14-parameter residuals keep a pattern over the images, ``always`` every run.
     """
 
     gamma1: float = Field(1.0, gt=0)
@@ -93,6 +98,8 @@ class BundleOptions(StrictModel):
     chunk_size: int = Field(2048, ge=1)
     coarse_points: int = Field(150_000, ge=0)
     black_box_scale: bool = False
+    sensor_model: Literal["auto", "brown14", "thin_prism", "thin_prism4"] = "auto"
+    model_selection: Literal["screened", "always"] = "screened"
 
     @field_validator("robust_scale_mm")
     @classmethod
@@ -362,7 +369,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions
         best.extra["failed_starts"] = dict(failed)
     if label != "given":
         ev = Evaluator(problem, chunk_size=options.chunk_size)
-        res0 = ev.evaluate(ev.layout.pack(problem.rig.params, problem.poses), False).res
+        res0 = ev.evaluate(ev.layout.pack(problem.rig.params, problem.poses, problem.rig.prism), False).res
         best = _replace_start(best, problem, res0)
     diags = list(best.diagnostics) + _convergence_diagnoses(conv, best)
     from dataclasses import replace as _dc_replace
@@ -446,7 +453,8 @@ def _replace_start(result: "BundleResult", problem: BundleProblem, res0: np.ndar
     from dataclasses import replace as _dc_replace
 
     layout = result.layout
-    return _dc_replace(result, x_start=layout.pack(problem.rig.params, problem.poses), residuals_start=res0,
+    return _dc_replace(result, x_start=layout.pack(problem.rig.params, problem.poses, problem.rig.prism),
+                       residuals_start=res0,
                        before=ResidualStatistics.of(res0, (problem.gamma1, problem.gamma2)))
 
 
@@ -517,7 +525,7 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     gamma = (problem.gamma1, problem.gamma2)
     ev = Evaluator(problem, chunk_size=options.chunk_size)
     layout = ev.layout
-    x0 = layout.pack(problem.rig.params, problem.poses)
+    x0 = layout.pack(problem.rig.params, problem.poses, problem.rig.prism)
     e0 = ev.evaluate(x0, True)
     _check_start(problem, e0)
     rank = check_rank(e0.normal(*gamma), layout, problem, "start values")
@@ -536,11 +544,19 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     std_p = np.zeros_like(po)
     m = layout.pose_index >= 0
     std_p[m] = unc.std[layout.pose_index[m]]
-    rig = problem.rig.with_params(sp, uncertainty=std_s)
+    prism = ev.prism(x)
+    rig = problem.rig.with_params(sp, uncertainty=std_s, prism=prism)
+    std_prism = np.zeros_like(prism)
+    m = layout.prism_index >= 0
+    std_prism[m] = unc.std[layout.prism_index[m]]
+    if layout.prism_free:
+        from dataclasses import replace as _dc_replace
+
+        rig = _dc_replace(rig, prism_uncertainty=std_prism)
     rank_end = check_rank(e1.normal(*gamma), layout, problem, "solution", unc)
     diags = _post_diagnostics(problem, layout, unc, rig, found) + rank_end
     return BundleResult(problem, options, layout, x0, x, rig, po, std_p, e0.res, plain.res,
                         ResidualStatistics.of(e0.res, gamma), ResidualStatistics.of(plain.res, gamma), unc,
                         report, scales, tuple(diags), time.perf_counter() - t0,
                         {"cost": float(gamma[0] * np.sum(plain.res[:, 0] ** 2) + gamma[1] * np.sum(plain.res[:, 1] ** 2)),
-                         "coarse": coarse})
+                         "coarse": coarse, "prism_std": std_prism})

@@ -10,6 +10,7 @@ Layout::
           <external>   x0 y0 z0 omega phi kappa </external>
           <internal>   xi_h eta_h c </internal>
           <distortion> k1 k2 k3 p1 p2 </distortion>
+          <thin_prism> s1 s2 s3 s4 </thin_prism>   (only a model with thin-prism terms)
         </sensor>
         ...
       </scanner>
@@ -31,6 +32,11 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
   ``artefact_scale`` (parameter change per unit relative scale of the artefact) with
   ``artefact_scale_u_rel`` (its relative standard uncertainty: CTE times the
   temperature uncertainty). :func:`read_calibration` gives them back.
+* ``sensor_model`` -- the sensor model the run used and why (configured, or chosen by
+  held-out measurements with every candidate's held-out error and the residual-pattern
+  statistic; :mod:`fringecal.calibration.models`). Sensors with thin-prism terms carry
+  them as ``thin_prism`` (s1..s4 with unit, free flag and u) beside ``parameters``;
+  without them the document is the 14-parameter one.
 * ``provenance`` -- the digests of the adjustment's input files, its settings and their
   digest, the package versions. The run's whole configuration is in its
   ``manifest.json``; a calibration depends only on the settings listed here and on its
@@ -51,7 +57,7 @@ from fringecal.atomic import write_text
 from fringecal.calibration.propagation import ParameterCovariances
 from fringecal.names import UnsafeNameError, check_name
 from fringecal.rig import Rig, Scanner
-from fringecal.sensor import PARAM_NAMES, Sensor, SensorFormat
+from fringecal.sensor import PARAM_NAMES, PRISM_NAMES, Sensor, SensorFormat
 
 __all__ = ["write_calibration_xml", "xml_text", "read_calibration_xml", "write_calibration_json",
            "read_calibration_json", "rig_to_dict", "rig_from_dict", "CalibrationFileError", "Calibration",
@@ -64,7 +70,7 @@ _GROUPS = {
 }
 _UNITS = {"x0": "mm", "y0": "mm", "z0": "mm", "omega": "rad", "phi": "rad", "kappa": "rad",
           "xi_h": "mm", "eta_h": "mm", "c": "mm", "k1": "mm^-2", "k2": "mm^-4", "k3": "mm^-6",
-          "p1": "mm^-1", "p2": "mm^-1"}
+          "p1": "mm^-1", "p2": "mm^-1", "s1": "mm^-1", "s2": "mm^-3", "s3": "mm^-1", "s4": "mm^-3"}
 
 
 class CalibrationFileError(ValueError):
@@ -90,13 +96,18 @@ def covariance_document(rig: Rig, covariances) -> dict:
             "artefact_scale_u_rel": float(covariances.u_scale)}
 
 
-def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None) -> dict:
+def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None,
+                sensor_model: dict | None = None) -> dict:
     """The JSON document of ``rig``; ``covariances``
-    (:class:`~fringecal.calibration.propagation.ParameterCovariances`) and ``provenance`` are
-    added when given (see the module notes)."""
+    (:class:`~fringecal.calibration.propagation.ParameterCovariances`), ``provenance`` and
+    ``sensor_model`` (the model's choice and its evidence,
+    :func:`fringecal.calibration.models.choose_sensor_model`) are added when given (see
+    the module notes)."""
 
     out = {"software": "fringecal", "version": __version__, "reference_scanner": rig.reference,
            "scanners": [], "metadata": dict(metadata or {})}
+    if sensor_model is not None:
+        out["sensor_model"] = sensor_model
     if covariances is not None:
         out["covariance"] = covariance_document(rig, covariances)
     if provenance is not None:
@@ -118,6 +129,14 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
                            "width_mm": f.width_mm, "height_mm": f.height_mm},
                 "parameters": params,
             })
+            if rig.has_prism:  # only then: a 14-parameter calibration's document is unchanged
+                prism = {}
+                for j, name in enumerate(PRISM_NAMES):
+                    p = {"value": float(sensor.prism[j]), "unit": _UNITS[name], "free": bool(rig.prism_free[k, j])}
+                    if rig.prism_uncertainty is not None:
+                        p["u"] = float(rig.prism_uncertainty[k, j])
+                    prism[name] = p
+                entry["sensors"][-1]["thin_prism"] = prism
             k += 1
         out["scanners"].append(entry)
     return out
@@ -128,7 +147,7 @@ def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
     and every parameter, format and uncertainty a finite number (a NaN parameter would
     drop its scanner's points from a cloud without a word)."""
     try:
-        scanners, free, unc = [], [], []
+        scanners, free, unc, prism_free, prism_u = [], [], [], [], []
         for i, sc in enumerate(d["scanners"]):
             check_name(sc["name"], f"scanners[{i}] name", source)
             pair = {}
@@ -150,13 +169,21 @@ def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
                     if "u" in p[n] and not (un >= 0):  # NaN or negative
                         raise CalibrationFileError(f"{source}: {where}: parameter {n!r} has uncertainty u = {un}; "
                                                    "a standard uncertainty is a finite number >= 0")
-                pair[se["role"]] = Sensor(se["name"], se["role"], fmt, vals)
+                tp = se.get("thin_prism", {})
+                prism = [float(tp[n]["value"]) if n in tp else 0.0 for n in PRISM_NAMES]
+                if not np.all(np.isfinite(prism)):
+                    raise CalibrationFileError(f"{source}: {where}: thin_prism {prism} must be finite numbers")
+                pair[se["role"]] = Sensor(se["name"], se["role"], fmt, vals, prism)
                 free.append([bool(p[n]["free"]) for n in PARAM_NAMES])
+                prism_free.append([bool(tp[n].get("free", False)) if n in tp else False for n in PRISM_NAMES])
+                prism_u.append([float(tp[n]["u"]) if n in tp and "u" in tp[n] else np.nan for n in PRISM_NAMES])
                 unc.append(u)
             scanners.append(Scanner(sc["name"], pair["camera"], pair["projector"]))
         u = np.array(unc)
+        pu = np.array(prism_u)
         return Rig(tuple(scanners), d["reference_scanner"], np.array(free),
-                   None if np.isnan(u).all() else u)
+                   None if np.isnan(u).all() else u, np.array(prism_free, bool).reshape(-1, 4),
+                   None if np.isnan(pu).all() else pu)
     except UnsafeNameError as err:
         raise CalibrationFileError(str(err)) from None
     except (KeyError, TypeError, ValueError) as err:
@@ -286,6 +313,13 @@ def xml_text(rig: Rig, metadata: dict | None = None) -> str:
                     if "u" in p:
                         attrs["u"] = repr(p["u"])
                     ET.SubElement(e_g, n, attrs).text = repr(p["value"])
+            if "thin_prism" in se:  # beyond the thesis's layout, only where the model has the terms
+                e_g = ET.SubElement(e_se, "thin_prism")
+                for n, p in se["thin_prism"].items():
+                    attrs = {"unit": p["unit"], "free": "true" if p["free"] else "false"}
+                    if "u" in p:
+                        attrs["u"] = repr(p["u"])
+                    ET.SubElement(e_g, n, attrs).text = repr(p["value"])
     meta = ET.SubElement(root, "metadata")
     for k, v in d["metadata"].items():
         ET.SubElement(meta, "item", key=str(k)).text = json.dumps(v)
@@ -325,7 +359,19 @@ def read_calibration_xml(path) -> Rig:
                     except ValueError:
                         raise CalibrationFileError(f"{path}: {where} <{n}>: not a number: {e_p.text!r}") from None
                     params[n] = p
-            sc["sensors"].append({"name": e_se.get("name"), "role": e_se.get("role"),
-                                  "format": dict(fmt.attrib), "parameters": params})
+            entry = {"name": e_se.get("name"), "role": e_se.get("role"), "format": dict(fmt.attrib),
+                     "parameters": params}
+            e_tp = e_se.find("thin_prism")
+            if e_tp is not None:
+                prism = {}
+                for e_p in e_tp:
+                    try:
+                        prism[e_p.tag] = {"value": float(e_p.text), "free": e_p.get("free", "false") == "true",
+                                          **({"u": float(e_p.get("u"))} if e_p.get("u") is not None else {})}
+                    except (TypeError, ValueError):
+                        raise CalibrationFileError(f"{path}: {where} <thin_prism><{e_p.tag}>: not a number: "
+                                                   f"{e_p.text!r}") from None
+                entry["thin_prism"] = prism
+            sc["sensors"].append(entry)
         d["scanners"].append(sc)
     return rig_from_dict(d, str(path))

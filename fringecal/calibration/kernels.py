@@ -10,7 +10,10 @@ of the artefact in measurement m) the two residuals of thesis eqs. 2-24 and 6-15
 
 Each depends on at most 34 parameters: the 14 of the camera, the 14 of the projector
 (local slots 0..13 and 14..27) and the 6 of the pose (slots 28..33); alpha1 does not
-depend on the pose. The analytic derivatives:
+depend on the pose. With free thin-prism terms (s1..s4 of camera and projector,
+:mod:`fringecal.sensor`) there are 42: camera prism 34..37 and projector prism 38..41
+after the 34 (:func:`local_slots`); the kernels read which from their output shapes,
+and run the 34 slots' loops with constant bounds and the same arithmetic either way. The analytic derivatives:
 
 * ray of a sensor: direction D = R^T (-x, -y, c) (unnormalised; the midpoint and alpha1
   do not depend on the length of D), (x, y) the ideal image coordinates solving
@@ -37,24 +40,36 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from fringecal.lens import first_order_inverse, newton_step
+from fringecal.lens import first_order_inverse, first_order_inverse_prism, newton_step, newton_step_prism, prism_jacobian
 
-__all__ = ["N_LOCAL", "assemble", "scatter", "residual_rows", "replica_gradients"]
+__all__ = ["N_LOCAL", "local_slots", "assemble", "scatter", "residual_rows", "replica_gradients"]
 
 #: Local parameter slots per control point: camera 14, projector 14, pose 6.
 N_LOCAL = 34
+N_PRISM = 4
+
+
+def local_slots(prism_free: bool) -> int:
+    """Local parameter slots per control point: 34, or 42 with free thin-prism terms."""
+    return N_LOCAL + 2 * N_PRISM if prism_free else N_LOCAL
+
+
 LOSS_CODES = {"none": 0, "linear": 0, "huber": 1, "cauchy": 2}
 
 _NEWTON_TOL = 1e-13
 
 
 @njit(cache=True, nogil=True)
-def _sensor_ray(p, R, dR, mx, my, want_jac, D, dD):
+def _sensor_ray(p, sp, R, dR, mx, my, want_jac, npr, D, dD):
     """Unnormalised world direction D (3,) of the ray through image point (mx, my) mm.
 
-    dD (3, 11) receives dD/d(omega, phi, kappa, xi_h, eta_h, c, k1, k2, k3, p1, p2).
+    dD (3, 15) receives dD/d(omega, phi, kappa, xi_h, eta_h, c, k1, k2, k3, p1, p2) in
+    columns 0..10 and, for a sensor with thin-prism terms ``sp`` = (s1..s4), dD/d(s1..s4)
+    in columns 11..14 (without prism terms: only if ``npr`` > 0, their slots being free).
     Returns False where the distortion model cannot be inverted.
     """
+    if sp[0] != 0.0 or sp[1] != 0.0 or sp[2] != 0.0 or sp[3] != 0.0:
+        return _sensor_ray_prism(p, sp, R, dR, mx, my, want_jac, D, dD)
     k1 = p[9]
     k2 = p[10]
     k3 = p[11]
@@ -137,19 +152,117 @@ def _sensor_ray(p, R, dR, mx, my, want_jac, D, dD):
         slot = 3 + col if col < 2 else 4 + col  # skip slot 5 (c)
         for i in range(3):
             dD[i, slot] = -dux * R[0, i] - duy * R[1, i]
+    # thin-prism columns (only when they are free, npr = 4): G gains (r^2, 0), (r^4, 0),
+    # (0, r^2), (0, r^4)
+    for col in range(npr):
+        gx = (r2 if col == 0 else r4) if col < 2 else 0.0
+        gy = 0.0 if col < 2 else (r2 if col == 2 else r4)
+        dux = -(a22 * gx - a12 * gy) / det
+        duy = -(a11 * gy - a12 * gx) / det
+        for i in range(3):
+            dD[i, 11 + col] = -dux * R[0, i] - duy * R[1, i]
     return True
 
 
 @njit(cache=True, nogil=True)
-def _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radius,
-                   mcx, mcy, mpx, mpy, want_jac, Dc, dDc, Dp, dDp, j1, j2, out):
-    """Residuals of one control point into out[0:2]; Jacobian rows into j1 (28,), j2 (34,).
+def _sensor_ray_prism(p, sp, R, dR, mx, my, want_jac, D, dD):
+    """:func:`_sensor_ray` of a sensor with thin-prism terms (A = I + dd/du is then
+    not symmetric); separate so that the 14-parameter path keeps its arithmetic."""
+    k1 = p[9]
+    k2 = p[10]
+    k3 = p[11]
+    p1 = p[12]
+    p2 = p[13]
+    s1 = sp[0]
+    s2 = sp[1]
+    s3 = sp[2]
+    s4 = sp[3]
+    c = p[8]
+    ux = mx - p[6]
+    uy = my - p[7]
+    x, y = first_order_inverse_prism(ux, uy, k1, k2, k3, p1, p2, s1, s2, s3, s4)
+    last = np.inf
+    for _ in range(30):
+        x, y, last, det, tr = newton_step_prism(x, y, ux, uy, k1, k2, k3, p1, p2, s1, s2, s3, s4)
+        if not (det > 0.0):
+            return False
+        if last <= _NEWTON_TOL * (1.0 + abs(x) + abs(y)):
+            break
+    if not (last <= 1e3 * _NEWTON_TOL * (1.0 + abs(x) + abs(y))):
+        return False
+    a11, a12, a21, a22, _, _ = prism_jacobian(x, y, k1, k2, k3, p1, p2, s1, s2, s3, s4)
+    det = a11 * a22 - a12 * a21
+    if not (det > 0.0) or not (a11 + a22 > 0.0):
+        return False
+    v0 = -x
+    v1 = -y
+    for i in range(3):
+        D[i] = v0 * R[0, i] + v1 * R[1, i] + c * R[2, i]
+    if not want_jac:
+        return True
+    for k in range(3):
+        for i in range(3):
+            dD[i, k] = v0 * dR[k, 0, i] + v1 * dR[k, 1, i] + c * dR[k, 2, i]
+    for i in range(3):
+        dD[i, 5] = R[2, i]
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    # xi_h, eta_h, k1, k2, k3, p1, p2, s1, s2, s3, s4: du = -A^-1 dG/dtheta
+    for col in range(11):
+        if col == 0:
+            gx = 1.0
+            gy = 0.0
+        elif col == 1:
+            gx = 0.0
+            gy = 1.0
+        elif col == 2:
+            gx = x * r2
+            gy = y * r2
+        elif col == 3:
+            gx = x * r4
+            gy = y * r4
+        elif col == 4:
+            gx = x * r6
+            gy = y * r6
+        elif col == 5:
+            gx = r2 + 2 * x * x
+            gy = 2 * x * y
+        elif col == 6:
+            gx = 2 * x * y
+            gy = r2 + 2 * y * y
+        elif col == 7:
+            gx = r2
+            gy = 0.0
+        elif col == 8:
+            gx = r4
+            gy = 0.0
+        elif col == 9:
+            gx = 0.0
+            gy = r2
+        else:
+            gx = 0.0
+            gy = r4
+        dux = -(a22 * gx - a12 * gy) / det
+        duy = -(a11 * gy - a21 * gx) / det
+        slot = 3 + col if col < 2 else 4 + col  # skip slot 5 (c); prism at 11..14
+        for i in range(3):
+            dD[i, slot] = -dux * R[0, i] - duy * R[1, i]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _control_point(pc, sc, Rc, dRc, pp, spr, Rp, dRp, tpose, Rpose, dRpose, centres, si, radius,
+                   mcx, mcy, mpx, mpy, want_jac, npr, Dc, dDc, Dp, dDp, j1, j2, out):
+    """Residuals of one control point into out[0:2]; Jacobian rows into j1 (28, or 42 with
+    zeros in the pose slots 28..33 when thin-prism terms are free) and j2 (34 + 2 npr)
+    (slot layout in :func:`local_slots`).
 
     Returns False where a ray cannot be formed or the rays are parallel.
     """
-    if not _sensor_ray(pc, Rc, dRc, mcx, mcy, want_jac, Dc, dDc):
+    if not _sensor_ray(pc, sc, Rc, dRc, mcx, mcy, want_jac, npr, Dc, dDc):
         return False
-    if not _sensor_ray(pp, Rp, dRp, mpx, mpy, want_jac, Dp, dDp):
+    if not _sensor_ray(pp, spr, Rp, dRp, mpx, mpy, want_jac, npr, Dp, dDp):
         return False
     o1x = pc[0]
     o1y = pc[1]
@@ -271,6 +384,12 @@ def _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, 
         vy = dRpose[k, 0, 1] * c0 + dRpose[k, 1, 1] * c1 + dRpose[k, 2, 1] * c2
         vz = dRpose[k, 0, 2] * c0 + dRpose[k, 1, 2] * c1 + dRpose[k, 2, 2] * c2
         j2[31 + k] = -(qx * vx + qy * vy + qz * vz)
+    # thin-prism slots 34..34+npr-1 (camera), 34+npr..34+2npr-1 (projector)
+    for col in range(npr):
+        j1[34 + col] = e1dcx * dDc[0, 11 + col] + e1dcy * dDc[1, 11 + col] + e1dcz * dDc[2, 11 + col]
+        j1[34 + npr + col] = e1dpx * dDp[0, 11 + col] + e1dpy * dDp[1, 11 + col] + e1dpz * dDp[2, 11 + col]
+        j2[34 + col] = g2dcx * dDc[0, 11 + col] + g2dcy * dDc[1, 11 + col] + g2dcz * dDc[2, 11 + col]
+        j2[34 + npr + col] = g2dpx * dDp[0, 11 + col] + g2dpy * dDp[1, 11 + col] + g2dpz * dDp[2, 11 + col]
     return True
 
 
@@ -288,53 +407,81 @@ def _loss(alpha, loss, scale):
     return scale * scale * np.log1p(z), 1.0 / (1.0 + z)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _accumulate_prism(ch, nl, f1, f2, w1, w2, j1, j2, A1, A2, bvec):
+    """The thin-prism slots' part of one control point's normal blocks: columns 34..nl-1
+    of the rows 0..33, and the rows 34..nl-1 (upper triangles; A1 skips the pose slots)."""
+    for i in range(34):
+        u2 = w2 * j2[i]
+        for j in range(34, nl):
+            A2[ch, i, j] += u2 * j2[j]
+        if i < 28:
+            u1 = w1 * j1[i]
+            for j in range(34, nl):
+                A1[ch, i, j] += u1 * j1[j]
+    for i in range(34, nl):
+        bvec[ch, i] += f1 * j1[i] + f2 * j2[i]
+        u1 = w1 * j1[i]
+        u2 = w2 * j2[i]
+        for j in range(i, nl):
+            A1[ch, i, j] += u1 * j1[j]
+            A2[ch, i, j] += u2 * j2[j]
+
+
 @njit(cache=True, parallel=True)
 def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_meas,
-             sens_p, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
+             sens_p, sens_s, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
              cam_mm, prj_mm, gamma1, gamma2, loss, scale1, scale2, want_jac,
              res, ok, chunk_cost, A1, A2, bvec):
     """Residuals of every control point and, with ``want_jac``, per-chunk normal blocks.
 
     Parameters (shapes): chunk_* (n_chunks,), group_* (n_groups,), sens_p (n_sensors, 14),
+    sens_s (n_sensors, 4) thin-prism terms,
     sens_R (n_sensors, 3, 3), sens_dR (n_sensors, 3, 3, 3), pose_t (n_meas, 3),
     pose_R / pose_dR like sensors, sphere_idx (n,), centres (n_spheres, 3), radii
     (n_spheres,), cam_mm / prj_mm (n, 2) image-plane mm.
 
     Outputs: res (n, 2) alpha1, alpha2; ok (n,) bool; chunk_cost (n_chunks,) the chunk's
     part of F = gamma1 sum rho(alpha1) + gamma2 sum rho(alpha2) (inf if a control point
-    fails); A1 (n_chunks, 28, 28) = sum w1 j1 j1^T and A2 (n_chunks, 34, 34) = sum w2 j2 j2^T
-    (upper triangles); bvec (n_chunks, 34) = sum gamma1 w1 alpha1 j1 + gamma2 w2 alpha2 j2.
+    fails); A1 (n_chunks, n1, n1) = sum w1 j1 j1^T and A2 (n_chunks, nl, nl) = sum w2 j2 j2^T
+    (upper triangles); bvec (n_chunks, nl) = sum gamma1 w1 alpha1 j1 + gamma2 w2 alpha2 j2.
+    ``nl`` = bvec.shape[1] = 34 (``N_LOCAL``) or 42 with free thin-prism terms
+    (:func:`local_slots`), n1 = A1.shape[1] = 28 or 42 (A1's pose rows and columns then
+    stay zero); A1, A2 and bvec need only one chunk without ``want_jac``.
     """
     n_chunks = chunk_start.shape[0]
+    nl = bvec.shape[1]  # 34, or 42 with free thin-prism terms
+    npr = (nl - N_LOCAL) // 2
+    n1 = A1.shape[1]  # 28, or 42
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
         ip = group_prj[g]
         im = group_meas[g]
         # views made once per chunk, not per control point
-        pc, Rc, dRc = sens_p[ic], sens_R[ic], sens_dR[ic]
-        pp, Rp, dRp = sens_p[ip], sens_R[ip], sens_dR[ip]
+        pc, sc, Rc, dRc = sens_p[ic], sens_s[ic], sens_R[ic], sens_dR[ic]
+        pp, spr, Rp, dRp = sens_p[ip], sens_s[ip], sens_R[ip], sens_dR[ip]
         tpose, Rpose, dRpose = pose_t[im], pose_R[im], pose_dR[im]
         Dc = np.empty(3)
         Dp = np.empty(3)
-        dDc = np.zeros((3, 11))
-        dDp = np.zeros((3, 11))
-        j1 = np.zeros(28)
-        j2 = np.zeros(34)
+        dDc = np.zeros((3, 15))
+        dDp = np.zeros((3, 15))
+        j1 = np.zeros(n1)
+        j2 = np.zeros(nl)
         out = np.empty(2)
         cost = 0.0
         if want_jac:
-            for i in range(34):
+            for i in range(nl):
                 bvec[ch, i] = 0.0
-                for j in range(34):
+                for j in range(nl):
                     A2[ch, i, j] = 0.0
-            for i in range(28):
-                for j in range(28):
+            for i in range(n1):
+                for j in range(n1):
                     A1[ch, i, j] = 0.0
         for k in range(chunk_start[ch], chunk_stop[ch]):
             si = sphere_idx[k]
-            good = _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
-                                  cam_mm[k, 0], cam_mm[k, 1], prj_mm[k, 0], prj_mm[k, 1], want_jac,
+            good = _control_point(pc, sc, Rc, dRc, pp, spr, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
+                                  cam_mm[k, 0], cam_mm[k, 1], prj_mm[k, 0], prj_mm[k, 1], want_jac, npr,
                                   Dc, dDc, Dp, dDp, j1, j2, out)
             ok[k] = good
             if not good:
@@ -352,6 +499,8 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
             if want_jac:
                 f1 = gamma1 * w1 * a1
                 f2 = gamma2 * w2 * a2
+                # the 34 slots of the thesis's model with constant bounds (vectorised as before
+                # the thin-prism terms existed), then the prism slots 34.. if free
                 for i in range(28):
                     bvec[ch, i] += f1 * j1[i] + f2 * j2[i]
                     u1 = w1 * j1[i]
@@ -365,6 +514,8 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
                     u2 = w2 * j2[i]
                     for j in range(i, 34):
                         A2[ch, i, j] += u2 * j2[j]
+                if npr > 0:
+                    _accumulate_prism(ch, nl, f1, f2, w1, w2, j1, j2, A1, A2, bvec)
         chunk_cost[ch] = cost
 
 
@@ -372,18 +523,20 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
 def scatter(chunk_group, gmap, A1, A2, bvec, N1, N2, b):
     """Add the chunks' upper-triangle blocks into global N1, N2 (p, p) and b (p,).
 
-    gmap (n_groups, 34) maps a group's local slots to global parameter indices (-1: fixed).
+    gmap (n_groups, nl) maps a group's local slots to global parameter indices (-1: fixed).
     The results are full symmetric matrices.
     """
     n_chunks = chunk_group.shape[0]
+    nl = A2.shape[1]
+    n1 = A1.shape[1]
     for ch in range(n_chunks):
         gm = gmap[chunk_group[ch]]
-        for i in range(34):
+        for i in range(nl):
             gi = gm[i]
             if gi < 0:
                 continue
             b[gi] += bvec[ch, i]
-            for j in range(i, 34):
+            for j in range(i, nl):
                 gj = gm[j]
                 if gj < 0:
                     continue
@@ -391,7 +544,7 @@ def scatter(chunk_group, gmap, A1, A2, bvec, N1, N2, b):
                 N2[gi, gj] += v2
                 if gi != gj:
                     N2[gj, gi] += v2
-                if j < 28:
+                if j < n1 and (j < 28 or j >= 34) and (i < 28 or i >= 34):  # A1: no pose slots
                     v1 = A1[ch, i, j]
                     N1[gi, gj] += v1
                     if gi != gj:
@@ -400,85 +553,91 @@ def scatter(chunk_group, gmap, A1, A2, bvec, N1, N2, b):
 
 @njit(cache=True, parallel=True)
 def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_meas,
-                  sens_p, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
+                  sens_p, sens_s, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
                   cam_mm, prj_mm, res, ok, J):
-    """Residuals (n, 2) and full local Jacobian rows J (n, 2, 34) (alpha1 row has zeros
+    """Residuals (n, 2) and full local Jacobian rows J (n, 2, nl), nl = 34 or 42 (alpha1 row has zeros
     in the pose slots). For tests, finite-difference checks and scipy comparisons."""
     n_chunks = chunk_start.shape[0]
+    nl = J.shape[2]
+    npr = (nl - N_LOCAL) // 2
+    n1 = 28 if npr == 0 else nl
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
         ip = group_prj[g]
         im = group_meas[g]
         # views made once per chunk, not per control point
-        pc, Rc, dRc = sens_p[ic], sens_R[ic], sens_dR[ic]
-        pp, Rp, dRp = sens_p[ip], sens_R[ip], sens_dR[ip]
+        pc, sc, Rc, dRc = sens_p[ic], sens_s[ic], sens_R[ic], sens_dR[ic]
+        pp, spr, Rp, dRp = sens_p[ip], sens_s[ip], sens_R[ip], sens_dR[ip]
         tpose, Rpose, dRpose = pose_t[im], pose_R[im], pose_dR[im]
         Dc = np.empty(3)
         Dp = np.empty(3)
-        dDc = np.zeros((3, 11))
-        dDp = np.zeros((3, 11))
-        j1 = np.zeros(28)
-        j2 = np.zeros(34)
+        dDc = np.zeros((3, 15))
+        dDp = np.zeros((3, 15))
+        j1 = np.zeros(n1)
+        j2 = np.zeros(nl)
         out = np.empty(2)
         for k in range(chunk_start[ch], chunk_stop[ch]):
             si = sphere_idx[k]
-            good = _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
-                                  cam_mm[k, 0], cam_mm[k, 1], prj_mm[k, 0], prj_mm[k, 1], True,
+            good = _control_point(pc, sc, Rc, dRc, pp, spr, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
+                                  cam_mm[k, 0], cam_mm[k, 1], prj_mm[k, 0], prj_mm[k, 1], True, npr,
                                   Dc, dDc, Dp, dDp, j1, j2, out)
             ok[k] = good
             res[k, 0] = out[0] if good else np.nan
             res[k, 1] = out[1] if good else np.nan
-            for i in range(34):
-                J[k, 0, i] = j1[i] if (good and i < 28) else 0.0
+            for i in range(nl):
+                J[k, 0, i] = j1[i] if (good and i < n1) else 0.0
                 J[k, 1, i] = j2[i] if good else 0.0
 
 
 @njit(cache=True, parallel=True)
 def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_meas,
-                      sens_p, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
+                      sens_p, sens_s, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
                       cam_mm, prj_a, prj_b, flip, gamma1, gamma2, ok, dcost, dgrad):
     """Cost and gradient of many data replicas at one parameter vector, from two
     observation sets: replica r observes ``prj_b[k]`` where ``flip[r, k]``, else ``prj_a[k]``.
 
-    Outputs, per chunk: dcost (n_chunks, R) and dgrad (n_chunks, R, 34), the replica's
+    Outputs, per chunk: dcost (n_chunks, R) and dgrad (n_chunks, R, nl), the replica's
     cost and its local gradient (gamma1 alpha1 j1 + gamma2 alpha2 j2) minus those with
     ``prj_a`` everywhere, summed over the chunk's control points (no robust loss);
     ok (n,) False where a ray cannot be formed with either observation.
     """
     n_chunks = chunk_start.shape[0]
     R = flip.shape[0]
+    nl = dgrad.shape[2]
+    npr = (nl - N_LOCAL) // 2
+    n1 = 28 if npr == 0 else nl
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
         ip = group_prj[g]
         im = group_meas[g]
-        pc, Rc, dRc = sens_p[ic], sens_R[ic], sens_dR[ic]
-        pp, Rp, dRp = sens_p[ip], sens_R[ip], sens_dR[ip]
+        pc, sc, Rc, dRc = sens_p[ic], sens_s[ic], sens_R[ic], sens_dR[ic]
+        pp, spr, Rp, dRp = sens_p[ip], sens_s[ip], sens_R[ip], sens_dR[ip]
         tpose, Rpose, dRpose = pose_t[im], pose_R[im], pose_dR[im]
         Dc = np.empty(3)
         Dp = np.empty(3)
-        dDc = np.zeros((3, 11))
-        dDp = np.zeros((3, 11))
-        ja1 = np.zeros(28)
-        ja2 = np.zeros(34)
-        jb1 = np.zeros(28)
-        jb2 = np.zeros(34)
+        dDc = np.zeros((3, 15))
+        dDp = np.zeros((3, 15))
+        ja1 = np.zeros(n1)
+        ja2 = np.zeros(nl)
+        jb1 = np.zeros(n1)
+        jb2 = np.zeros(nl)
         out_a = np.empty(2)
         out_b = np.empty(2)
-        diff = np.empty(34)
+        diff = np.empty(nl)
         for r in range(R):
             dcost[ch, r] = 0.0
-            for i in range(34):
+            for i in range(nl):
                 dgrad[ch, r, i] = 0.0
         for k in range(chunk_start[ch], chunk_stop[ch]):
             si = sphere_idx[k]
-            good = _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
-                                  cam_mm[k, 0], cam_mm[k, 1], prj_a[k, 0], prj_a[k, 1], True,
+            good = _control_point(pc, sc, Rc, dRc, pp, spr, Rp, dRp, tpose, Rpose, dRpose, centres, si, radii[si],
+                                  cam_mm[k, 0], cam_mm[k, 1], prj_a[k, 0], prj_a[k, 1], True, npr,
                                   Dc, dDc, Dp, dDp, ja1, ja2, out_a)
-            good = good and _control_point(pc, Rc, dRc, pp, Rp, dRp, tpose, Rpose, dRpose, centres, si,
+            good = good and _control_point(pc, sc, Rc, dRc, pp, spr, Rp, dRp, tpose, Rpose, dRpose, centres, si,
                                            radii[si], cam_mm[k, 0], cam_mm[k, 1], prj_b[k, 0], prj_b[k, 1],
-                                           True, Dc, dDc, Dp, dDp, jb1, jb2, out_b)
+                                           True, npr, Dc, dDc, Dp, dDp, jb1, jb2, out_b)
             ok[k] = good
             if not good:
                 for r in range(R):
@@ -494,8 +653,10 @@ def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj
                 diff[i] = fb1 * jb1[i] + fb2 * jb2[i] - fa1 * ja1[i] - fa2 * ja2[i]
             for i in range(28, 34):
                 diff[i] = fb2 * jb2[i] - fa2 * ja2[i]
+            for i in range(34, nl):
+                diff[i] = fb1 * jb1[i] + fb2 * jb2[i] - fa1 * ja1[i] - fa2 * ja2[i]
             for r in range(R):
                 if flip[r, k]:
                     dcost[ch, r] += dc
-                    for i in range(34):
+                    for i in range(nl):
                         dgrad[ch, r, i] += diff[i]

@@ -23,7 +23,7 @@ from fringecal.calibration import kernels
 from fringecal.rig import Rig
 from fringecal.rotation import rotation_derivatives, rotation_matrix
 from fringecal.schemas import ControlPointsTable, PosePlanTable, TableError, validate_table
-from fringecal.sensor import PARAM_NAMES
+from fringecal.sensor import PARAM_NAMES, PRISM_NAMES
 from fringecal.triangulation import closest_approach
 
 __all__ = ["BundleProblem", "ParameterLayout", "Evaluator", "Evaluation", "POSE_NAMES", "POSE_COLUMNS", "triangulated_points"]
@@ -221,8 +221,10 @@ class ParameterLayout:
     """Where each free sensor and pose parameter sits in the unknown vector x.
 
     ``sensor_index[i, j]`` is the position of parameter ``PARAM_NAMES[j]`` of sensor i in
-    x, or -1 if fixed; ``pose_index[m, k]`` likewise for pose parameter ``POSE_NAMES[k]``.
-    Sensors come first (in rig order), then poses.
+    x, or -1 if fixed; ``prism_index[i, j]`` likewise for thin-prism term
+    ``PRISM_NAMES[j]``; ``pose_index[m, k]`` for pose parameter ``POSE_NAMES[k]``.
+    The 14 sensor parameters come first (in rig order), then the free thin-prism terms
+    (none for the thesis's model), then poses.
     """
 
     sensor_index: np.ndarray
@@ -230,30 +232,63 @@ class ParameterLayout:
     names: tuple
     sensor_names: tuple
     measurements: tuple
+    prism_index: np.ndarray = None
+
+    def __post_init__(self):
+        if self.prism_index is None:
+            object.__setattr__(self, "prism_index", np.full((self.sensor_index.shape[0], 4), -1, np.int64))
 
     @classmethod
     def of(cls, problem: BundleProblem) -> "ParameterLayout":
         free = problem.rig.free
         si = np.full(free.shape, -1, np.int64)
         si[free] = np.arange(int(free.sum()))
+        prf = problem.rig.prism_free
+        spi = np.full(prf.shape, -1, np.int64)
+        spi[prf] = int(free.sum()) + np.arange(int(prf.sum()))
         pf = problem.pose_free
         pi = np.full(pf.shape, -1, np.int64)
-        pi[pf] = int(free.sum()) + np.arange(int(pf.sum()))
+        pi[pf] = int(free.sum()) + int(prf.sum()) + np.arange(int(pf.sum()))
         sensors = tuple(s.name for s in problem.rig.sensors)
         names = [f"{sensors[i]}.{PARAM_NAMES[j]}" for i, j in zip(*np.nonzero(free))]
+        names += [f"{sensors[i]}.{PRISM_NAMES[j]}" for i, j in zip(*np.nonzero(prf))]
         names += [f"pose[{problem.measurements[m]}].{POSE_NAMES[k]}" for m, k in zip(*np.nonzero(pf))]
-        return cls(si, pi, tuple(names), sensors, problem.measurements)
+        return cls(si, pi, tuple(names), sensors, problem.measurements, spi)
+
+    @property
+    def prism_free(self) -> bool:
+        """Whether any thin-prism term is adjusted (the kernels then use 42 local slots)."""
+        return bool(np.any(self.prism_index >= 0))
+
+    def unpack_prism(self, x: np.ndarray, prism: np.ndarray) -> np.ndarray:
+        """Thin-prism terms (n_sensors, 4) with the free entries taken from x."""
+        out = np.array(prism, float, copy=True)
+        m = self.prism_index >= 0
+        out[m] = np.asarray(x, float)[self.prism_index[m]]
+        return out
+
+    def pack_prism(self, x: np.ndarray, prism: np.ndarray) -> np.ndarray:
+        """x with the free thin-prism entries set from ``prism`` (n_sensors, 4)."""
+        x = np.array(x, float, copy=True)
+        m = self.prism_index >= 0
+        x[self.prism_index[m]] = np.asarray(prism, float)[m]
+        return x
 
     @property
     def n(self) -> int:
         return len(self.names)
 
-    def pack(self, sensor_params: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        x = np.empty(self.n)
+    def pack(self, sensor_params: np.ndarray, poses: np.ndarray, prism: np.ndarray | None = None) -> np.ndarray:
+        """x of the given sensor parameters (n_sensors, 14), poses (n_meas, 6) and
+        thin-prism terms (n_sensors, 4; None: zero, the start of a model that frees them)."""
+        x = np.zeros(self.n)
         m = self.sensor_index >= 0
         x[self.sensor_index[m]] = sensor_params[m]
         m = self.pose_index >= 0
         x[self.pose_index[m]] = poses[m]
+        if prism is not None and self.prism_free:
+            m = self.prism_index >= 0
+            x[self.prism_index[m]] = np.asarray(prism, float)[m]
         return x
 
     def unpack(self, x: np.ndarray, sensor_params: np.ndarray, poses: np.ndarray):
@@ -315,11 +350,15 @@ class Evaluator:
             c_stop += list(np.minimum(edges + self.chunk_size, b))
             c_group += [g] * len(edges)
         lay = self.layout
-        gmap = np.full((len(start), kernels.N_LOCAL), -1, np.int64)
+        nl = kernels.local_slots(lay.prism_free)
+        gmap = np.full((len(start), nl), -1, np.int64)
         for g, (s, m) in enumerate(zip(g_scan, g_meas)):
             gmap[g, :14] = lay.sensor_index[2 * s]
             gmap[g, 14:28] = lay.sensor_index[2 * s + 1]
-            gmap[g, 28:] = lay.pose_index[m]
+            gmap[g, 28:34] = lay.pose_index[m]
+            if lay.prism_free:
+                gmap[g, 34:38] = lay.prism_index[2 * s]
+                gmap[g, 38:42] = lay.prism_index[2 * s + 1]
         self._arrays = dict(
             chunk_start=np.asarray(c_start, np.int64), chunk_stop=np.asarray(c_stop, np.int64),
             chunk_group=np.asarray(c_group, np.int64), group_cam=(2 * g_scan).astype(np.int64),
@@ -331,6 +370,15 @@ class Evaluator:
     def n_chunks(self) -> int:
         return len(self._arrays["chunk_start"])
 
+    @property
+    def n_local(self) -> int:
+        """Local parameter slots per control point (34, or 42 with free thin-prism terms)."""
+        return self._arrays["gmap"].shape[1]
+
+    def prism(self, x) -> np.ndarray:
+        """Thin-prism terms (n_sensors, 4) at x."""
+        return self.layout.unpack_prism(np.asarray(x, float), self.problem.rig.prism)
+
     def full_params(self, x) -> tuple[np.ndarray, np.ndarray]:
         return self.layout.unpack(np.asarray(x, float), self.problem.rig.params, self.problem.poses)
 
@@ -340,7 +388,8 @@ class Evaluator:
         sdR = np.ascontiguousarray(np.moveaxis(rotation_derivatives(sp[:, 3], sp[:, 4], sp[:, 5]), 0, 1))
         pR = rotation_matrix(po[:, 3], po[:, 4], po[:, 5])
         pdR = np.ascontiguousarray(np.moveaxis(rotation_derivatives(po[:, 3], po[:, 4], po[:, 5]), 0, 1))
-        return (np.ascontiguousarray(sp), sR, sdR, np.ascontiguousarray(po[:, :3]), pR, pdR)
+        return (np.ascontiguousarray(sp), np.ascontiguousarray(self.prism(x)), sR, sdR,
+                np.ascontiguousarray(po[:, :3]), pR, pdR)
 
     def evaluate(self, x, want_jac: bool = True) -> Evaluation:
         """Residuals, cost and (with ``want_jac``) the normal equations at x."""
@@ -353,17 +402,15 @@ class Evaluator:
         res = np.empty((n, 2))
         ok = np.empty(n, np.bool_)
         cost = np.empty(nc)
-        if want_jac:
-            A1 = np.empty((nc, 28, 28))
-            A2 = np.empty((nc, 34, 34))
-            bv = np.empty((nc, 34))
-        else:
-            A1 = np.empty((1, 28, 28))
-            A2 = np.empty((1, 34, 34))
-            bv = np.empty((1, 34))
-        sp, sR, sdR, pt, pR, pdR = self._geometry(x)
+        nl = self.n_local
+        nb = nc if want_jac else 1
+        n1 = 28 if nl == kernels.N_LOCAL else nl  # alpha1's slots (with the prism's: zero pose slots)
+        A1 = np.empty((nb, n1, n1))
+        A2 = np.empty((nb, nl, nl))
+        bv = np.empty((nb, nl))
+        sp, ss, sR, sdR, pt, pR, pdR = self._geometry(x)
         kernels.assemble(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"], a["group_prj"],
-                         a["group_meas"], sp, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
+                         a["group_meas"], sp, ss, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
                          pr.cam_mm, pr.prj_mm, pr.gamma1, pr.gamma2, kernels.LOSS_CODES[self.loss],
                          float(self.scales[0]), float(self.scales[1]), want_jac, res, ok, cost, A1, A2, bv)
         ev = Evaluation(float(cost.sum()), res, ok)
@@ -390,7 +437,7 @@ class Evaluator:
         R, nc = flip.shape[0], self.n_chunks
         ok = np.empty(pr.n_points, np.bool_)
         dcost = np.empty((nc, R))
-        dgrad = np.empty((nc, R, kernels.N_LOCAL))
+        dgrad = np.empty((nc, R, self.n_local))
         with _threads_for(pr.n_points):
             kernels.replica_gradients(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"],
                                       a["group_prj"], a["group_meas"], *self._geometry(x), pr.sphere_idx,
@@ -405,15 +452,16 @@ class Evaluator:
         return dcost.sum(axis=0), grad, ok
 
     def jacobian_rows(self, x) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Residuals (n, 2), local Jacobian rows (n, 2, 34) and ok (n,) at x (memory n*544 bytes)."""
+        """Residuals (n, 2), local Jacobian rows (n, 2, n_local) and ok (n,) at x (memory n*544 bytes
+        with 34 slots)."""
         pr, a = self.problem, self._arrays
         n = pr.n_points
         res = np.empty((n, 2))
         ok = np.empty(n, np.bool_)
-        J = np.empty((n, 2, kernels.N_LOCAL))
-        sp, sR, sdR, pt, pR, pdR = self._geometry(x)
+        J = np.empty((n, 2, self.n_local))
+        sp, ss, sR, sdR, pt, pR, pdR = self._geometry(x)
         kernels.residual_rows(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"], a["group_prj"],
-                              a["group_meas"], sp, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
+                              a["group_meas"], sp, ss, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
                               pr.cam_mm, pr.prj_mm, res, ok, J)
         return res, J, ok
 
@@ -444,7 +492,7 @@ class Evaluator:
         return other
 
     def global_columns(self) -> np.ndarray:
-        """Global parameter index of each local slot of each control point, (n, 34) (-1: fixed)."""
+        """Global parameter index of each local slot of each control point, (n, n_local) (-1: fixed)."""
         a = self._arrays
         start, stop, _, _ = self.problem.groups()
         counts = stop - start

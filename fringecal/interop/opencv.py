@@ -18,12 +18,14 @@ fringecal (:mod:`fringecal.sensor`) takes ``x' = R_s (X - X0)``, the ideal image
   Hence ``fx = a_x c``, ``fy = a_y c``, ``cx = a_x xi_h + b_x``, ``cy = a_y eta_h + b_y``.
 * **Distortion.** Both are Brown's model of the ideal point; with ``x = c x_n`` the
   coefficients scale by powers of ``c`` and OpenCV's p1, p2 are fringecal's p2, p1:
-  ``(k1 c^2, k2 c^4, p2 c, p1 c, k3 c^6)``.
+  ``(k1 c^2, k2 c^4, p2 c, p1 c, k3 c^6)``. A sensor with thin-prism terms exports
+  OpenCV's 12 coefficients, k4..k6 zero and ``(s1 c, s2 c^3, s3 c, s4 c^3)``, and such
+  a model imports exactly.
 
 The conversion is therefore exact; :func:`model_difference` checks it on a dense grid
 over the whole format at several depths by projecting the same world points with
 ``cv2.projectPoints`` and :meth:`fringecal.sensor.Sensor.project`. OpenCV models with
-terms fringecal lacks (rational k4..k6, thin prism s1..s4, tilt) are imported by a
+terms fringecal lacks (rational k4..k6, tilt) are imported by a
 least-squares fit of k1, k2, k3, p1, p2 over the image, and the remaining difference is
 measured the same way. Only the pixel -> mm scale is not in OpenCV's model: the
 format's width in mm is an argument of :func:`from_opencv` (any value gives the same
@@ -145,6 +147,9 @@ def to_opencv(sensor: Sensor, grid: int = GRID, depths=DEPTHS_MM) -> OpenCVCamer
     k1, k2, k3 = sensor.k
     p1, p2 = sensor.p
     dist = np.array([k1 * c**2, k2 * c**4, p2 * c, p1 * c, k3 * c**6])
+    if sensor.has_prism:  # OpenCV's 12-coefficient model: k4..k6 zero, then s1..s4
+        s1, s2, s3, s4 = sensor.prism
+        dist = np.concatenate([dist, [0.0, 0.0, 0.0, s1 * c, s2 * c**3, s3 * c, s4 * c**3]])
     R = F @ sensor.R
     t = -R @ sensor.pinhole
     worst, rms = model_difference(sensor, K, dist, R, t, grid, depths)
@@ -191,7 +196,10 @@ def from_opencv(K, dist, R, t, image_size, *, name: str, role: Role, width_mm: f
         width_mm = fmt.width_mm
     if not width_mm > 0:
         raise ValueError(f"sensor {name!r}: width_mm must be positive, not {width_mm}")
-    fitted = bool(np.any(dist[5:] != 0))
+    # thin prism alone beyond Brown's terms is fringecal's model too (exact); rational
+    # k4..k6 or tilt are fitted
+    prism_only = dist.size >= 12 and not np.any(dist[5:8] != 0) and not np.any(dist[12:] != 0)
+    fitted = bool(np.any(dist[5:] != 0)) and not prism_only
     if fitted:
         coeffs = _fit_distortion(K, dist, (w, h))
     else:
@@ -210,7 +218,10 @@ def from_opencv(K, dist, R, t, image_size, *, name: str, role: Role, width_mm: f
     params = np.concatenate([-R.T @ t, angles_from_matrix(Rs, near=near),
                              [(K[0, 2] - b[0]) / ax, (K[1, 2] - b[1]) / ay, c,
                               k1 / c**2, k2 / c**4, k3 / c**6, p2 / c, p1 / c]])
-    sensor = Sensor(name, role, fmt_new, params)
+    prism = np.zeros(4)
+    if prism_only:
+        prism = dist[8:12] / np.array([c, c**3, c, c**3])
+    sensor = Sensor(name, role, fmt_new, params, prism)
     worst, rms = model_difference(sensor, K, dist, R, t, grid, depths)
     return ImportedSensor(sensor, worst, rms, fitted)
 

@@ -5,7 +5,7 @@ cv2.FILE_STORAGE_READ)``; the camera is OpenCV's first camera, the projector (an
 inverse camera over its SLM's pixel grid) the second::
 
     imageSize1, imageSize2            (width, height) in pixels
-    cameraMatrix1, distCoeffs1        camera: K (3x3), (k1, k2, p1, p2, k3) (1x5)
+    cameraMatrix1, distCoeffs1        camera: K (3x3), (k1, k2, p1, p2, k3) (1x5; 1x12 with thin-prism terms)
     cameraMatrix2, distCoeffs2        projector
     R, T                              x_prj = R x_cam + T (3x3, 3x1; mm), as cv2.stereoCalibrate
     E, F                              essential and fundamental matrix of (R, T)
@@ -103,7 +103,7 @@ def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM) -> tuple[s
     for i, m in ((1, cam), (2, prj)):
         _write_seq(fs, f"imageSize{i}", m.image_size)
         fs.write(f"cameraMatrix{i}", m.K)
-        fs.write(f"distCoeffs{i}", m.dist.reshape(1, 5))
+        fs.write(f"distCoeffs{i}", m.dist.reshape(1, -1))  # 5, or 12 with thin-prism terms
     fs.write("R", R)
     fs.write("T", T.reshape(3, 1))
     fs.write("E", E)

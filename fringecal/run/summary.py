@@ -9,7 +9,9 @@ writing it again for the same run changes nothing. What describes one execution
 run's verdict over its ball-bar verification and acceptance test
 (:func:`fringecal.acceptance.verdict.run_verdict`: ``verdict``), the acceptance test's
 result (``acceptance``) and the ball-bar's lengths, each with the one U of its budget
-(``verification.lengths``; the GUM U of the mean length is ``verification.mean_length``).
+(``verification.lengths``; the GUM U of the mean length is ``verification.mean_length``)
+and the sensor model the data chose (``sensor_model``: an outcome of the run, so in the
+summary, while the manifest holds the setting ``bundle.sensor_model`` that asked for it).
 """
 
 from __future__ import annotations
@@ -99,6 +101,18 @@ def ballbar_summary(v: dict) -> dict:
     }
 
 
+def _sensor_model(record: dict | None) -> dict | None:
+    """The sensor model a run used, how it was chosen and the residual-pattern verdict
+    (``bundle_summary.json``'s ``sensor_model``; None for runs before it existed)."""
+    if record is None:
+        return None
+    pattern = record.get("residual_pattern") or {}
+    return {"model": record["model"], "chosen_by": record["chosen_by"],
+            "held_out_rms_f_mm": {m: e["rms_f_mm"] for m, e in (record.get("held_out") or {}).items()},
+            "residual_pattern_z": pattern.get("z_max"), "residual_pattern_threshold": pattern.get("threshold"),
+            "lens_model_too_simple": pattern.get("too_simple"), "message": pattern.get("message")}
+
+
 def run_summary(rd: RunDir, cfg) -> dict:
     """The figures of a finished run, from its files (missing parts are None), with the
     run's verdict (:func:`fringecal.acceptance.verdict.run_verdict`) over its
@@ -122,6 +136,7 @@ def run_summary(rd: RunDir, cfg) -> dict:
         "bundle_seconds": b.get("bundle_seconds", b.get("elapsed_s")),
         "bundle_compile_seconds": b.get("bundle_compile_seconds", 0.0),
         "simulation_profile": simulation_profile(cfg),
+        "sensor_model": _sensor_model(b.get("sensor_model")),
         "verification": None, "acceptance": None, "verdict": None, "truth": None,
     }
     if v is not None:

@@ -21,7 +21,7 @@ from fringecal import compile_clock, threads
 from fringecal.atomic import atomic_paths
 from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
-from fringecal.calibration.bundle import bundle_adjust
+from fringecal.calibration.models import choose_sensor_model
 from fringecal.calibration.file import rig_to_dict, xml_text
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
@@ -88,13 +88,14 @@ class Bundle(Step):
             return self.run_black_boxes_only(rd, cfg)
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         t0, c0 = time.perf_counter(), compile_clock.thread_seconds()
-        result = bundle_adjust(problem, b)
+        result, model = choose_sensor_model(problem, b)
         compile_seconds = compile_clock.thread_seconds() - c0
         seconds = time.perf_counter() - t0 - compile_seconds  # the adjustment's own time, as on any later run
         for d in result.diagnostics:
             log.warning("%s: %s", d.kind, d.message)
         log.info("F RMS %.4f -> %.4f mm in %d iterations (start: %s)", result.before.rms_f_mm, result.after.rms_f_mm,
                  result.iterations, result.extra.get("start"))
+        log.info("sensor model %s (%s); %s", model["model"], model["chosen_by"], model["residual_pattern"]["message"])
         t1 = time.perf_counter()
         bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed, workers=threads.granted())
         timing = {"bundle_seconds": seconds, "bundle_compile_seconds": compile_seconds,
@@ -106,7 +107,7 @@ class Bundle(Step):
         covariances = parameter_covariances(arrays, abs(u.artefact_cte_per_c) * u.artefact_temperature_u_c,
                                             u.artefact_u_factor)
         boxes = black_box_adjustment(rd, result, cfg.reference_scanner, b.black_box_scale)
-        doc = {**summary(result, b.volume_diagonal_mm), **timing}
+        doc = {**summary(result, b.volume_diagonal_mm), **timing, "sensor_model": model}
         if boxes is not None:
             doc["black_boxes"] = {"s0": boxes.s0, "dof": boxes.dof,
                                   "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()},
@@ -236,6 +237,7 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     meta = {"after": doc["after"], "before": doc["before"], "one_part_in_1p96_sigma": doc["one_part_in_1p96_sigma"],
             "volume_diagonal_mm": doc["volume_diagonal_mm"], "n_control_points": doc["n_control_points"],
             "iterations": doc["iterations"], "converged": doc["converged"]}
+    model = doc.get("sensor_model")
     per_sphere, per_meas = residual_tables(result)
     tables = {rd.sensors_calibrated: result.sensors_frame(), rd.poses_calibrated: result.poses_frame(),
               rd.residuals_per_sphere: per_sphere, rd.residuals_per_measurement: per_meas,
@@ -248,7 +250,7 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary, rd.covariance]
     with atomic_paths([f.path for f in files]) as tmps:
         tmp = dict(zip([f.rel for f in files], tmps))
-        calibration = rig_to_dict(result.rig, meta, covariances, provenance)
+        calibration = rig_to_dict(result.rig, meta, covariances, provenance, model)
         if black_boxes is not None:
             calibration["black_boxes"] = black_boxes
         tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")

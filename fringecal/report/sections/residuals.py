@@ -1,4 +1,7 @@
-"""Residuals: the histograms of the run, and the residuals per measurement and per sphere image."""
+"""Residuals: the histograms of the run, the residuals per measurement and per sphere
+image, and the sensor model the data chose with the residual-pattern statistic
+(``bundle_summary.json``'s ``sensor_model``; :mod:`fringecal.calibration.models`,
+:mod:`fringecal.calibration.adequacy`)."""
 
 from __future__ import annotations
 
@@ -7,7 +10,7 @@ from fringecal.report.formatting import length, natural, um
 from fringecal.report.rundata import Missing, RunData, guard
 from fringecal.report.tables import table
 
-__all__ = ["build", "per_measurement", "per_sphere"]
+__all__ = ["build", "per_measurement", "per_sphere", "sensor_model"]
 
 SPHERE_HEADS = ["Measurement", "Scanner", "Sphere", "Points", "RMS ε1", "RMS ε2", "Mean ε2", "Max |ε2|"]
 
@@ -20,8 +23,35 @@ def build(run: RunData) -> dict:
             histograms.append({"image": Image(run.load(run.rd.histogram(term)), alt), "missing": None})
         except Missing as why:
             histograms.append({"image": None, "missing": f"Not available: {why}."})
-    return {"histograms": histograms, "per_measurement": guard(per_measurement, run),
-            "per_sphere": guard(per_sphere, run)}
+    return {"histograms": histograms, "sensor_model": guard(sensor_model, run),
+            "per_measurement": guard(per_measurement, run), "per_sphere": guard(per_sphere, run)}
+
+
+def sensor_model(run: RunData) -> dict:
+    """The model used, how it was chosen, every candidate's held-out error and the
+    residual-pattern statistic per sensor image (its value and threshold)."""
+    rec = run.json(run.rd.bundle_summary).get("sensor_model")
+    if rec is None:
+        raise Missing("this run's bundle_summary.json has no sensor_model (a run before issue 29)")
+    pattern = rec["residual_pattern"]
+    held = rec.get("held_out") or {}
+    cmp = {c["richer"]: c for c in rec.get("comparisons") or []}
+    candidates = None
+    if held:
+        rows = []
+        for name, e in held.items():
+            c = cmp.get(name)
+            rows.append([name, um(e["rms_f_mm"]), um(e["rms_eps1_mm"]), um(e["rms_eps2_mm"]),
+                         "" if c is None else f"{100 * c['gain']:+.2f} % vs {c['simpler']}",
+                         "" if c is None else f"{c['t']:.1f}", "chosen" if name == rec["model"] else ""])
+        candidates = table(["Model", "Held-out RMS F", "RMS ε1", "RMS ε2", "Gain", "t", ""], rows, left=1)
+    stats = table(["Scanner", "Sensor", "Residual", "Z", "Pattern RMS", "Bins"],
+                  [[s["scanner"], s["sensor"], s["residual"], f"{s['z']:.1f}", f"{s['systematic_um']:.1f} um",
+                    s["n_bins"]] for s in pattern["statistics"]], left=3)
+    return {"model": rec["model"], "chosen_by": rec["chosen_by"], "min_gain": rec.get("min_gain"),
+            "t_min": rec.get("t_min"), "candidates": candidates, "message": pattern["message"],
+            "too_simple": pattern["too_simple"], "z_max": pattern["z_max"], "threshold": pattern["threshold"],
+            "statistics": stats}
 
 
 def per_measurement(run: RunData):

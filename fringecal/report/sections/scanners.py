@@ -18,7 +18,7 @@ from fringecal.report.formatting import PARAM_LABELS, PARAM_UNITS, finite, lengt
 from fringecal.report.rundata import Missing, RunData, guard
 from fringecal.report.sections.certificate import VERDICT_CLASSES
 from fringecal.report.tables import table
-from fringecal.sensor import PARAM_NAMES
+from fringecal.sensor import PARAM_NAMES, PRISM_NAMES
 
 __all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths", "acceptance_values"]
 
@@ -53,12 +53,23 @@ def _value(rig, i: int, j: int):
     return plus_minus(value, None if rig.uncertainty is None else float(rig.uncertainty[i, j]))
 
 
+def _prism_value(rig, i: int, j: int):
+    value = float(rig.sensors[i].prism[j])
+    if not rig.prism_free[i, j]:
+        return Markup('<span class="fixed">{} (fixed)</span>').format(f"{value:.7g}")
+    u = None if rig.prism_uncertainty is None else float(rig.prism_uncertainty[i, j])
+    return plus_minus(value, u)
+
+
 def _parameters(rig, k: int):
     """The parameter table of scanner ``k`` (camera and projector columns)."""
     sc = rig.scanners[k]
     first = 2 * k
     sensors = range(first, first + len(sc.sensors))
     rows = [[PARAM_LABELS[p], PARAM_UNITS[p], *(_value(rig, i, j) for i in sensors)] for j, p in enumerate(PARAM_NAMES)]
+    if rig.has_prism:  # the thin-prism terms of a model that has them
+        rows += [[f"thin prism {p}", unit, *(_prism_value(rig, i, j) for i in sensors)]
+                 for j, (p, unit) in enumerate(zip(PRISM_NAMES, ("1/mm", "1/mm³", "1/mm", "1/mm³")))]
     return table(["Parameter", "Unit"] + [f"{s.name} ({s.role})" for s in sc.sensors], rows, left=2)
 
 
