@@ -47,7 +47,7 @@ from fringecal.verification.budget import (
 )
 from fringecal.verification.measure import store_scanner
 
-__all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict"]
+__all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict", "monte_carlo_disagreement"]
 
 
 def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float) -> SightingPoints:
@@ -209,11 +209,26 @@ def _budget(entries: list) -> dict:
         "U_mm": worst["U_mm"], "budget_mm": worst["budget_mm"], "iso14253": worst["iso14253"]}}
 
 
+def monte_carlo_disagreement(measurement: str, mc: dict) -> str:
+    """One line saying how a length's Monte Carlo check (:func:`validate_linear`'s
+    dict) disagrees with its linear propagation, with the numbers that show it: both
+    95 % intervals, how far their ends lie apart, the tolerance and where it comes
+    from, and both standard uncertainties (um)."""
+    lin, mcs = mc["linear_interval_mm"], mc["mc_interval_mm"]
+    return (f"{measurement}: linear interval [{lin[0]:.4f}, {lin[1]:.4f}] mm, Monte Carlo [{mcs[0]:.4f}, "
+            f"{mcs[1]:.4f}] mm ({mc['draws']} draws): ends {1000 * mc['d_low_mm']:.1f} / "
+            f"{1000 * mc['d_high_mm']:.1f} um apart, tolerance {1000 * mc['tolerance_mm']:.1f} um "
+            f"({mc['tolerance_source']}); u {1000 * mc['u_linear_mm']:.1f} um linear, "
+            f"{1000 * mc['u_mc_mm']:.1f} um Monte Carlo")
+
+
 def _mc_summary(entries: list) -> dict | None:
     mc = [e["monte_carlo"] for e in entries if "monte_carlo" in e]
     if not mc:
         return None
     ratios = np.array([m["ratio"] for m in mc], float)
+    off = [e for e in entries if "monte_carlo" in e and not e["monte_carlo"]["agree"]]
     return {"draws": mc[0]["draws"], "ratio_min": float(ratios.min()), "ratio_max": float(ratios.max()),
             "all_agree": bool(all(m["agree"] for m in mc)),
-            "disagree": [e["measurement"] for e in entries if "monte_carlo" in e and not e["monte_carlo"]["agree"]]}
+            "disagree": [e["measurement"] for e in off],
+            "disagreements": [monte_carlo_disagreement(e["measurement"], e["monte_carlo"]) for e in off]}
