@@ -154,6 +154,31 @@ def test_sphere_positions_in_the_rig_frame_and_their_distances_within_their_stat
     assert float(np.median(u_distance)) < 0.5 * float(np.median(u_position))
 
 
+def test_measure_command_states_the_spheres_and_their_distances(cell, tmp_path):
+    """``fringecal measure --spheres``: the ball-bar's two spheres at one new position,
+    nominal centres 5 mm off the truth; both found, their distance within 3 u of the
+    certified one, its u far below the positions'."""
+    from fringecal.flows.cli import app
+
+    bar = next(iter(cell["ballbar"].values()))
+    folder = tmp_path / "bar"
+    folder.mkdir()
+    for s, path in bar["stores"].items():
+        os.symlink(path, folder / f"{s}.zarr")
+    nominal = tmp_path / "nominal.csv"
+    pd.DataFrame({"sphere_id": bar["ids"], "x_mm": bar["centres"][:, 0] + 5.0, "y_mm": bar["centres"][:, 1],
+                  "z_mm": bar["centres"][:, 2], "radius_mm": bar["radii"]}).to_csv(nominal, index=False)
+    r = CliRunner().invoke(app, ["measure", "-r", str(cell["calibration"].parent), "--stores", str(folder),
+                                 "-o", str(tmp_path / "bar.ply"), "--spheres", str(nominal), "--json"])
+    assert r.exit_code == 0, r.output
+    spheres = json.loads(r.output)["spheres"]
+    assert sorted(f["sphere"] for f in spheres["fitted"]) == ["A", "B"]
+    (d,) = spheres["distances"]
+    true = float(np.linalg.norm(bar["centres"][1] - bar["centres"][0]))
+    assert abs(d["distance_mm"] - true) < 3 * d["u_mm"]
+    assert d["u_mm"] < 0.5 * min(f["u_position_mm"] for f in spheres["fitted"])
+
+
 def test_the_ply_is_read_back_whole_by_plyfile(cell):
     out = cell["root"] / "cloud.ply"
     summary = measure_folder(cell["calibration"], cell["folder"], "stores", out, MeasureSettings(decimate=2))
@@ -233,7 +258,7 @@ def test_overlap_of_two_samplings_of_one_small_sphere_is_near_zero():
 
 
 @pytest.mark.parametrize("case", ["both", "neither", "unknown_scanner", "suffix", "xml_has_no_store",
-                                  "out_is_dir", "no_calibration", "decimate"])
+                                  "out_is_dir", "no_calibration", "decimate", "spheres"])
 def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
     from fringecal.flows.cli import app
 
@@ -243,7 +268,8 @@ def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
     expect = {"both": "not both, not none", "neither": "not both, not none",
               "unknown_scanner": "is not in the calibration", "suffix": "is written as .ply or .zarr",
               "xml_has_no_store": "a store, but --frames expects", "out_is_dir": "is a folder",
-              "no_calibration": "no such file", "decimate": "--decimate"}[case]
+              "no_calibration": "no such file", "decimate": "--decimate",
+              "spheres": "nominal.csv: missing column(s) radius_mm"}[case]
     if case == "both":
         args += ["--frames", str(folder)]
     elif case == "neither":
@@ -264,6 +290,9 @@ def test_bad_input_one_message_nothing_written(cell, tmp_path, case):
         args[2] = str(tmp_path / "nope.json")
     elif case == "decimate":
         args += ["--decimate", "0"]
+    elif case == "spheres":
+        (tmp_path / "nominal.csv").write_text("sphere_id,x_mm,y_mm,z_mm\nA,0,0,3000\n")
+        args += ["--spheres", str(tmp_path / "nominal.csv")]
     r = CliRunner().invoke(app, args)
     assert r.exit_code == 2, r.output
     assert expect in " ".join(r.output.split()), r.output

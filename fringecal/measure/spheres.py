@@ -46,7 +46,7 @@ from fringecal.verification.budget import SightingModel, SightingPoints, length_
 from fringecal.verification.ballbar import disc_pixels
 from fringecal.verification.measure import store_scanner
 
-__all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "SEARCH_MM", "SHELL_MM", "MIN_POINTS",
+__all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "read_nominal_spheres", "NOMINAL_COLUMNS", "SEARCH_MM", "SHELL_MM", "MIN_POINTS",
            "MIN_DISC_FRACTION"]
 
 #: a sphere's points are first looked for this far beyond its nominal surface (mm)
@@ -63,6 +63,44 @@ MIN_DISC_FRACTION = 0.1
 REJECTION_SIGMAS = 3.0
 #: rounds of dropping and refitting
 REJECTION_ROUNDS = 5
+
+
+#: columns of a table of nominal spheres (``fringecal measure --spheres``)
+NOMINAL_COLUMNS = ("sphere_id", "x_mm", "y_mm", "z_mm", "radius_mm")
+
+
+def read_nominal_spheres(path) -> pd.DataFrame:
+    """The nominal spheres of a CSV file (:data:`NOMINAL_COLUMNS`; centres in the
+    calibration's world within ``SEARCH_MM``, certified radii).
+
+    Raises
+    ------
+    ValueError
+        One message naming the file, and the column or row at fault.
+    """
+    try:
+        table = pd.read_csv(path, dtype={"sphere_id": str})
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: not a readable CSV table ({err})") from None
+    missing = [c for c in NOMINAL_COLUMNS if c not in table.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (needs {', '.join(NOMINAL_COLUMNS)})")
+    if table.empty:
+        raise ValueError(f"{path}: no spheres")
+    for col in NOMINAL_COLUMNS[1:]:
+        values = pd.to_numeric(table[col], errors="coerce")
+        bad = ~np.isfinite(values.to_numpy(float)) | ((values <= 0).to_numpy() if col == "radius_mm" else False)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            what = "a radius > 0 mm" if col == "radius_mm" else "a finite number"
+            raise ValueError(f"{path}: row {row + 2}, column {col}: {table[col].iloc[row]!r} is not {what}")
+        table[col] = values.astype(float)
+    ids = table["sphere_id"].fillna("").astype(str).str.strip()
+    if (ids == "").any():
+        raise ValueError(f"{path}: row {int(np.flatnonzero(ids == '')[0]) + 2}, column sphere_id: empty")
+    if ids.duplicated().any():
+        raise ValueError(f"{path}: sphere_id {ids[ids.duplicated()].iloc[0]!r} is given twice")
+    return table.assign(sphere_id=ids)[list(NOMINAL_COLUMNS)]
 
 
 @dataclass(frozen=True)
@@ -134,12 +172,16 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
     stores : scanner -> the store it was measured from (``tau_x``, ``tau_y``)
     rig : the calibration
     covariance : (14 n_sensors, 14 n_sensors) sensor covariance in the frame the
-        positions are to be stated in (the rig's: ``frame_free_covariance``)
+        positions are to be stated in (the rig's: ``frame_free_covariance``), or None
+        (``u_position_mm`` NaN)
     spheres : ``sphere_id, x_mm, y_mm, z_mm, radius_mm``: nominal centres (within a
         few mm) and the certified radii
     footprint_px : the pixel-integration footprint (0: no correction)
     measurement : which of the cloud's measurements
     """
+    stated = covariance is not None
+    if not stated:
+        covariance = np.zeros((14 * len(rig.sensors),) * 2)
     std = np.sqrt(np.clip(np.diag(covariance), 0, None))
     xyz = cloud.xyz()
     out = []
@@ -176,17 +218,24 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
             pts, fraction = pts
             model = sighting_model(pts, std[sl])
             var = np.trace(model.J @ covariance[sl, sl] @ model.J.T) + np.trace(model.C_fit)
-            out.append(MeasuredSphere(str(s.sphere_id), name, pts.centre, float(np.sqrt(max(var, 0.0))),
+            out.append(MeasuredSphere(str(s.sphere_id), name, pts.centre,
+                                      float(np.sqrt(max(var, 0.0))) if stated else float("nan"),
                                       len(pts.cam_mm), fraction, model))
     return out
 
 
-def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray) -> pd.DataFrame:
+def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | None) -> pd.DataFrame:
     """Every distance between two measured centres of different spheres, with its
     standard uncertainty: ``sphere_a, scanner_a, sphere_b, scanner_b, distance_mm,
-    u_mm`` (the calibration's part through both centres at once, and the fits')."""
+    u_mm`` (the calibration's part through both centres at once, and the fits'; NaN
+    without a covariance)."""
     rows = []
-    n = covariance.shape[0]
+    if not measured:
+        return pd.DataFrame(rows, columns=["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_mm", "u_mm"])
+    stated = covariance is not None
+    n = covariance.shape[0] if stated else 28 * (1 + max(m.model.points.block for m in measured))
+    if not stated:
+        covariance = np.zeros((n, n))
     for i, a in enumerate(measured):
         for b in measured[i + 1:]:
             if a.sphere == b.sphere:
@@ -194,5 +243,5 @@ def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray) -> 
             g, e, L = length_gradient(a.model, b.model, n)
             var = float(g @ covariance @ g) + float(e @ (a.model.C_fit + b.model.C_fit) @ e)
             rows.append({"sphere_a": a.sphere, "scanner_a": a.scanner, "sphere_b": b.sphere, "scanner_b": b.scanner,
-                         "distance_mm": L, "u_mm": float(np.sqrt(max(var, 0.0)))})
+                         "distance_mm": L, "u_mm": float(np.sqrt(max(var, 0.0))) if stated else float("nan")})
     return pd.DataFrame(rows, columns=["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_mm", "u_mm"])
