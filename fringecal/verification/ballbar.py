@@ -123,12 +123,15 @@ class SphereMeasurement:
 
 
 def measure_sphere(maps: PointMaps, valid, camera, projector, radius_mm: float, rod_axis=None,
-                   rejection_config: RejectionConfig | None = None, fixed_radius: bool = True) -> SphereMeasurement:
+                   rejection_config: RejectionConfig | None = None, fixed_radius: bool = True,
+                   pixel_integration_px: float = 1.0) -> SphereMeasurement:
     """Find and fit the (single) bar sphere in a measurement's maps.
 
     The strongest sphere candidate of the bar's radius is fitted robustly; with
     ``rod_axis`` (unit direction from this sphere to the other, in the maps' frame)
-    the tube and its end cap are masked by a cone, as for the artefact.
+    the tube and its end cap are masked by a cone, as for the artefact. The kept
+    points are then corrected for pixel integration and fitted again, as
+    :func:`refit_sighting` does.
 
     Raises
     ------
@@ -144,6 +147,12 @@ def measure_sphere(maps: PointMaps, valid, camera, projector, radius_mm: float, 
                     flag_maps={"edge": boundary_flags(valid)}, viewpoints=[camera.pinhole, projector.pinhole],
                     rod_axes=axes, config=rejection_config)
     m = rf.fit.model
+    if pixel_integration_px > 0:
+        px, kept = rf.pixels, rf.fit.kept
+        uv = np.stack([px.cols[kept], px.rows[kept]], axis=-1).astype(float)
+        points, ok = correct_sphere_points(Scanner(camera.name, camera, projector), uv, px.points[kept], m.centre,
+                                           float(m.radius), pixel_integration_px)
+        m = SphereModel.from_estimate(points[ok], radius=radius_mm if fixed_radius else None)
     return SphereMeasurement(np.asarray(m.centre, float), float(m.radius), float(m.rms), int(m.n_points),
                              dict(rf.fit.rejected))
 

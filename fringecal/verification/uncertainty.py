@@ -32,7 +32,9 @@ import pandas as pd
 from fringecal.calibration.keyed import value_key
 from fringecal.calibration.propagation import parameter_covariances
 from fringecal.rig import Rig
+from fringecal.spheres.pixel_integration import phase_integration_bias
 from fringecal.store import open_store
+from fringecal.verification.ballbar import SightingConfig
 from fringecal.verification.budget import (
     BUDGET_TERMS,
     SightingPoints,
@@ -50,15 +52,24 @@ from fringecal.verification.measure import store_scanner
 __all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict", "monte_carlo_disagreement"]
 
 
-def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float) -> SightingPoints:
-    """The kept pixels of one sphere fit in image-plane mm, read from its store."""
+def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float,
+                    pixel_integration_px: float = SightingConfig().pixel_integration_px) -> SightingPoints:
+    """The kept pixels of one sphere fit in image-plane mm, read from its store, their
+    phases corrected for pixel integration against the fitted sphere as the fit's
+    points were (:func:`fringecal.verification.ballbar.refit_sighting`), so that the
+    Monte Carlo and the bootstrap re-triangulate the points the length was measured
+    from."""
     rows, cols = (np.asarray(a, int) for a in pixels)
     with open_store(store) as ds:
         sc = store_scanner(ds, rig.scanner(scanner))
         tau = np.stack([ds["tau_x"].values[rows, cols], ds["tau_y"].values[rows, cols]], axis=-1).astype(float)
     block = [s.name for s in rig.scanners].index(scanner)
-    cam = sc.camera.image_mm(np.stack([cols, rows], axis=-1).astype(float))
-    return SightingPoints(sc, block, cam, sc.projector.image_mm(tau), np.asarray(centre, float), float(radius_mm),
+    uv = np.stack([cols, rows], axis=-1).astype(float)
+    centre = np.asarray(centre, float)
+    bias = phase_integration_bias(sc.camera, sc.projector, uv, np.broadcast_to(centre, (len(uv), 3)),
+                                  np.full(len(uv), float(radius_mm)), pixel_integration_px)
+    tau = tau - np.nan_to_num(bias)
+    return SightingPoints(sc, block, sc.camera.image_mm(uv), sc.projector.image_mm(tau), centre, float(radius_mm),
                           float(rms_mm))
 
 
