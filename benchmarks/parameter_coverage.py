@@ -7,13 +7,15 @@ times without Prefect (:func:`fringecal.steps.run_pipeline`, one worker, up to t
 (``simulate.acquisition.seed = 1000 + i``) and the scanners' prior calibration
 (``simulate.prior.seed = 3000 + i``). Per seed, every free sensor parameter's error
 against the truth (moved into the calibration's world, the reference scanner's own
-frame, as the ``evaluate`` step does) divided by its stated standard uncertainty
-(``calibration.json``). If the uncertainty is right these ratios have an RMS of 1.
+frame, as the ``evaluate`` step does) divided by its stated standard uncertainty. If
+the uncertainty is right these ratios have an RMS of 1.
 
-``--spacings 1 3``: after the run with the first control-point spacing, the same
-rendered stores are calibrated again with each further spacing (only the control
-points and the bundle step rerun): if neighbouring pixels' errors are correlated, the
-ratio's RMS falls as the spacing grows (fewer, more nearly independent points).
+Two statements of u on the same calibration: ``sandwich``, the run's own
+(``calibration.json``; ``bundle.covariance: sandwich``, each point's own residuals), and
+``per-term`` (one variance factor per residual term, what fringecal stated before),
+re-estimated from the run's control points and calibrated poses
+(:func:`fringecal.calibration.bundle.bundle_adjust` from the solution, ``covariance:
+per-term``).
 
     PYTHONPATH=. python benchmarks/parameter_coverage.py --seeds 20 --width 512 \\
         --out benchmarks/results/parameter_coverage_512.json
@@ -22,7 +24,7 @@ ratio's RMS falls as the spacing grows (fewer, more nearly independent points).
 ratios alone, no new run (the smoke test, on ``tests/test_run_flow.py``'s run).
 
 The JSON holds the command, the load average at start and end, the wall time, and per
-spacing the RMS of the ratios over every parameter of every seed, the RMS per seed,
+statement the RMS of the ratios over every parameter of every seed, the RMS per seed,
 the worst ratio and the RMS per parameter name.
 """
 
@@ -48,23 +50,31 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(_HERE))
 from _common import add_options, conditions, finish  # noqa: E402
 
+from fringecal.sensor import PARAM_NAMES  # noqa: E402
+
 
 def ratios(rd) -> dict:
-    """Error / stated u of every free sensor parameter of a run's calibration."""
+    """Error / stated u of every free sensor parameter of a run's calibration: ``sandwich``
+    (the run's) and ``per-term`` (re-estimated)."""
+    from fringecal.calibration.bundle import BundleOptions, bundle_adjust
+    from fringecal.calibration.model import BundleProblem
     from fringecal.frames import frames_from_rows
-    from fringecal.sensor import PARAM_NAMES
     from fringecal.steps.evaluate import truth_in_reference_frame
 
     cal = rd.calibration.load()
     reference = cal.scanners[0].name
     T = frames_from_rows(rd.truth.scanner_frames.load(), key="scanner")[reference]
     truth = truth_in_reference_frame(rd.truth.sensors.load(reference), T, cal)
+    cps = rd.control_points.load()
+    poses = rd.poses_calibrated.load()
+    problem = BundleProblem.from_tables(cal, rd.artefact.load(), cps, poses[poses.measurement.isin(set(cps.measurement))])
     out = {}
-    for k, (est, true) in enumerate(zip(cal.sensors, truth.sensors)):
-        u = cal.uncertainty[k]
-        for j, name in enumerate(PARAM_NAMES):
-            if u[j] > 0:
-                out[f"{est.name}.{name}"] = float((est.params[j] - true.params[j]) / u[j])
+    for how in ("sandwich", "per-term"):
+        r = bundle_adjust(problem, BundleOptions(start="given", covariance=how))
+        u = r.rig.uncertainty
+        out[how] = {f"{est.name}.{name}": float((est.params[j] - true.params[j]) / u[k][j])
+                    for k, (est, true) in enumerate(zip(r.rig.sensors, truth.sensors))
+                    for j, name in enumerate(PARAM_NAMES) if u[k][j] > 0}
     return out
 
 
@@ -74,7 +84,7 @@ def _entry(r: dict, seconds: float = 0.0) -> dict:
             "ratios": r}
 
 
-def run_seed(i: int, width: int, spacings, workdir: Path) -> dict:
+def run_seed(i: int, width: int, workdir: Path) -> dict:
     from fringecal.config import configs_dir
     from fringecal.run.config import load_run_config
     from fringecal.run.summary import manifest
@@ -84,32 +94,33 @@ def run_seed(i: int, width: int, spacings, workdir: Path) -> dict:
     d = Path(tempfile.mkdtemp(dir=workdir, prefix=f"seed{i}-"))
     out = {"seed_index": i}
     try:
-        for spacing in spacings:
-            overrides = {"simulate": {"acquisition": {"seed": 1000 + i, "camera_width_px": width},
-                                      "prior": {"seed": 3000 + i}},
-                         "control_points": {"spacing_px": int(spacing)}}
-            cfg = load_run_config(configs_dir() / "run_thesis.yaml", overrides=overrides)
-            rd = RunDir(d / "run")
-            if not rd.root.exists():
-                rd.create()
-            rd.manifest.save(manifest(cfg))
-            t0 = time.perf_counter()
-            run_pipeline(rd, cfg, workers=1, until="bundle")
-            out[str(spacing)] = _entry(ratios(rd), time.perf_counter() - t0)
+        overrides = {"simulate": {"acquisition": {"seed": 1000 + i, "camera_width_px": width},
+                                  "prior": {"seed": 3000 + i}}}
+        cfg = load_run_config(configs_dir() / "run_thesis.yaml", overrides=overrides)
+        rd = RunDir(d / "run").create()
+        rd.manifest.save(manifest(cfg))
+        t0 = time.perf_counter()
+        run_pipeline(rd, cfg, workers=1, until="bundle")
+        seconds = time.perf_counter() - t0
+        out.update({how: _entry(r, seconds) for how, r in ratios(rd).items()})
     finally:
         shutil.rmtree(d, ignore_errors=True)
     return out
 
 
-def summarise(seeds: list, spacings) -> dict:
+#: the two statements of u compared
+HOW = ("sandwich", "per-term")
+
+
+def summarise(seeds: list, statements) -> dict:
     out = {}
-    for spacing in map(str, spacings):
-        per = [s[spacing] for s in seeds if spacing in s]
+    for how in statements:
+        per = [s[how] for s in seeds if how in s]
         allr = np.array([v for p in per for v in p["ratios"].values()])
         names = sorted({n.split(".", 1)[1] for p in per for n in p["ratios"]})
         by_name = {n: float(np.sqrt(np.mean([v**2 for p in per for k, v in p["ratios"].items()
                                               if k.split(".", 1)[1] == n]))) for n in names}
-        out[spacing] = {"seeds": len(per), "ratios": int(allr.size), "rms": float(np.sqrt(np.mean(allr**2))),
+        out[how] = {"seeds": len(per), "ratios": int(allr.size), "rms": float(np.sqrt(np.mean(allr**2))),
                         "max_abs": float(np.max(np.abs(allr))), "rms_per_seed": [p["rms"] for p in per],
                         "rms_per_parameter": by_name}
     return out
@@ -121,25 +132,23 @@ def main(argv=None) -> dict:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--width", type=int, default=512)
-    ap.add_argument("--spacings", type=int, nargs="+", default=[1])
     args = ap.parse_args(argv)
     doc = conditions("parameter_coverage", argv, args.smoke)
     if args.run is not None:
         from fringecal.rundir import RunDir
 
-        doc.update({"run": str(args.run), "per_seed": [{"seed_index": None, "given": _entry(ratios(RunDir(args.run)))}],
-                    "complete": True})
-        doc["summary"] = summarise(doc["per_seed"], ["given"])
+        doc.update({"run": str(args.run), "complete": True, "per_seed": [
+            {"seed_index": None, **{how: _entry(r) for how, r in ratios(RunDir(args.run)).items()}}]})
+        doc["summary"] = summarise(doc["per_seed"], HOW)
         return finish(doc, args.out)
-    doc.update({"width_px": args.width, "spacings": args.spacings, "complete": False, "per_seed": []})
+    doc.update({"width_px": args.width, "complete": False, "per_seed": []})
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fringecal-paramcov-") as work:
         for i in range(args.first_seed, args.first_seed + args.seeds):
-            doc["per_seed"].append(run_seed(i, args.width, args.spacings, Path(work)))
-            doc["summary"] = summarise(doc["per_seed"], args.spacings)
+            doc["per_seed"].append(run_seed(i, args.width, Path(work)))
+            doc["summary"] = summarise(doc["per_seed"], HOW)
             doc["wall_seconds"] = time.perf_counter() - t0
-            print(f"seed {i}: " + ", ".join(f"spacing {s}: RMS {doc['per_seed'][-1][str(s)]['rms']:.2f}"
-                                            for s in args.spacings), flush=True)
+            print(f"seed {i}: " + ", ".join(f"{h}: RMS {doc['per_seed'][-1][h]['rms']:.2f}" for h in HOW), flush=True)
             if args.out:
                 with open(os.devnull, "w") as quiet:
                     finish(dict(doc), args.out, stream=quiet)

@@ -44,7 +44,7 @@ from fringecal.calibration.increments import RotationIncrements
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
 from fringecal.calibration.solver import LMOptions, LMReport, irls_weights, levenberg_marquardt
 from fringecal.calibration.start import reinitialise
-from fringecal.calibration.uncertainty import Uncertainty, estimate_uncertainty
+from fringecal.calibration.uncertainty import Uncertainty, estimate_uncertainty, score_meat
 from fringecal.config import StrictModel
 from fringecal.rig import Rig
 
@@ -73,6 +73,8 @@ class BundleOptions(StrictModel):
     (:mod:`.bootstrap`); 0: none, the lengths are then not corrected for the
     adjustment's non-linearity. ``coarse_points``: subsample size of the first stage of
     large problems (0: off); ``chunk_size``: control points per parallel work item.
+    ``covariance``: ``sandwich`` (each point's own residuals, heteroscedasticity-consistent)
+    or ``per-term`` (one variance factor per residual term; :mod:`.uncertainty`).
     """
 
     gamma1: float = Field(1.0, gt=0)
@@ -90,6 +92,7 @@ class BundleOptions(StrictModel):
     bootstrap_seed: int = 0
     chunk_size: int = Field(2048, ge=1)
     coarse_points: int = Field(150_000, ge=0)
+    covariance: Literal["sandwich", "per-term"] = "sandwich"
 
     @field_validator("robust_scale_mm")
     @classmethod
@@ -525,7 +528,13 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     e1 = report.evaluation  # at x, with the (robust) normal equations
     plain = ev.evaluate(x, False) if options.robust_loss not in ("none", "linear") else e1
     weights = irls_weights(plain.res, options.robust_loss, scales)
-    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names)
+    meat = None
+    if options.covariance == "sandwich":
+        _, J, ok = ev.jacobian_rows(x)
+        start, stop, _, _ = problem.groups()
+        meat = score_meat(J, ev.global_columns(), plain.res, weights * ok[:, None], gamma, layout.n, start, stop)
+        del J
+    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names, meat)
     sp, po = layout.unpack(x, problem.rig.params, problem.poses)
     std_s = np.zeros_like(sp)
     m = layout.sensor_index >= 0
