@@ -39,8 +39,8 @@ from fringecal.verification.measure import store_scanner
 pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
 
 SCANNERS = ("scanner1", "scanner2")
-#: ball-bar positions (thesis table 6-9) rendered as objects the calibration never saw
-BALLBAR_POSITIONS = (2, 4, 6, 8)
+#: ball-bar positions (thesis table 6-9) the calibration run renders and never uses: objects
+BALLBAR_POSITIONS = (1, 4, 9)
 
 
 def _run(d, poses, until, positions=(1, 9)) -> RunDir:
@@ -55,8 +55,8 @@ def _run(d, poses, until, positions=(1, 9)) -> RunDir:
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     root = tmp_path_factory.mktemp("measure")
-    cal = _run(root / "cal", (1, 5, 9, 12), "bundle")
-    obj = _run(root / "obj", (3,), "simulate-ballbar", positions=BALLBAR_POSITIONS)
+    cal = _run(root / "cal", (1, 5, 9, 12), "bundle", positions=BALLBAR_POSITIONS)
+    obj = _run(root / "obj", (3,), "simulate-render")
     folder = root / "pose3"
     folder.mkdir()
     for s in SCANNERS:
@@ -66,11 +66,11 @@ def cell(tmp_path_factory):
     art = pd.read_csv(obj.artefact.path)
     centres = T_world_reference.inverse().to_world(T.to_world(art[["x_mm", "y_mm", "z_mm"]].to_numpy()))
     truth = truth_in_reference_frame(obj.truth.sensors.load("scanner1"), T_world_reference, cal.calibration.load())
-    bar = pd.read_csv(obj.truth.ballbar.path)
-    bar_poses = frames_from_rows(obj.truth.ballbar_positions.load())
+    bar = pd.read_csv(cal.truth.ballbar.path)
+    bar_poses = frames_from_rows(cal.truth.ballbar_positions.load())
     ballbar = {}
     for p in bar_poses:
-        ballbar[p] = {"stores": {s: obj.store(f"{p}-{s}").path for s in SCANNERS},
+        ballbar[p] = {"stores": {s: cal.store(f"{p}-{s}").path for s in SCANNERS},
                       "centres": T_world_reference.inverse().to_world(bar_poses[p].to_world(
                           bar[["x_mm", "y_mm", "z_mm"]].to_numpy())),
                       "ids": bar.sphere_id.astype(str).to_numpy(), "radii": bar.diameter_mm.to_numpy() / 2}
@@ -112,7 +112,8 @@ def test_the_artefact_at_a_new_pose_lands_on_the_truth_within_the_stated_uncerta
 
 
 def test_sphere_positions_in_the_rig_frame_and_their_distances_within_their_stated_uncertainty(cell):
-    """The ball-bar at four positions the calibration never saw, its spheres fitted in
+    """The ball-bar at three positions the calibration never saw (rendered by its run,
+    not used by the adjustment), its spheres fitted in
     each cloud (pixel integration corrected), against the truth: each centre's position
     in the rig's frame (the truth compared after the rigid motion of the whole rig that
     the calibration's sensor errors amount to, removed as the frame-free covariance
@@ -123,7 +124,7 @@ def test_sphere_positions_in_the_rig_frame_and_their_distances_within_their_stat
     describe a real artefact's table; the ideal coverage benchmark leaves them out the
     same way).
 
-    Measured (median |error| / u): positions 0.47, distances 0.91. The eight centres
+    Measured (median |error| / u): positions 0.47, distances 0.80. The six centres
     share one calibration, i.e. one draw of the scanners' orientation errors, whose
     components along the two large axes of each centre's covariance came out at about
     half their u here (a 3-D ratio below 0.5 happens in about one draw in five when u
@@ -156,7 +157,7 @@ def test_sphere_positions_in_the_rig_frame_and_their_distances_within_their_stat
             distance.append(abs(r.distance_mm - np.linalg.norm(true[r.sphere_a] - true[r.sphere_b])) / r.u_mm)
             u_distance.append(r.u_mm)
     print("positions", np.round(position, 2), "distances", np.round(distance, 2))
-    assert len(position) >= 8 and len(distance) >= 4
+    assert len(position) >= 6 and len(distance) >= 3
     assert 0.4 < float(np.median(position)) < 2.0
     assert 0.5 < float(np.median(distance)) < 2.0
     # a distance is far better known than either position
