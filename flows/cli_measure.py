@@ -44,7 +44,33 @@ def _print(summary: dict) -> None:
         console.print(o)
     elif len(summary["measurements"]) == 1:
         console.print("overlap: no two scanners see the same surface")
+    if summary.get("spheres") is not None:
+        _print_spheres(summary["spheres"], summary["datum"])
     console.print(f"{summary['seconds']['total']:.1f} s")
+
+
+def _um(value) -> str:
+    return "-" if value is None or value != value else f"{1000 * value:.1f}"
+
+
+def _print_spheres(spheres: dict, datum: str) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"spheres of {spheres['nominal']}: centres, u of the position ({datum} frame)")
+    for col in ("measurement", "sphere", "scanner", "x (mm)", "y (mm)", "z (mm)", "u (um)", "points"):
+        t.add_column(col, justify="left" if col in ("measurement", "sphere", "scanner") else "right")
+    for r in spheres["fitted"]:
+        t.add_row(r["measurement"], r["sphere"], r["scanner"], f"{r['x_mm']:.3f}", f"{r['y_mm']:.3f}",
+                  f"{r['z_mm']:.3f}", _um(r["u_position_mm"]), f"{r['n_points']:,}")
+    console.print(t if spheres["fitted"] else "spheres: none found (none seen whole enough by any scanner)")
+    if spheres["distances"]:
+        d = Table(title="distances between sphere centres, each with its own u (what a CMM compares)")
+        for col in ("measurement", "from", "to", "distance (mm)", "u (um)"):
+            d.add_column(col, justify="left" if col in ("measurement", "from", "to") else "right")
+        for r in spheres["distances"]:
+            d.add_row(r["measurement"], f"{r['sphere_a']} ({r['scanner_a']})", f"{r['sphere_b']} ({r['scanner_b']})",
+                      f"{r['distance_mm']:.4f}", _um(r["u_mm"]))
+        console.print(d)
 
 
 def _cloud_size(folders: list[Path], decimate: int) -> float:
@@ -89,6 +115,10 @@ def measure_command(
     datum: str = typer.Option("rig", "--datum",
                               help="u_mm relative to the frame the sensors realise ('rig') or to the calibration's "
                                    "own world frame, the reference camera as given ('calibration')."),
+    spheres: Optional[Path] = typer.Option(None, "--spheres",
+                                           help="CSV of nominal spheres (sphere_id, x_mm, y_mm, z_mm, radius_mm; "
+                                                "centres within 15 mm): fit each, state its position's u and every "
+                                                "distance between two with its own u."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ):
     """Triangulate every valid pixel of every scanner in the global frame into one point cloud
@@ -111,7 +141,7 @@ def measure_command(
 
     needs_space(out, lambda: _cloud_size(folders, decimate), "the point cloud")
     try:
-        summary = measure_folder(calibration, folders, kind, out, settings, datum=datum)
+        summary = measure_folder(calibration, folders, kind, out, settings, datum=datum, spheres=spheres)
     except MeasurementSourceError as err:
         raise UserInputError(str(err)) from None
     if as_json:

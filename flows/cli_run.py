@@ -151,6 +151,9 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
                          f"{1000 * worst['U_mm']:.1f} um, {worst['iso14253']}"))
         if v.get("not_covered"):
             rows.append(("  [red]not covered by the budget[/]", ", ".join(v["not_covered"])))
+        if v.get("monte_carlo_disagreements"):
+            rows.append(("  [yellow]Monte Carlo disagrees (JCGM 101)[/]",
+                         f"{len(v['monte_carlo_disagreements'])} of {len(measured)} lengths, below"))
     rows.append(verdict_row(summary.get("verdict")))
     if tr:
         if tr.get("rms_eps1_mm_true_params") is not None:
@@ -169,6 +172,9 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
     for k, val in rows:
         t.add_row(k, val)
     console.print(t)
+    for line in (v or {}).get("monte_carlo_disagreements") or []:
+        console.print(f"[yellow]Monte Carlo does not confirm the linear length uncertainty[/] at {line}",
+                      soft_wrap=True)
     console.print(f"report: {run_dir / 'report.html'}")
 
 

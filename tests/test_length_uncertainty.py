@@ -212,3 +212,33 @@ def test_length_cross_validation_adds_model_error_only_when_the_points_agree_it_
     assert found["model_error_mm"] == pytest.approx(np.sqrt(max(d**2 - found["lengths"][0]["u_predicted_mm"]**2, 0) / 2))
     contradicted = _cross_validated(models, lengths, halves, 56, ("A", "B"), "consistent")
     assert contradicted["verdict"] == "inconclusive" and contradicted["model_error_mm"] == 0.0
+
+
+def test_a_monte_carlo_disagreement_is_stated_with_its_numbers_in_the_summary_and_the_report():
+    """A length whose Monte Carlo distribution is wider than its linear u (25 um against
+    20 um, 4000 draws): the check disagrees, and the line the console, the log and the
+    report print carries both intervals, the ends' distance and the tolerance."""
+    from fringecal.report.sections.budget import length_budget as report_budget
+    from fringecal.run.summary import ballbar_summary
+    from fringecal.verification.uncertainty import _mc_summary
+
+    y, u = 1015.65, 0.020
+    samples = y + np.random.default_rng(4).normal(0, 0.025, 4000)
+    mc = validate_linear(y, u, 2.0, samples)
+    assert not mc["agree"] and mc["d_high_mm"] > mc["tolerance_mm"]
+    entry = {"measurement": "bb07", "error_mm": 0.0, "length_mm": y, "u_mm": u, "U_mm": 2 * u, "budget_mm": {},
+             "iso14253": "conformance", "covered": True, "monte_carlo": mc}
+    unc = {"coverage_factor": 2.0, "lengths": [entry], "budget": {}, "not_covered": [],
+           "monte_carlo": _mc_summary([entry])}
+    line = unc["monte_carlo"]["disagreements"][0]
+    lo, hi = mc["mc_interval_mm"]
+    assert line.startswith("bb07: linear interval [1015.6100, 1015.6900] mm, Monte Carlo [")
+    assert f"[{lo:.4f}, {hi:.4f}] mm (4000 draws)" in line and "u 20.0 um linear, 2" in line
+    assert f"tolerance {1000 * mc['tolerance_mm']:.1f} um" in line
+    assert report_budget(unc)["disagreements"] == [line]
+    verification = {"calibrated": {"reference_length_mm": y, "max_abs_error_mm": 0.0, "volume_diagonal_mm": 2638.0,
+                                   "one_part_in": 1e6, "mpe_mm": 0.1, "pass": True, "mean_length_mm": y,
+                                   "positions": [{"measurement": "bb07", "error_mm": 0.0}],
+                                   "uncertainty": {"expanded_mm": 0.01, "coverage_factor": 2.0}},
+                    "uncertainty": unc, "failures": []}
+    assert ballbar_summary(verification)["monte_carlo_disagreements"] == [line]

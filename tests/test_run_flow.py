@@ -441,3 +441,10 @@ def test_benchmarks_that_read_a_run_directory_run_on_this_run(first_run, tmp_pat
     assert sorted(split["positions"]) == sorted(length["measurement"] for length in lengths)
     scale = run_benchmark("thesis_scale", [str(run_dir), "--smoke"], tmp_path / "t.json")
     assert set(scale["steps_s"]) == {"initialise", "bundle"} and scale["n_control_points"] == summary["n_control_points"]
+    # error / stated u of every free sensor parameter (3 sensors free in full, the reference camera's interior)
+    statements = run_benchmark("parameter_coverage", [str(run_dir), "--smoke"], tmp_path / "p.json")["summary"]
+    ratios = statements["sandwich"]
+    assert ratios["ratios"] == statements["per-term"]["ratios"] == 3 * 14 + 8 and 0.1 < ratios["rms"] < 10
+    # the ball-bar measured as objects: both spheres of every position, each distance
+    spheres = run_benchmark("measure_spheres", [str(run_dir), "--smoke"], tmp_path / "m.json")["budgets"]["total"]
+    assert spheres["summary"]["distance"]["n"] == 3 and spheres["summary"]["position"]["n"] >= 6

@@ -18,7 +18,9 @@ points belong to the object is the evaluator's segmentation, stated here):
   incidence of at most ``max_incidence_deg`` (the grazing rim, where pixel
   integration biases the phase, thesis chapter 5). ``segment_mm`` (2 mm by default)
   is 40 times the thesis rig's noise: it separates the sphere from its surroundings
-  and removes nothing a scanner measures on it.
+  and removes nothing a scanner measures on it. The points are then corrected for the
+  pixel integration over the sphere (as the control points and the ball-bar's are,
+  :func:`fringecal.spheres.pixel_integration.correct_sphere_points`).
 - **Flat**: the largest plane of valid points (RANSAC with ``segment_mm`` inlier
   distance, seeded, 8-connected image region of the inliers); a plane whose region
   spans more than 1.2 times the flat's diagonal is a backdrop or a table and is set
@@ -56,6 +58,7 @@ from fringecal.acceptance.standards import FlatStandard, SphereStandard
 from fringecal.artefact import Artefact
 from fringecal.rig import Scanner
 from fringecal.spheres.fit import FitError, PlaneModel, SphereModel
+from fringecal.spheres.pixel_integration import correct_sphere_points
 from fringecal.spheres.regions import boundary_flags
 from fringecal.verification.ballbar import SightingConfig, find_sightings
 from fringecal.verification.measure import store_maps
@@ -313,8 +316,14 @@ def _incidence_ok(points, normals, scanner: Scanner, max_incidence_deg: float) -
 
 def measure_sphere_store(store, scanner: Scanner, standard: SphereStandard, exclude_fraction: float = 0.003,
                          max_incidence_deg: float = 70.0, rejection_config=None,
-                         segment_mm: float = SEGMENT_MM) -> SphereMeasurement:
+                         segment_mm: float = SEGMENT_MM, pixel_integration_px: float = 1.0) -> SphereMeasurement:
     """P_F and P_S of the sphere in one store, measured with ``scanner`` (world frame).
+
+    The points are corrected for each pixel's integration over the sphere against the
+    located sphere (:func:`fringecal.spheres.pixel_integration.correct_sphere_points`,
+    footprint ``pixel_integration_px``, 0: none; the rim, whose bias cannot be
+    predicted, left out): uncorrected they lie behind the surface, which reads as a
+    size error P_S.
 
     Raises
     ------
@@ -328,11 +337,17 @@ def measure_sphere_store(store, scanner: Scanner, standard: SphereStandard, excl
         raise AcceptanceMeasurementError(f"{store}: no sphere of diameter {standard.diameter_mm:g} mm found "
                                          f"({'; '.join(notes)})")
     s = found[0]
-    p = xyz[inner]
+    rows, cols = np.nonzero(inner)
+    p = xyz[rows, cols]
     near = np.abs(np.linalg.norm(p - s.centre, axis=1) - s.radius_mm) <= segment_mm
-    p = p[near]
+    p, rows, cols = p[near], rows[near], cols[near]
     normals = (p - s.centre) / np.linalg.norm(p - s.centre, axis=1, keepdims=True)
-    p = p[_incidence_ok(p, normals, scanner, max_incidence_deg)]
+    seen = _incidence_ok(p, normals, scanner, max_incidence_deg)
+    p, rows, cols = p[seen], rows[seen], cols[seen]
+    if pixel_integration_px > 0:
+        p, ok = correct_sphere_points(scanner, np.stack([cols, rows], axis=-1), p, s.centre, s.radius_mm,
+                                      pixel_integration_px)
+        p = p[ok]
     try:
         return probe_sphere(p, standard, exclude_fraction, origin=scanner.camera.pinhole)
     except (FitError, AcceptanceMeasurementError) as err:

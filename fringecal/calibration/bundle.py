@@ -44,7 +44,7 @@ from fringecal.calibration.increments import RotationIncrements
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator, ParameterLayout
 from fringecal.calibration.solver import LMOptions, LMReport, irls_weights, levenberg_marquardt
 from fringecal.calibration.start import reinitialise
-from fringecal.calibration.uncertainty import Uncertainty, estimate_uncertainty
+from fringecal.calibration.uncertainty import Uncertainty, estimate_uncertainty, score_meat
 from fringecal.config import StrictModel
 from fringecal.rig import Rig
 
@@ -80,6 +80,8 @@ class BundleOptions(StrictModel):
     chosen by held-out measurements; :func:`bundle_adjust` itself adjusts the terms the
     problem's rig frees, ``prism_free``); ``model_selection``: ``screened`` cross-validates
     only when the 14-parameter residuals keep a pattern over the images, ``always`` every run.
+    ``covariance``: ``sandwich`` (each point's own residuals, heteroscedasticity-consistent)
+    or ``per-term`` (one variance factor per residual term; :mod:`.uncertainty`).
     """
 
     gamma1: float = Field(1.0, gt=0)
@@ -100,6 +102,7 @@ class BundleOptions(StrictModel):
     black_box_scale: bool = False
     sensor_model: Literal["auto", "brown14", "thin_prism", "thin_prism4"] = "auto"
     model_selection: Literal["screened", "always"] = "screened"
+    covariance: Literal["sandwich", "per-term"] = "sandwich"
 
     @field_validator("robust_scale_mm")
     @classmethod
@@ -536,7 +539,13 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     e1 = report.evaluation  # at x, with the (robust) normal equations
     plain = ev.evaluate(x, False) if options.robust_loss not in ("none", "linear") else e1
     weights = irls_weights(plain.res, options.robust_loss, scales)
-    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names)
+    meat = None
+    if options.covariance == "sandwich":
+        _, J, ok = ev.jacobian_rows(x)
+        start, stop, _, _ = problem.groups()
+        meat = score_meat(J, ev.global_columns(), plain.res, weights * ok[:, None], gamma, layout.n, start, stop)
+        del J
+    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names, meat)
     sp, po = layout.unpack(x, problem.rig.params, problem.poses)
     std_s = np.zeros_like(sp)
     m = layout.sensor_index >= 0

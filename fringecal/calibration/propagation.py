@@ -24,7 +24,8 @@ from fringecal.rotation import angles_from_matrix
 
 __all__ = ["ParameterCovariances", "parameter_covariances", "sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
            "point_variances", "point_uncertainty_map", "uncertainty_at_depth", "DepthUncertainty", "scanner_with", "STEP_FRACTION",
-           "rigid_motion_basis", "frame_free_covariance", "ATTITUDE_WEIGHT_MM"]
+           "rigid_motion_basis", "frame_free_covariance", "ATTITUDE_WEIGHT_MM", "attitude_jacobian",
+           "frame_motion_operator", "to_rig_frame"]
 
 #: central-difference step as a fraction of each parameter's standard uncertainty
 STEP_FRACTION = 1e-3
@@ -209,6 +210,66 @@ def rigid_motion_basis(rig: Rig, eps: float = 1e-6) -> np.ndarray:
     return G
 
 
+def attitude_jacobian(sensor, std14, grid: int = 3) -> np.ndarray:
+    """How the sensor's bundle of rays turns with its parameters: (3, 14), the rotation
+    vector (rad, world axes) that best explains (least squares) the change of the
+    world directions of the rays through a ``grid`` x ``grid`` of image points spanning
+    its format, per unit of each parameter.
+
+    This, not the three angles alone, is the sensor's attitude: turning the angles by
+    ``d`` while moving the principal point by ``c d`` leaves every ray almost where it
+    was. The reference camera, whose angles the adjustment holds fixed, turns with
+    the rest of the rig through its principal point. Steps are ``STEP_FRACTION`` of
+    ``std14``; parameters with zero uncertainty get a zero column.
+    """
+    fmt = sensor.format
+    a = (np.arange(grid) + 0.5) / grid - 0.5
+    uv = np.stack(np.meshgrid(a * fmt.width_mm, a * fmt.height_mm), axis=-1).reshape(-1, 2)
+    _, d0 = sensor.rays(uv)
+    # d(d_j) = w x d_j = -[d_j]x w: stack the cross-product matrices, solve for w
+    A = np.zeros((len(d0), 3, 3))
+    A[:, 0, 1], A[:, 0, 2], A[:, 1, 2] = d0[:, 2], -d0[:, 1], d0[:, 0]
+    A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = -d0[:, 2], d0[:, 1], -d0[:, 0]
+    A_pinv = np.linalg.pinv(A.reshape(-1, 3))
+    out = np.zeros((3, 14))
+    for j in np.flatnonzero(np.asarray(std14) > 0):
+        h = STEP_FRACTION * float(std14[j])
+        p = np.array(sensor.params, float)
+        p[j] += h
+        plus = sensor.with_params(p).rays(uv)[1]
+        p[j] -= 2 * h
+        minus = sensor.with_params(p).rays(uv)[1]
+        out[:, j] = A_pinv @ ((plus - minus) / (2 * h)).reshape(-1)
+    return out
+
+
+def frame_motion_operator(rig: Rig, std: np.ndarray) -> np.ndarray:
+    """K (6, n_sensors * 14): the rigid motion of the whole rig (as the columns of
+    :func:`rigid_motion_basis`) that best explains a change ``delta`` of the sensor
+    parameters, ``xi = K delta``: least squares over the sensors' projection centres
+    (mm) and attitudes (:func:`attitude_jacobian`, 1 rad weighted as
+    ``ATTITUDE_WEIGHT_MM`` mm). ``std`` (n_sensors * 14,) sets the differentiation steps.
+    """
+    G = rigid_motion_basis(rig)
+    n = G.shape[0]
+    M = np.zeros((n, n))
+    for i, sensor in enumerate(rig.sensors):
+        sl = slice(14 * i, 14 * i + 14)
+        A = attitude_jacobian(sensor, np.asarray(std)[sl])
+        M[sl, sl] = ATTITUDE_WEIGHT_MM ** 2 * A.T @ A
+        M[14 * i:14 * i + 3, 14 * i:14 * i + 3] += np.eye(3)
+    MG = M @ G
+    return np.linalg.solve(G.T @ MG, MG.T)
+
+
+def to_rig_frame(rig: Rig, xi: np.ndarray, points) -> np.ndarray:
+    """Points (..., 3) measured by a rig that moved rigidly by ``xi`` (6,: as
+    :func:`rigid_motion_basis`, e.g. ``frame_motion_operator(...) @ delta``) moved
+    back: where the rig without that motion puts them."""
+    pivot = np.mean([s.pinhole for s in rig.sensors], axis=0)
+    return Frame.from_params(xi).to_local(np.asarray(points, float) - pivot) + pivot
+
+
 def frame_free_covariance(rig: Rig, covariance: np.ndarray) -> np.ndarray:
     """The sensor covariance (n_sensors * 14 square) moved to the frame realised by the
     sensors themselves (an S-transformation to inner constraints).
@@ -219,19 +280,19 @@ def frame_free_covariance(rig: Rig, covariance: np.ndarray) -> np.ndarray:
     3.5 m for the thesis rig, an uncertainty of how the frame is defined, not of what
     is measured. Here the rigid motions of the whole rig (:func:`rigid_motion_basis`,
     which no observation can see) are projected out so that the sensors' projection
-    centres and attitudes (1 rad weighted as ``ATTITUDE_WEIGHT_MM`` mm) do not move on
-    average: ``P C P^T`` with ``P = I - G (G^T W G)^-1 G^T W``. Lengths, shapes and the
-    registration between scanners keep their uncertainty exactly (a rigid motion
-    changes none of them); a point's uncertainty becomes that relative to the rig.
+    centres and attitudes do not move on average (:func:`frame_motion_operator`):
+    ``P C P^T`` with ``P = I - G K``. A sensor's attitude is that of its bundle of
+    rays (:func:`attitude_jacobian`), not its three angles: the reference camera's
+    angles are fixed, and the frame turns through its principal point. Lengths,
+    shapes and the registration between scanners keep their uncertainty exactly (a
+    rigid motion changes none of them); a point's uncertainty becomes that relative
+    to the rig.
     """
+    covariance = np.asarray(covariance, float)
     G = rigid_motion_basis(rig)
-    w = np.zeros(G.shape[0])
-    for i in range(G.shape[0] // 14):
-        w[14 * i:14 * i + 3] = 1.0
-        w[14 * i + 3:14 * i + 6] = ATTITUDE_WEIGHT_MM ** 2
-    WG = G * w[:, None]
-    P = np.eye(G.shape[0]) - G @ np.linalg.solve(G.T @ WG, WG.T)
-    return P @ np.asarray(covariance, float) @ P.T
+    K = frame_motion_operator(rig, np.sqrt(np.clip(np.diag(covariance), 0, None)))
+    P = np.eye(G.shape[0]) - G @ K
+    return P @ covariance @ P.T
 
 
 @dataclass(frozen=True)

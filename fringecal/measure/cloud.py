@@ -27,10 +27,11 @@ through the triangulation (:func:`fringecal.calibration.propagation.point_jacobi
 (:func:`fringecal.calibration.propagation.frame_free_covariance`): the adjustment's
 datum (one camera's exterior orientation held fixed) would otherwise add ~1 mm at
 3.5 m that describes how the frame is defined, not the measurement. What is left is
-the point's uncertainty relative to the rig (thesis rig, default run: about 0.6 mm
-at 3.5 m, dominated by the orientation of the scanners, 1e-4 rad); distances
-between points, and thus lengths and shapes, are far better known (the ball-bar's
-calibration term: 30-50 um over 1 m), because a common orientation error cancels.
+the point's uncertainty relative to the rig (thesis rig, default run: 0.32-0.36 mm for
+the ball-bar's centres at about 3 m, dominated by the orientation of the scanners,
+1e-4 rad); distances between points, and thus lengths and shapes, are far better known
+(the ball-bar's: 15-29 um over 1 m, :mod:`fringecal.measure.spheres`), because a common
+orientation error cancels: a point's ``u_mm`` says nothing about them.
 That costs 56 triangulations per point, so it is computed exactly on a grid of every
 ``UNCERTAINTY_STEP``-th pixel and interpolated bilinearly between the grid nodes that
 lie on the same surface (within ``SAME_SURFACE_MM`` of the point); a pixel without

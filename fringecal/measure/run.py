@@ -15,6 +15,7 @@ from fringecal.measure.files import CLOUD_SUFFIXES, write_cloud
 from fringecal.measure.overlap import overlap_report
 from fringecal.measure.sources import MeasurementSourceError, measurement_entries, open_entry
 from fringecal.scancloud import load_points
+from fringecal.measure.spheres import measure_spheres, read_nominal_spheres, sphere_distances
 
 __all__ = ["measure_folder", "check_output"]
 
@@ -58,7 +59,7 @@ def black_box_points(box, path, index: int, measurement: int, settings: MeasureS
 
 
 def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettings = MeasureSettings(),
-                   decode_settings=None, datum: str = "rig") -> dict:
+                   decode_settings=None, datum: str = "rig", spheres=None) -> dict:
     """Measure ``folders`` (a measurement folder or a list of them; one entry per
     scanner, ``kind`` "frames" or "stores") with the calibration file ``calibration``
     and write one cloud to ``out``.
@@ -69,9 +70,14 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
     exterior orientation as given), which is the frame to compare with coordinates
     known in it (a simulation's truth).
 
+    ``spheres``: a CSV file of nominal spheres (:func:`~fringecal.measure.spheres.read_nominal_spheres`)
+    to fit in every measurement (:func:`~fringecal.measure.spheres.measure_spheres`):
+    each centre with the u of its position (in the frame of ``datum``), every distance
+    between two of them with its own u (:func:`~fringecal.measure.spheres.sphere_distances`).
+
     Returns the summary: points per scanner, their median ``u_mm`` and RMS ``eps1``,
     the overlap between scanners (:func:`~fringecal.measure.overlap.overlap_report`),
-    wall times, and what the cloud's header records. Every folder is checked before
+    the spheres and their distances, wall times, and what the cloud's header records. Every folder is checked before
     any is read; the cloud file appears whole or not at all.
     """
     t0 = time.perf_counter()
@@ -82,6 +88,12 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         raise MeasurementSourceError(f"a measurement folder is given twice: {', '.join(map(str, folders))}")
     cal = read_calibration(calibration)
     out = check_output(out)
+    nominal = None
+    if spheres is not None:
+        try:
+            nominal = read_nominal_spheres(spheres)
+        except ValueError as err:
+            raise MeasurementSourceError(str(err)) from None
     boxes = scanners_from_document(cal.black_boxes) if cal.black_boxes else {}
     entries = [measurement_entries(f, cal.rig, kind, tuple(boxes)) for f in folders]
     cov = None
@@ -90,18 +102,23 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         if datum == "rig":
             cov = frame_free_covariance(cal.rig, cov)
     t_read = t_cloud = 0.0
-    parts = []
-    for group in entries:            # one measurement in memory at a time
+    parts, fitted, distances = [], [], []
+    for g, group in enumerate(entries):   # one measurement in memory at a time
         t = time.perf_counter()
         stores = {name: open_entry(path, kind, decode_settings) for name, path in group.items() if name not in boxes}
         t_read += time.perf_counter() - t
         t = time.perf_counter()
         try:
-            index = len(parts)
-            parts.append(measure_cloud(cal.rig, stores, settings, cov, measurement=index).points)
+            part = measure_cloud(cal.rig, stores, settings, cov, measurement=g)
+            if nominal is not None:
+                found = measure_spheres(part, stores, cal.rig, cov, nominal, measurement=g)
+                name = folders[g].name
+                fitted += [{"measurement": name, **m.as_dict()} for m in found]
+                distances += [{"measurement": name, **r} for r in sphere_distances(found, cov).to_dict("records")]
+            parts.append(part.points)
             for k, (name, box) in enumerate(boxes.items()):
                 if name in group:
-                    parts.append(black_box_points(box, group[name], len(cal.rig.scanners) + k, index, settings))
+                    parts.append(black_box_points(box, group[name], len(cal.rig.scanners) + k, g, settings))
         finally:
             for ds in stores.values():
                 ds.close()
@@ -132,5 +149,6 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
             "uncertainty": "from the calibration's covariance" if cov is not None else
             ("not requested" if not settings.uncertainty else "none: the calibration file carries no covariance"),
             "overlap": [o.as_dict() for o in overlap],
+            "spheres": None if nominal is None else {"nominal": str(spheres), "fitted": fitted, "distances": distances},
             "seconds": {"read": t_read, "triangulate": t_cloud, "overlap_and_write": t_write,
                         "total": time.perf_counter() - t0}}

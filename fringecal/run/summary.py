@@ -94,6 +94,9 @@ def ballbar_summary(v: dict) -> dict:
         "not_covered": budget.get("not_covered", []),
         "budget_rms_mm": (budget.get("budget") or {}).get("rms_mm"),
         "monte_carlo_agrees": None if budget.get("monte_carlo") is None else budget["monte_carlo"]["all_agree"],
+        # each with its numbers (a verification.json from before they were written: the names)
+        "monte_carlo_disagreements": [] if budget.get("monte_carlo") is None else
+        budget["monte_carlo"].get("disagreements", budget["monte_carlo"]["disagree"]),
         "mean_length": {"what": "GUM statement of the mean of the lengths (type A over the positions, type B "
                                 "from the certificate): the U of the mean, not of any one length",
                         "length_mm": mean, "error_mm": mean - cal["reference_length_mm"],

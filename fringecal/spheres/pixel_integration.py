@@ -36,11 +36,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from fringecal.pointcloud import triangulate_image_points
 from fringecal.rig import Scanner
 from fringecal.sensor import Sensor
 from fringecal.triangulation import sphere_hits
 
-__all__ = ["phase_integration_bias", "correct_control_points", "CORRECTION_COLUMNS"]
+__all__ = ["phase_integration_bias", "correct_control_points", "correct_sphere_points", "CORRECTION_COLUMNS"]
 
 #: control-point columns holding the subtracted bias (rad)
 CORRECTION_COLUMNS = ("pixel_integration_x_rad", "pixel_integration_y_rad")
@@ -155,3 +156,43 @@ def correct_control_points(control_points: pd.DataFrame, spheres: pd.DataFrame, 
         out[col] = bias[:, k]
         out[tau] = out[tau] - bias[:, k]
     return out[np.isfinite(bias).all(axis=1)].reset_index(drop=True)
+
+
+def correct_sphere_points(scanner: Scanner, uv, points, centre, radius: float, footprint_px: float = 1.0
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulated points of one sphere moved as if their phases had been corrected for
+    the pixel integration: what a sphere fit (ball-bar, acceptance, measure) needs, as
+    the control points get it from :func:`correct_control_points`.
+
+    Each point's projector coordinates are taken where it projects (the triangulated
+    point's own), the predicted bias (:func:`phase_integration_bias` against the sphere
+    ``centre`` (3,), ``radius``) is subtracted, and the point moves by the difference of
+    the two triangulations: the bias's effect, to first order in it, without the
+    store's phases.
+
+    Parameters
+    ----------
+    scanner : the scanner (camera at the measurement's resolution) in the points' frame
+    uv : (n, 2) camera pixels (column, row) of the points
+    points : (n, 3) the triangulated points, mm
+
+    Returns
+    -------
+    points : (n, 3) corrected (the input where no bias can be predicted)
+    ok : (n,) bool, False where the pixel centre's ray misses the sphere (the rim) or
+        nothing is lit: a fit leaves those out, as the control points do
+    """
+    points = np.asarray(points, float)
+    uv = np.asarray(uv, float)
+    if footprint_px <= 0 or len(points) == 0:
+        return points.copy(), np.ones(len(points), bool)
+    cam, prj = scanner.camera, scanner.projector
+    bias = phase_integration_bias(cam, prj, uv, np.broadcast_to(np.asarray(centre, float), points.shape),
+                                  np.full(len(points), float(radius)), footprint_px)
+    ok = np.isfinite(bias).all(axis=1)
+    tau = prj.measured(prj.project(points))
+    cam_mm = cam.image_mm(uv)
+    moved = (triangulate_image_points(cam, prj, cam_mm, prj.image_mm(tau - np.where(ok[:, None], bias, 0.0)))
+             - triangulate_image_points(cam, prj, cam_mm, prj.image_mm(tau)))
+    ok &= np.isfinite(moved).all(axis=1)
+    return np.where(ok[:, None], points + np.nan_to_num(moved), points), ok

@@ -69,6 +69,10 @@ class Verify(Step):
         if budget and budget["not_covered"]:
             log.warning("ball-bar length error beyond its expanded uncertainty at %s: an error source the "
                         "uncertainty budget does not hold", ", ".join(budget["not_covered"]))
+        if budget and budget.get("monte_carlo") and not budget["monte_carlo"]["all_agree"]:
+            for line in budget["monte_carlo"]["disagreements"]:
+                log.warning("Monte Carlo (JCGM 101 clause 8) does not confirm the linear length uncertainty at %s",
+                            line)
         rd.verification.save({"calibrated": result.to_dict(), "uncertainty": budget,
                               "failures": failures.to_dict("records"),
                               "recorded_by": {p: list(s) for p, s in ballbar_stores(rd).items()}})

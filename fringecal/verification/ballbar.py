@@ -20,8 +20,10 @@ import pandas as pd
 from fringecal.artefact import Artefact
 from fringecal.frames import Frame
 from fringecal.pointcloud import PointMaps
+from fringecal.rig import Scanner
 from fringecal.spheres.candidates import find_sphere_candidates
-from fringecal.spheres.fit import FitError
+from fringecal.spheres.fit import FitError, SphereModel
+from fringecal.spheres.pixel_integration import correct_sphere_points
 from fringecal.spheres.regions import RegionPoints, boundary_flags, fit_region
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
@@ -121,12 +123,15 @@ class SphereMeasurement:
 
 
 def measure_sphere(maps: PointMaps, valid, camera, projector, radius_mm: float, rod_axis=None,
-                   rejection_config: RejectionConfig | None = None, fixed_radius: bool = True) -> SphereMeasurement:
+                   rejection_config: RejectionConfig | None = None, fixed_radius: bool = True,
+                   pixel_integration_px: float = 1.0) -> SphereMeasurement:
     """Find and fit the (single) bar sphere in a measurement's maps.
 
     The strongest sphere candidate of the bar's radius is fitted robustly; with
     ``rod_axis`` (unit direction from this sphere to the other, in the maps' frame)
-    the tube and its end cap are masked by a cone, as for the artefact.
+    the tube and its end cap are masked by a cone, as for the artefact. The kept
+    points are then corrected for pixel integration and fitted again, as
+    :func:`refit_sighting` does.
 
     Raises
     ------
@@ -142,6 +147,12 @@ def measure_sphere(maps: PointMaps, valid, camera, projector, radius_mm: float, 
                     flag_maps={"edge": boundary_flags(valid)}, viewpoints=[camera.pinhole, projector.pinhole],
                     rod_axes=axes, config=rejection_config)
     m = rf.fit.model
+    if pixel_integration_px > 0:
+        px, kept = rf.pixels, rf.fit.kept
+        uv = np.stack([px.cols[kept], px.rows[kept]], axis=-1).astype(float)
+        points, ok = correct_sphere_points(Scanner(camera.name, camera, projector), uv, px.points[kept], m.centre,
+                                           float(m.radius), pixel_integration_px)
+        m = SphereModel.from_estimate(points[ok], radius=radius_mm if fixed_radius else None)
     return SphereMeasurement(np.asarray(m.centre, float), float(m.radius), float(m.rms), int(m.n_points),
                              dict(rf.fit.rejected))
 
@@ -175,11 +186,18 @@ class SightingConfig:
         free-fit errors differ by 0.5 mm the wrong way: never seen at 768 px, possible
         at 320 px. Below it the spheres count as alike and are named by order
         (:func:`name_clusters`).
+    pixel_integration_px : float
+        The refit's points are corrected for the integration of each pixel over the
+        sphere (:func:`fringecal.spheres.pixel_integration.correct_sphere_points`, the
+        correction the control points get; the footprint in pixels, 0 switches it off):
+        uncorrected, the points lie tens of um behind the surface at 512 px, more where
+        the light comes in obliquely, which shifts the centre along the view.
     """
 
     radius_tolerance: float = 0.1
     min_disc_fraction: float = 0.25
     distinct_diameter_mm: float = 1.0
+    pixel_integration_px: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -201,6 +219,9 @@ class Sighting:
         The candidate region's points, refitted by :func:`refit_sighting`.
     viewpoints : ndarray, shape (2, 3)
         Camera and projector pinholes (silhouette test).
+    sensors : Scanner or None
+        The scanner that measured it, at the store's resolution (for the refit's
+        pixel-integration correction; None: no correction).
     """
 
     scanner: str
@@ -211,6 +232,7 @@ class Sighting:
     column_px: float
     pixels: RegionPoints = field(repr=False)
     viewpoints: np.ndarray = field(repr=False)
+    sensors: Scanner | None = field(default=None, repr=False)
 
 
 def disc_pixels(camera, centre, radius_mm: float) -> float:
@@ -288,7 +310,7 @@ def find_sightings(maps: PointMaps, valid, scanner, ballbar: Artefact, rejection
             notes.append(f"candidate at {_xyz(m.centre)}: {why}")
             continue
         out.append(Sighting(scanner.name, np.asarray(m.centre, float), float(m.radius), float(m.rms),
-                            int(m.n_points), float(rf.kept_pixels[1].mean()), rf.pixels, viewpoints))
+                            int(m.n_points), float(rf.kept_pixels[1].mean()), rf.pixels, viewpoints, scanner))
     return out, notes
 
 
@@ -366,13 +388,16 @@ def name_clusters(sightings: list[Sighting], labels, ballbar: Artefact, scanner_
     return {first: ids[0], (k1 if first == k0 else k0): ids[1]}
 
 
-def refit_sighting(sighting: Sighting, radius_mm: float, rod_axis, rejection_config: RejectionConfig | None = None
-                   ) -> SphereMeasurement:
+def refit_sighting(sighting: Sighting, radius_mm: float, rod_axis, rejection_config: RejectionConfig | None = None,
+                   pixel_integration_px: float = 1.0) -> SphereMeasurement:
     """Refit a sighting's points with the certified radius fixed and the rod masked.
 
     ``rod_axis`` (3,) is the unit direction from this sphere towards the other one
     (world); a cone about it masks the tube and its end cap, as in
-    :func:`measure_sphere`, which fits the same points the same way.
+    :func:`measure_sphere`, which fits the same points the same way. With the
+    sighting's ``sensors`` the kept points are then corrected for pixel integration
+    against that fit (footprint ``pixel_integration_px``; the rim, whose bias cannot
+    be predicted, left out) and fitted again.
 
     Raises
     ------
@@ -384,5 +409,12 @@ def refit_sighting(sighting: Sighting, radius_mm: float, rod_axis, rejection_con
                             viewpoints=sighting.viewpoints, rod_axes=np.asarray(rod_axis, float).reshape(1, 3),
                             config=rejection_config)
     m = fit.model
+    rows, cols = px.rows[fit.kept], px.cols[fit.kept]
+    if sighting.sensors is not None and pixel_integration_px > 0:
+        uv = np.stack([cols, rows], axis=-1).astype(float)
+        points, ok = correct_sphere_points(sighting.sensors, uv, px.points[fit.kept], m.centre, radius_mm,
+                                           pixel_integration_px)
+        m = SphereModel.from_estimate(points[ok], radius=radius_mm)
+        rows, cols = rows[ok], cols[ok]
     return SphereMeasurement(np.asarray(m.centre, float), float(m.radius), float(m.rms), int(m.n_points),
-                             dict(fit.rejected), (px.rows[fit.kept], px.cols[fit.kept]))
+                             dict(fit.rejected), (rows, cols))

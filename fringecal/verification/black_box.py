@@ -168,7 +168,7 @@ def _refit_modelled(sighting: dict, other: np.ndarray, radius: float, rig: Rig, 
     """A modelled sighting refitted (certified radius, rod masked), then from its phases
     corrected for pixel integration (:func:`corrected_centre`), with its linear model."""
     axis = other - sighting["centre"]
-    m = refit_sighting(sighting["sighting"], radius, axis / np.linalg.norm(axis), rejection)
+    m = refit_sighting(sighting["sighting"], radius, axis / np.linalg.norm(axis), rejection, footprint_px)
     if footprint_px > 0:
         fit = corrected_centre(sighting["store"], rig, sighting["scanner"], m.pixels, m.centre, radius, footprint_px,
                                rejection)

@@ -87,7 +87,7 @@ def _failure(position: str, scanner: str, sphere_id: str, reason: str) -> dict:
 
 
 def _refit_all(position: str, sightings: list[Sighting], labels, names: dict, ballbar,
-               rejection_config) -> tuple[list[dict], list[dict]]:
+               rejection_config, config: SightingConfig | None = None) -> tuple[list[dict], list[dict]]:
     """Refit every sighting with its sphere's certified radius and the rod towards the
     other sphere (mean free-fit centre of its sightings) masked."""
     radii = dict(zip(ballbar.ids[:2], ballbar.radii[:2]))
@@ -97,7 +97,8 @@ def _refit_all(position: str, sightings: list[Sighting], labels, names: dict, ba
         sid = names[int(lab)]
         axis = means[1 - int(lab)] - s.centre
         try:
-            m = refit_sighting(s, float(radii[sid]), axis / np.linalg.norm(axis), rejection_config)
+            m = refit_sighting(s, float(radii[sid]), axis / np.linalg.norm(axis), rejection_config,
+                               (config or SightingConfig()).pixel_integration_px)
         except FitError as err:
             failures.append(_failure(position, s.scanner, sid, str(err)))
             continue
@@ -118,7 +119,7 @@ def _assemble(position: str, found: dict, scanner_order: list[str], ballbar, rej
     if len(groups) != 2:
         return [], failures + [_failure(position, "", "", f"position {position!r}: {_count_text(len(groups), groups)}")]
     names = name_clusters(sightings, labels, ballbar, scanner_order, config)
-    rows, refit_failures = _refit_all(position, sightings, labels, names, ballbar, rejection_config)
+    rows, refit_failures = _refit_all(position, sightings, labels, names, ballbar, rejection_config, config)
     failures += refit_failures
     missing = [sid for sid in ballbar.ids[:2] if sid not in {r["sphere_id"] for r in rows}]
     if missing:

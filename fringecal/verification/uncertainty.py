@@ -32,7 +32,9 @@ import pandas as pd
 from fringecal.calibration.keyed import value_key
 from fringecal.calibration.propagation import parameter_covariances
 from fringecal.rig import Rig
+from fringecal.spheres.pixel_integration import phase_integration_bias
 from fringecal.store import open_store
+from fringecal.verification.ballbar import SightingConfig
 from fringecal.verification.budget import (
     BUDGET_TERMS,
     SightingPoints,
@@ -47,18 +49,27 @@ from fringecal.verification.budget import (
 )
 from fringecal.verification.measure import store_scanner
 
-__all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict"]
+__all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict", "monte_carlo_disagreement"]
 
 
-def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float) -> SightingPoints:
-    """The kept pixels of one sphere fit in image-plane mm, read from its store."""
+def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float,
+                    pixel_integration_px: float = SightingConfig().pixel_integration_px) -> SightingPoints:
+    """The kept pixels of one sphere fit in image-plane mm, read from its store, their
+    phases corrected for pixel integration against the fitted sphere as the fit's
+    points were (:func:`fringecal.verification.ballbar.refit_sighting`), so that the
+    Monte Carlo and the bootstrap re-triangulate the points the length was measured
+    from."""
     rows, cols = (np.asarray(a, int) for a in pixels)
     with open_store(store) as ds:
         sc = store_scanner(ds, rig.scanner(scanner))
         tau = np.stack([ds["tau_x"].values[rows, cols], ds["tau_y"].values[rows, cols]], axis=-1).astype(float)
     block = [s.name for s in rig.scanners].index(scanner)
-    cam = sc.camera.image_mm(np.stack([cols, rows], axis=-1).astype(float))
-    return SightingPoints(sc, block, cam, sc.projector.image_mm(tau), np.asarray(centre, float), float(radius_mm),
+    uv = np.stack([cols, rows], axis=-1).astype(float)
+    centre = np.asarray(centre, float)
+    bias = phase_integration_bias(sc.camera, sc.projector, uv, np.broadcast_to(centre, (len(uv), 3)),
+                                  np.full(len(uv), float(radius_mm)), pixel_integration_px)
+    tau = tau - np.nan_to_num(bias)
+    return SightingPoints(sc, block, sc.camera.image_mm(uv), sc.projector.image_mm(tau), centre, float(radius_mm),
                           float(rms_mm))
 
 
@@ -209,11 +220,26 @@ def _budget(entries: list) -> dict:
         "U_mm": worst["U_mm"], "budget_mm": worst["budget_mm"], "iso14253": worst["iso14253"]}}
 
 
+def monte_carlo_disagreement(measurement: str, mc: dict) -> str:
+    """One line saying how a length's Monte Carlo check (:func:`validate_linear`'s
+    dict) disagrees with its linear propagation, with the numbers that show it: both
+    95 % intervals, how far their ends lie apart, the tolerance and where it comes
+    from, and both standard uncertainties (um)."""
+    lin, mcs = mc["linear_interval_mm"], mc["mc_interval_mm"]
+    return (f"{measurement}: linear interval [{lin[0]:.4f}, {lin[1]:.4f}] mm, Monte Carlo [{mcs[0]:.4f}, "
+            f"{mcs[1]:.4f}] mm ({mc['draws']} draws): ends {1000 * mc['d_low_mm']:.1f} / "
+            f"{1000 * mc['d_high_mm']:.1f} um apart, tolerance {1000 * mc['tolerance_mm']:.1f} um "
+            f"({mc['tolerance_source']}); u {1000 * mc['u_linear_mm']:.1f} um linear, "
+            f"{1000 * mc['u_mc_mm']:.1f} um Monte Carlo")
+
+
 def _mc_summary(entries: list) -> dict | None:
     mc = [e["monte_carlo"] for e in entries if "monte_carlo" in e]
     if not mc:
         return None
     ratios = np.array([m["ratio"] for m in mc], float)
+    off = [e for e in entries if "monte_carlo" in e and not e["monte_carlo"]["agree"]]
     return {"draws": mc[0]["draws"], "ratio_min": float(ratios.min()), "ratio_max": float(ratios.max()),
             "all_agree": bool(all(m["agree"] for m in mc)),
-            "disagree": [e["measurement"] for e in entries if "monte_carlo" in e and not e["monte_carlo"]["agree"]]}
+            "disagree": [e["measurement"] for e in off],
+            "disagreements": [monte_carlo_disagreement(e["measurement"], e["monte_carlo"]) for e in off]}

@@ -7,6 +7,7 @@ import numpy as np
 
 from fringecal.report.formatting import num, um
 from fringecal.report.tables import table
+from fringecal.verification.uncertainty import monte_carlo_disagreement
 
 __all__ = ["gum", "length_budget"]
 
@@ -29,6 +30,12 @@ def _monte_carlo(mc: dict | None) -> str:
     if mc is None:
         return "not run"
     return f"{um(mc['u_mc_mm'], 2)} ({mc['ratio']:.2f} x linear; {'agrees' if mc['agree'] else 'DOES NOT AGREE'})"
+
+
+def _disagreements(unc: dict) -> list[str]:
+    """Each length whose Monte Carlo check disagrees, with its numbers."""
+    return [monte_carlo_disagreement(e["measurement"], e["monte_carlo"]) for e in unc["lengths"]
+            if e.get("monte_carlo") is not None and not e["monte_carlo"]["agree"]]
 
 
 def _budget(unc: dict) -> dict | None:
@@ -63,4 +70,5 @@ def length_budget(unc: dict | None) -> dict | None:
                            rows, left=1),
             "not_covered": ", ".join(unc["not_covered"]) if unc["not_covered"] else None,
             "disagree": ", ".join(mc["disagree"]) if mc is not None and not mc["all_agree"] else None,
+            "disagreements": _disagreements(unc) if mc is not None and not mc["all_agree"] else [],
             "budget": _budget(unc)}

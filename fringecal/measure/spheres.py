@@ -1,0 +1,247 @@
+"""Spheres measured in a cloud, with the uncertainty of their positions and distances.
+
+What a user compares with a CMM is usually a set of sphere centres (a sphere plate, a
+ball-bar, tooling balls on a part) and the distances between them. Given the cloud of
+``fringecal measure``, the stores it was measured from and the nominal position and
+radius of each sphere (``SEARCH_MM`` off at most), each sphere is fitted in every scanner
+that sees it and stated two ways:
+
+* its **position in the rig's frame** (:func:`~fringecal.calibration.propagation.frame_free_covariance`):
+  ``u_position_mm``, the square root of the trace of the centre's 3 x 3 covariance,
+  the calibration's part (the covariance given, through the fit's Jacobian) and the
+  fit's own (sandwich estimate of its residuals);
+* every **distance** between two fitted centres (:func:`sphere_distances`):
+  ``u_mm``, the calibration's part through the gradient of the distance over every
+  sensor parameter (both centres' Jacobians at once, so what the two share cancels:
+  a common orientation of the scanners, the frame) and both fits' own along the line.
+  A distance's u is far smaller than the positions' (on the thesis rig, tens of um
+  against a few tenths of a mm): per point, the position's u says nothing about it.
+
+Each fit is the fixed-radius least-squares sphere of the sphere's points within
+``SHELL_MM`` of its surface (about a first fit of the points within ``SEARCH_MM`` of
+the nominal one), its phases first corrected for the pixel
+integration over the sphere (:mod:`fringecal.spheres.pixel_integration`, as the
+control points are), the pixels whose bias cannot be predicted (the rim) left out,
+and points ``REJECTION_SIGMAS`` robust standard deviations off the sphere dropped (a
+rod, a mount). A sphere seen only in part (fewer than ``MIN_DISC_FRACTION`` of its
+image disc kept) is not measured by that scanner.
+The linearised fit is :func:`fringecal.verification.budget.sighting_model`, the one
+the ball-bar's length budget uses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from fringecal.calibration.propagation import triangulate_mm
+from fringecal.measure.cloud import Cloud
+from fringecal.rig import Rig
+from fringecal.spheres.fit import FitError, SphereModel
+from fringecal.spheres.pixel_integration import phase_integration_bias
+from fringecal.verification.budget import SightingModel, SightingPoints, length_gradient, sighting_model
+from fringecal.verification.ballbar import disc_pixels
+from fringecal.verification.measure import store_scanner
+
+__all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "read_nominal_spheres", "NOMINAL_COLUMNS", "SEARCH_MM", "SHELL_MM", "MIN_POINTS",
+           "MIN_DISC_FRACTION"]
+
+#: a sphere's points are first looked for this far beyond its nominal surface (mm)
+SEARCH_MM = 15.0
+#: then, about the centre fitted to those, points within this distance of its surface (mm)
+SHELL_MM = 3.0
+#: a scanner's sighting of a sphere needs at least this many points
+MIN_POINTS = 50
+#: a sighting keeps at least this fraction of the sphere's image disc: a sphere seen only
+#: in part (the image's edge, another object in front) gives a fit biased by what hides
+#: it, which no uncertainty here describes (a whole sphere keeps 0.5-0.6 of its disc)
+MIN_DISC_FRACTION = 0.1
+#: points whose residual is this many robust standard deviations from the median are dropped
+REJECTION_SIGMAS = 3.0
+#: rounds of dropping and refitting
+REJECTION_ROUNDS = 5
+
+
+#: columns of a table of nominal spheres (``fringecal measure --spheres``)
+NOMINAL_COLUMNS = ("sphere_id", "x_mm", "y_mm", "z_mm", "radius_mm")
+
+
+def read_nominal_spheres(path) -> pd.DataFrame:
+    """The nominal spheres of a CSV file (:data:`NOMINAL_COLUMNS`; centres in the
+    calibration's world within ``SEARCH_MM``, certified radii).
+
+    Raises
+    ------
+    ValueError
+        One message naming the file, and the column or row at fault.
+    """
+    try:
+        table = pd.read_csv(path, dtype={"sphere_id": str})
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: not a readable CSV table ({err})") from None
+    missing = [c for c in NOMINAL_COLUMNS if c not in table.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (needs {', '.join(NOMINAL_COLUMNS)})")
+    if table.empty:
+        raise ValueError(f"{path}: no spheres")
+    for col in NOMINAL_COLUMNS[1:]:
+        values = pd.to_numeric(table[col], errors="coerce")
+        bad = ~np.isfinite(values.to_numpy(float)) | ((values <= 0).to_numpy() if col == "radius_mm" else False)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            what = "a radius > 0 mm" if col == "radius_mm" else "a finite number"
+            raise ValueError(f"{path}: row {row + 2}, column {col}: {table[col].iloc[row]!r} is not {what}")
+        table[col] = values.astype(float)
+    ids = table["sphere_id"].fillna("").astype(str).str.strip()
+    if (ids == "").any():
+        raise ValueError(f"{path}: row {int(np.flatnonzero(ids == '')[0]) + 2}, column sphere_id: empty")
+    if ids.duplicated().any():
+        raise ValueError(f"{path}: sphere_id {ids[ids.duplicated()].iloc[0]!r} is given twice")
+    return table.assign(sphere_id=ids)[list(NOMINAL_COLUMNS)]
+
+
+@dataclass(frozen=True)
+class MeasuredSphere:
+    """One sphere as one scanner measured it: ``centre`` (3,) mm, ``u_position_mm`` its
+    3-D standard uncertainty in the frame of the covariance given, the points kept and
+    their fraction of the sphere's image disc, ``model`` the linearised fit (for
+    distances)."""
+
+    sphere: str
+    scanner: str
+    centre: np.ndarray
+    u_position_mm: float
+    n_points: int
+    disc_fraction: float
+    model: SightingModel
+
+    def as_dict(self) -> dict:
+        return {"sphere": self.sphere, "scanner": self.scanner, "x_mm": float(self.centre[0]),
+                "y_mm": float(self.centre[1]), "z_mm": float(self.centre[2]),
+                "u_position_mm": self.u_position_mm, "n_points": self.n_points, "disc_fraction": self.disc_fraction}
+
+
+def _robust_fit(X: np.ndarray, radius: float) -> tuple[SphereModel, np.ndarray]:
+    """Fixed-radius fit, refitted ``REJECTION_ROUNDS`` times without the points whose
+    residual lies more than ``REJECTION_SIGMAS`` robust standard deviations (1.4826
+    MAD) from the median: a rod, a mount or a neighbour inside the shell."""
+    keep = np.isfinite(X).all(axis=1)
+    fit = SphereModel.from_estimate(X[keep], radius=radius)
+    for _ in range(REJECTION_ROUNDS):
+        r = np.linalg.norm(X - fit.centre, axis=1) - radius
+        med = np.median(r[keep])
+        s = 1.4826 * np.median(np.abs(r[keep] - med))
+        new = np.isfinite(r) & (np.abs(r - med) <= REJECTION_SIGMAS * max(s, 1e-6))
+        if new.sum() < MIN_POINTS or np.array_equal(new, keep):
+            break
+        keep = new
+        fit = SphereModel.from_estimate(X[keep], radius=radius)
+    return fit, keep
+
+
+def _fit(scanner, block, uv, tau, radius, footprint_px):
+    """Fixed-radius robust fit of one sighting, its phases corrected for pixel
+    integration against a first fit; -> (SightingPoints, fraction of the image disc
+    kept) or None."""
+    cam = scanner.camera.image_mm(uv)
+    first, _ = _robust_fit(triangulate_mm(scanner, cam, scanner.projector.image_mm(tau)), radius)
+    bias = phase_integration_bias(scanner.camera, scanner.projector, uv,
+                                  np.broadcast_to(first.centre, (len(uv), 3)), np.full(len(uv), radius), footprint_px)
+    ok = np.isfinite(bias).all(axis=1)
+    if ok.sum() < MIN_POINTS:
+        return None
+    cam, prj = cam[ok], scanner.projector.image_mm(tau[ok] - bias[ok])
+    fit, keep = _robust_fit(triangulate_mm(scanner, cam, prj), radius)
+    fraction = keep.sum() / disc_pixels(scanner.camera, fit.centre, radius)
+    if keep.sum() < MIN_POINTS or fraction < MIN_DISC_FRACTION:
+        return None
+    return SightingPoints(scanner, block, cam[keep], prj[keep], np.asarray(fit.centre, float), float(radius),
+                          float(fit.rms)), float(fraction)
+
+
+def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covariance: np.ndarray,
+                    spheres: pd.DataFrame, footprint_px: float = 1.0, measurement: int = 0) -> list[MeasuredSphere]:
+    """Every sphere of ``spheres`` in every scanner that sees it.
+
+    Parameters
+    ----------
+    cloud : the cloud of one measurement (:func:`fringecal.measure.measure_cloud`)
+    stores : scanner -> the store it was measured from (``tau_x``, ``tau_y``)
+    rig : the calibration
+    covariance : (14 n_sensors, 14 n_sensors) sensor covariance in the frame the
+        positions are to be stated in (the rig's: ``frame_free_covariance``), or None
+        (``u_position_mm`` NaN)
+    spheres : ``sphere_id, x_mm, y_mm, z_mm, radius_mm``: nominal centres (within a
+        few mm) and the certified radii
+    footprint_px : the pixel-integration footprint (0: no correction)
+    measurement : which of the cloud's measurements
+    """
+    stated = covariance is not None
+    if not stated:
+        covariance = np.zeros((14 * len(rig.sensors),) * 2)
+    std = np.sqrt(np.clip(np.diag(covariance), 0, None))
+    xyz = cloud.xyz()
+    out = []
+    for k, name in enumerate(cloud.scanners):
+        if name not in stores:
+            continue
+        ds = stores[name]
+        scanner = store_scanner(ds, rig.scanner(name))
+        block = [s.name for s in rig.scanners].index(name)
+        sl = slice(28 * block, 28 * block + 28)
+        tau_x, tau_y = np.asarray(ds["tau_x"]), np.asarray(ds["tau_y"])
+        mine = (cloud.points["scanner"] == k) & (cloud.points["measurement"] == measurement)
+        for s in spheres.itertuples():
+            nominal = np.array([s.x_mm, s.y_mm, s.z_mm], float)
+            near = mine & (np.linalg.norm(xyz - nominal, axis=1) < s.radius_mm + SEARCH_MM)
+            if near.sum() < MIN_POINTS:
+                continue
+            try:
+                centre = SphereModel.from_estimate(xyz[near], radius=float(s.radius_mm)).centre
+            except FitError:
+                continue
+            m = mine & (np.abs(np.linalg.norm(xyz - centre, axis=1) - s.radius_mm) < SHELL_MM)
+            if m.sum() < MIN_POINTS:
+                continue
+            rows, cols = cloud.points["v"][m].astype(int), cloud.points["u"][m].astype(int)
+            uv = np.stack([cols, rows], axis=-1).astype(float)
+            tau = np.stack([tau_x[rows, cols], tau_y[rows, cols]], axis=-1).astype(float)
+            try:
+                pts = _fit(scanner, block, uv, tau, float(s.radius_mm), footprint_px)
+            except FitError:
+                continue
+            if pts is None:
+                continue
+            pts, fraction = pts
+            model = sighting_model(pts, std[sl])
+            var = np.trace(model.J @ covariance[sl, sl] @ model.J.T) + np.trace(model.C_fit)
+            out.append(MeasuredSphere(str(s.sphere_id), name, pts.centre,
+                                      float(np.sqrt(max(var, 0.0))) if stated else float("nan"),
+                                      len(pts.cam_mm), fraction, model))
+    return out
+
+
+def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | None) -> pd.DataFrame:
+    """Every distance between two measured centres of different spheres, with its
+    standard uncertainty: ``sphere_a, scanner_a, sphere_b, scanner_b, distance_mm,
+    u_mm`` (the calibration's part through both centres at once, and the fits'; NaN
+    without a covariance)."""
+    rows = []
+    if not measured:
+        return pd.DataFrame(rows, columns=["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_mm", "u_mm"])
+    stated = covariance is not None
+    n = covariance.shape[0] if stated else 28 * (1 + max(m.model.points.block for m in measured))
+    if not stated:
+        covariance = np.zeros((n, n))
+    for i, a in enumerate(measured):
+        for b in measured[i + 1:]:
+            if a.sphere == b.sphere:
+                continue
+            g, e, L = length_gradient(a.model, b.model, n)
+            var = float(g @ covariance @ g) + float(e @ (a.model.C_fit + b.model.C_fit) @ e)
+            rows.append({"sphere_a": a.sphere, "scanner_a": a.scanner, "sphere_b": b.sphere, "scanner_b": b.scanner,
+                         "distance_mm": L, "u_mm": float(np.sqrt(max(var, 0.0))) if stated else float("nan")})
+    return pd.DataFrame(rows, columns=["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_mm", "u_mm"])
