@@ -16,7 +16,32 @@ import pytest
 
 pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
 
-CHECK = str(Path(__file__).with_name("warmup_check.py"))
+#: run as ``python -c CHECK FOLDER``: build and evaluate a small bundle problem as the pipeline
+#: does (control points read back from CSV) and print the seconds numba spent compiling
+CHECK = """
+import sys
+
+import pandas as pd
+
+from fringecal import compile_clock
+from fringecal.run import warmup as kernel_warmup
+
+compile_clock.install()
+assert not kernel_warmup.cache_is_cold()
+from fringecal.calibration.model import POSE_COLUMNS, BundleProblem, Evaluator
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
+
+rig, artefact, poses = thesis_truth()
+sim = simulate_control_points(rig, artefact, poses.iloc[3:5], spacing_px=150, rng=1)
+path = sys.argv[1] + "/cp.csv"
+sim.control_points.to_csv(path, index=False)  # the pipeline reads its control points from CSV
+cp = pd.read_csv(path, dtype={"measurement": str, "scanner": str, "sphere_id": str})
+ev = Evaluator(BundleProblem.from_tables(rig, artefact, cp, poses.iloc[3:5]))
+x = ev.layout.pack(rig.params, poses.iloc[3:5][list(POSE_COLUMNS)].to_numpy(float))
+ev.evaluate(x, True)
+ev.jacobian_rows(x)
+print(compile_clock.totals()["seconds"])
+"""
 #: where the session's start records its check (tests/conftest.py)
 SESSION_CHECK = "FRINGECAL_TEST_WARMUP_CHECK"
 
@@ -31,7 +56,7 @@ def warm_up_and_check(env: dict, folder: Path) -> dict:
 
 
 def check(env: dict, folder: Path) -> dict:
-    res = subprocess.run([sys.executable, CHECK, str(folder)], env=env, capture_output=True, text=True)
+    res = subprocess.run([sys.executable, "-c", CHECK, str(folder)], env=env, capture_output=True, text=True)
     lines = res.stdout.strip().splitlines()
     return {"step": "check", "returncode": res.returncode, "stderr": res.stderr[-3000:],
             "compile_seconds": float(lines[-1]) if res.returncode == 0 and lines else None}
