@@ -1,8 +1,9 @@
 """The demo's specification accepts the calibrated thesis rig and refuses it
 deliberately miscalibrated -- scanner 2's camera principal distance off by 0.05 %.
 
-The world: the thesis rig simulated as the default demo does (ideal profile, all
-twelve poses, the default fringe sequence, its 512 px camera), ball-bar positions 1, 4 and 9 of
+The world: the thesis rig simulated as the default demo does (ideal profile, the
+default fringe sequence, its 512 px camera) at eight of its twelve poses (every
+stand-off), ball-bar positions 1, 4 and 9 of
 thesis table 6-9, and per scanner one sphere and two dumbbell positions, placed inside
 the measuring volume of the demo's stated specification (the ``acceptance`` section of
 ``configs/run_thesis.yaml``: depths 2.4-3.0 m, its MPEs). The calibrated rig's run
@@ -11,9 +12,9 @@ inside its MPE with its U. The miscalibrated rig is the calibration with one par
 changed, measuring the same stores: the 0.05 % of c moves scanner 2's points by
 0.15-0.36 mm at 2.5 m (0.06-0.14 mm over a 500 mm dumbbell), which E and SD of
 scanner 2 must show as proven non-conformance, and the run verdict as NOT ACCEPTED.
-At 512 px the calibrated rig's E is -17 um with U 60 um (SD 15 um, U 36 um): proven
-inside the 0.1 mm MPE with 22 um to spare; at 448 px not every component's conformance
-is proven any more.
+The calibrated rig's E is -25 um with U 64 um (SD of scanner 2 -16 um, U 41 um): proven
+inside the 0.1 mm MPE with 10 um to spare (with all twelve poses 22 um; at 448 px not
+every component's conformance is proven any more).
 """
 
 import numpy as np
@@ -39,7 +40,7 @@ pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leave
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     d = tmp_path_factory.mktemp("miscalibrated")
-    path = write_small_thesis_config(d, width=512, poses=tuple(range(1, 13)), positions=(1, 4, 9),
+    path = write_small_thesis_config(d, width=512, poses=(1, 3, 4, 6, 7, 9, 10, 12), positions=(1, 4, 9),
                                      acceptance={"sphere": 1, "dumbbell": 2, "flat": 0})
     doc = yaml.safe_load(path.read_text())
     del doc["simulate"]["acquisition"]["sequence"]          # the default sequence, as the demo
