@@ -2,7 +2,7 @@
 
 In a fresh checkout the test session's own start is such a first run: the controller
 runs the warm-up on the cold cache before any test worker starts, and checks it at once
-(tests/conftest.py, :func:`warm_up_and_check`), before any test could compile a kernel
+(``pytest_sessionstart`` in tests/conftest.py, with :func:`check`), before any test could compile a kernel
 into the same cache. The test reads that check. When the session started warm, the
 test repeats the whole sequence in a cache folder of its own (about 27 s of one core)."""
 
