@@ -10,6 +10,7 @@ from fringecal.calibration.model import BundleProblem, Evaluator
 from fringecal.pointcloud import triangulate_image_points
 from fringecal.sensor import distort, undistort
 from fringecal.simulate.control_points import simulate_control_points, thesis_truth
+from test_bundle_kernels import _dense_jacobian
 
 #: thin-prism terms of a few tenths of a pixel at the corner of the thesis cameras
 PRISM = np.array([[3e-6, -2e-9, -2e-6, 1e-9], [-1e-6, 1e-9, 2.5e-6, -2e-9]] * 2)
@@ -44,12 +45,7 @@ def test_prism_jacobian_matches_finite_differences(small):
     ev = Evaluator(pr, chunk_size=7)
     assert ev.n_local == 42
     x = ev.layout.pack(pr.rig.params, pr.poses, pr.rig.prism)
-    res, J, ok = ev.jacobian_rows(x)
-    cols = ev.global_columns()
-    Jd = np.zeros((len(res), 2, ev.layout.n))
-    for s in range(cols.shape[1]):
-        m = cols[:, s] >= 0
-        np.add.at(Jd, (np.flatnonzero(m), slice(None), cols[m, s]), J[m, :, s])
+    res, Jd = _dense_jacobian(ev, x)
     steps = {"k1": 1e-8, "k2": 1e-10, "k3": 1e-12, "p1": 1e-8, "p2": 1e-8, "s1": 1e-8, "s2": 1e-10,
              "s3": 1e-8, "s4": 1e-10}
     checked = 0

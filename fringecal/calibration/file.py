@@ -96,6 +96,16 @@ def covariance_document(rig: Rig, covariances) -> dict:
             "artefact_scale_u_rel": float(covariances.u_scale)}
 
 
+def _parameter_entries(names, values, free, uncertainty, k: int) -> dict:
+    """name -> {value, unit, free[, u]} of one sensor (row ``k`` of ``uncertainty``)."""
+    out = {}
+    for j, name in enumerate(names):
+        out[name] = {"value": float(values[j]), "unit": _UNITS[name], "free": bool(free[j])}
+        if uncertainty is not None:
+            out[name]["u"] = float(uncertainty[k, j])
+    return out
+
+
 def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None,
                 sensor_model: dict | None = None) -> dict:
     """The JSON document of ``rig``; ``covariances``
@@ -117,12 +127,7 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
         entry = {"name": scanner.name, "sensors": []}
         for sensor in scanner.sensors:
             f = sensor.format
-            params = {}
-            for j, name in enumerate(PARAM_NAMES):
-                p = {"value": float(sensor.params[j]), "unit": _UNITS[name], "free": bool(rig.free[k, j])}
-                if rig.uncertainty is not None:
-                    p["u"] = float(rig.uncertainty[k, j])
-                params[name] = p
+            params = _parameter_entries(PARAM_NAMES, sensor.params, rig.free[k], rig.uncertainty, k)
             entry["sensors"].append({
                 "name": sensor.name, "role": sensor.role,
                 "format": {"width_px": f.width_px, "height_px": f.height_px,
@@ -130,13 +135,8 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
                 "parameters": params,
             })
             if rig.has_prism:  # only then: a 14-parameter calibration's document is unchanged
-                prism = {}
-                for j, name in enumerate(PRISM_NAMES):
-                    p = {"value": float(sensor.prism[j]), "unit": _UNITS[name], "free": bool(rig.prism_free[k, j])}
-                    if rig.prism_uncertainty is not None:
-                        p["u"] = float(rig.prism_uncertainty[k, j])
-                    prism[name] = p
-                entry["sensors"][-1]["thin_prism"] = prism
+                entry["sensors"][-1]["thin_prism"] = _parameter_entries(PRISM_NAMES, sensor.prism, rig.prism_free[k],
+                                                                        rig.prism_uncertainty, k)
             k += 1
         out["scanners"].append(entry)
     return out
