@@ -10,11 +10,10 @@ make a position, and every pair of sightings of the two spheres one length (as
 :func:`.lengths.ballbar_lengths` pairs them).
 
 A modelled scanner's sighting is refitted as the modelled-only verification refits it
-(certified radius, rod masked: :func:`.ballbar.refit_sighting`) and then once more
-from its phases corrected for the pixel-integration bias
-(:func:`fringecal.spheres.pixel_integration.phase_integration_bias`, the footprint of
-``control_points.pixel_integration_px``), as its control points were corrected before
-the bundle adjustment: its centre then means what the calibration's poses mean. A
+(certified radius, rod masked, its points corrected for the pixel-integration bias
+with the footprint of ``control_points.pixel_integration_px``:
+:func:`.ballbar.refit_sighting`), as its control points were corrected before the
+bundle adjustment: its centre then means what the calibration's poses mean. A
 black box's sighting cannot be corrected (no sensors), and need not be: its transform
 was fitted to its own artefact centres, which carry the same bias (a sphere of the same
 size in the same field), so the transform carries it into the world and the bar
@@ -36,8 +35,6 @@ average), and the certificate's standard uncertainty. A scanner seeing both sphe
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pandas as pd
 
@@ -46,18 +43,15 @@ from fringecal.calibration.blackbox import BlackBoxScanner, scanners_from_docume
 from fringecal.rig import Rig
 from fringecal.scancloud import load_points
 from fringecal.spheres.cloud_spheres import cloud_sphere_fits, refit_cloud_sphere
-from fringecal.spheres.pixel_integration import phase_integration_bias
-from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
-from fringecal.store import open_store
-from fringecal.triangulation import triangulate
-from fringecal.verification.lengths import evaluate_ballbar
 from fringecal.spheres.fit import FitError
+from fringecal.spheres.robust import RejectionConfig
 from fringecal.verification.ballbar import refit_sighting
 from fringecal.verification.budget import sighting_model
-from fringecal.verification.measure import store_scanner, store_sightings
+from fringecal.verification.lengths import evaluate_ballbar
+from fringecal.verification.measure import store_sightings
 from fringecal.verification.uncertainty import iso14253_verdict, sighting_points
 
-__all__ = ["black_box_scanners_of", "corrected_centre", "corrected_sphere", "verify_with_black_boxes"]
+__all__ = ["black_box_scanners_of", "verify_with_black_boxes"]
 
 
 def black_box_scanners_of(doc: dict) -> dict[str, BlackBoxScanner]:
@@ -106,45 +100,14 @@ def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Arte
 
 
 def _scatter(box: BlackBoxScanner) -> np.ndarray:
-    """A black box's measured scatter of sphere centres about the adjusted artefact,
-    per coordinate (``rms_mm`` / sqrt 3), as a covariance (3, 3) of one sighting; zero
-    when the document carries none (true transforms)."""
-    rms = box.rms_mm if np.isfinite(box.rms_mm) else 0.0
-    return (rms**2 / 3.0) * np.eye(3)
-
-
-def corrected_centre(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, footprint_px: float,
-                     rejection: RejectionConfig | None = None):
-    """A modelled sighting's sphere refitted from its kept ``pixels`` (rows, cols) of
-    ``store``, their phases corrected for pixel integration (:func:`corrected_sphere`)."""
-    rows, cols = (np.asarray(a, int) for a in pixels)
-    with open_store(store) as ds:
-        sc = store_scanner(ds, rig.scanner(scanner))
-        tau = np.stack([ds["tau_x"].values[rows, cols], ds["tau_y"].values[rows, cols]], axis=-1).astype(float)
-    uv = np.stack([cols, rows], axis=-1).astype(float)
-    return corrected_sphere(sc.camera, sc.projector, uv, tau, centre, radius_mm, footprint_px, rejection)
-
-
-def corrected_sphere(camera, projector, uv, tau, centre, radius_mm: float, footprint_px: float,
-                     rejection: RejectionConfig | None = None, rounds: int = 2):
-    """The sphere (certified radius ``radius_mm``) of camera pixels ``uv`` (n, 2) whose
-    decoded phases ``tau`` (n, 2) are first corrected for their pixel-integration bias
-    (:func:`fringecal.spheres.pixel_integration.phase_integration_bias`, predicted on
-    ``centre`` and then on the sphere found in the round before: the bias hardly changes
-    over the few tens of micrometres the centre moves). ``footprint_px`` 0 fits the
-    phases as decoded. Returns the :class:`fringecal.spheres.robust.RobustSphereFit`."""
-    uv = np.asarray(uv, float)
-    tau = np.asarray(tau, float)
-    c = np.asarray(centre, float)
-    fit = None
-    for _ in range(max(1, rounds)):
-        bias = phase_integration_bias(camera, projector, uv, np.repeat(c[None], len(uv), axis=0),
-                                      np.full(len(uv), float(radius_mm)), footprint_px)
-        ok = np.isfinite(bias).all(axis=1)
-        points, _ = triangulate(camera, projector, uv[ok], tau[ok] - bias[ok])
-        fit = fit_sphere_robust(points, radius_mm, expected_radius=radius_mm, config=rejection)
-        c = np.asarray(fit.model.centre, float)
-    return fit
+    """A black box's measured scatter of sphere centres between spheres, per coordinate
+    and net of its fits' own noise (``scatter_mm``, which a sighting's fit covariance
+    already holds), as a covariance (3, 3) of one sighting. A document without
+    ``scatter_mm`` falls back to the adjustment's RMS residual per coordinate
+    (``rms_mm`` / sqrt 3, fit noise included); zero when it carries neither (true
+    transforms)."""
+    s = box.scatter_mm if np.isfinite(box.scatter_mm) else box.rms_mm / np.sqrt(3.0)
+    return (s**2 if np.isfinite(s) else 0.0) * np.eye(3)
 
 
 def _refit_box(sighting: dict, other: np.ndarray, radius: float, rejection: RejectionConfig,
@@ -165,14 +128,10 @@ def _refit_box(sighting: dict, other: np.ndarray, radius: float, rejection: Reje
 
 def _refit_modelled(sighting: dict, other: np.ndarray, radius: float, rig: Rig, std: np.ndarray,
                     rejection: RejectionConfig, footprint_px: float) -> dict:
-    """A modelled sighting refitted (certified radius, rod masked), then from its phases
-    corrected for pixel integration (:func:`corrected_centre`), with its linear model."""
+    """A modelled sighting refitted (certified radius, rod masked, its points corrected
+    for pixel integration: :func:`.ballbar.refit_sighting`), with its linear model."""
     axis = other - sighting["centre"]
     m = refit_sighting(sighting["sighting"], radius, axis / np.linalg.norm(axis), rejection, footprint_px)
-    if footprint_px > 0:
-        fit = corrected_centre(sighting["store"], rig, sighting["scanner"], m.pixels, m.centre, radius, footprint_px,
-                               rejection)
-        m = replace(m, centre=np.asarray(fit.model.centre, float), rms_mm=float(fit.model.rms))
     points = sighting_points(sighting["store"], rig, sighting["scanner"], m.pixels, m.centre, m.radius_mm,
                              m.rms_mm)
     block = points.block
