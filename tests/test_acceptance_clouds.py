@@ -82,3 +82,22 @@ def test_a_dumbbell_in_a_cloud_gives_its_spacing_error_with_the_scale_s_uncertai
     truth = SCALE * 500.05 - 500.0  # +200 um: the build and the scale
     assert abs(sd["value_mm"] - truth) <= sd["U_mm"] and sd["U_mm"] > 2 * 500 * U_SCALE
     assert sd["depth_near_mm"] == pytest.approx(2650.0, abs=1.0) and sd["scanner"] == "box"
+
+
+def test_a_rig_of_black_boxes_only_is_judged_on_its_clouds(tmp_path):
+    """No sensors at all (``rig`` None): the sphere in the black box's cloud gives its
+    P_F and P_S rows under the box's name, judged with the other parameters."""
+    from fringecal.acceptance.document import acceptance_document
+    from fringecal.verification.settings import LengthUncertaintyConfig
+
+    box = black_box()
+    path = write_scanner_cloud(tmp_path / "box.ply", cap([80.0, -50.0, 2700.0], 63.5, np.random.default_rng(4)))
+    doc = {"scanners": [box.to_dict()], "joint_covariance": {"n_sensor_parameters": 0, "black_boxes": ["box"],
+                                                             "matrix": box.covariance.tolist()}}
+    cert, values = acceptance_document(None, AcceptanceStandards(sphere=SphereStandard(diameter_mm=127.0)),
+                                       AcceptanceConfig(), {}, LengthUncertaintyConfig(), None,
+                                       {"sphere": {"s1": {"box": str(path)}}}, black_boxes=doc)
+    got = {(p["name"], p["scanner"]): p for p in cert["parameters"]}
+    assert set(got) == {("P_F", "box"), ("P_S", "box")} and cert["black_boxes"] == ["box"]
+    assert abs(got[("P_S", "box")]["measured_mm"] - (SCALE - 1) * 127.0) <= got[("P_S", "box")]["U_mm"]
+    assert got[("P_S", "box")]["verdict"] == "conformance" and list(values["scanner"]) == ["box", "box"]
