@@ -145,7 +145,7 @@ def uncertainty_maps(run: RunData, scanner: str) -> dict:
                               default=float("nan")))}
 
 
-def acceptance_values(run: RunData, scanner: str):
+def acceptance_values(run: RunData, scanner: str, depths_title: str = "Camera depths"):
     """The scanner's acceptance parameters (``acceptance.json``) with the depths of their positions."""
     doc = run.json(run.rd.acceptance)
     depth = {}
@@ -166,7 +166,7 @@ def acceptance_values(run: RunData, scanner: str):
                      (verdict, VERDICT_CLASSES[verdict]) if verdict in VERDICT_CLASSES else verdict])
     if not rows:
         raise Missing(f"{run.rd.acceptance.rel} has no parameter of {scanner}")
-    return table(["Parameter", "Positions", "Camera depths", "Measured", "U (k = 2)", "MPE", "Verdict"], rows, left=1)
+    return table(["Parameter", "Positions", depths_title, "Measured", "U (k = 2)", "MPE", "Verdict"], rows, left=1)
 
 
 #: a black box's transform parameters: (key of black_boxes.json, label, unit, factor from the file's unit)
@@ -203,7 +203,8 @@ def black_box_parts(run: RunData) -> list[dict]:
     return [{"name": d["scanner"], "serial": serials.get(d["scanner"]), "transform": guard(lambda r: _transform(d), run),
              "matrix": guard(lambda r: _matrix(d), run), "rms": um(d.get("rms_mm")), "n_centres": d.get("n_centres"),
              "reference": d["scanner"] == doc.get("reference"), "scale_free": bool(doc.get("scale")),
-             "acceptance": guard(acceptance_values, run, d["scanner"])} for d in doc.get("scanners") or []]
+             "acceptance": guard(acceptance_values, run, d["scanner"], "Depths (its frame's z)")}
+            for d in doc.get("scanners") or []]
 
 
 def build(run: RunData) -> dict:
