@@ -26,7 +26,7 @@ def black_box() -> BlackBoxScanner:
     return BlackBoxScanner("box", np.array([150.0, -40.0, -2600.0, 0.05, -0.1, 0.2, SCALE]), cov, 0.01, 40)
 
 
-def cap(centre, radius: float, rng, n: int = 6000, noise: float = NOISE_MM) -> np.ndarray:
+def cap(centre, radius: float, rng, n: int = 3000, noise: float = NOISE_MM) -> np.ndarray:
     """Points of the cap of a sphere the scanner at the origin sees (within 65 degrees
     of the line of sight), noisy along the lines of sight."""
     sight = -np.asarray(centre, float) / np.linalg.norm(centre)
@@ -58,7 +58,7 @@ def test_a_flat_in_a_cloud_gives_its_bow_and_its_backdrop_is_set_aside():
     s, t = s.ravel(), t.ravel()
     bow = 0.010 * (s / 350) ** 2  # a 10 um bow along the flat's length
     flat = np.c_[s, t, bow] @ R + [0.0, 30.0, 2500.0]
-    bs, bt = np.meshgrid(np.arange(-1000, 1000, 8.0), np.arange(-800, 800, 8.0))
+    bs, bt = np.meshgrid(np.arange(-1000, 1000, 10.0), np.arange(-800, 800, 10.0))
     backdrop = np.c_[bs.ravel(), bt.ravel(), np.full(bs.size, 3400.0)]
     cloud = np.vstack([flat, backdrop + rng.normal(0, 0.05, backdrop.shape)])
     m, depth = measure_cloud_flat(cloud, black_box(), FlatStandard(length_mm=700.0, width_mm=120.0), 0.0)
