@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 
 from fringecal.acceptance.cloud import cloud_acceptance_values, measure_cloud_flat, measure_cloud_sphere, scale_u
-from fringecal.acceptance.standards import (AcceptanceConfig, AcceptanceStandards, DumbbellStandard, FlatStandard,
-                                            SphereStandard)
+from fringecal.acceptance.standards import (
+    AcceptanceConfig,
+    AcceptanceStandards,
+    DumbbellStandard,
+    FlatStandard,
+    SphereStandard,
+)
 from fringecal.calibration.blackbox import BlackBoxScanner
 from fringecal.rotation import rotation_matrix
 from fringecal.scancloud import write_scanner_cloud

@@ -48,8 +48,16 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from fringecal.acceptance.evaluate import form_u
-from fringecal.acceptance.measure import (SEGMENT_MM, AcceptanceMeasurementError, FlatMeasurement, SphereMeasurement,
-                                          largest_plane, probe_flat, probe_sphere)
+from fringecal.acceptance.measure import (
+    BACKDROP_FACTOR,
+    SEGMENT_MM,
+    AcceptanceMeasurementError,
+    FlatMeasurement,
+    SphereMeasurement,
+    largest_plane,
+    probe_flat,
+    probe_sphere,
+)
 from fringecal.acceptance.standards import AcceptanceStandards, FlatStandard, SphereStandard
 from fringecal.calibration.blackbox import BlackBoxScanner, scanners_from_document, transform_points
 from fringecal.scancloud import load_points
@@ -59,17 +67,23 @@ from fringecal.spheres.robust import RejectionConfig
 from fringecal.verification.black_box import verify_with_black_boxes
 from fringecal.verification.settings import VerificationConfig
 
-__all__ = ["measure_cloud_sphere", "measure_cloud_flat", "cloud_acceptance_values", "scale_u", "local_depths",
-           "BACKDROP_FACTOR", "GRID_SPACINGS", "RIM_CELLS", "ROUGH_FIT_RATIO"]
+__all__ = [
+    "GRID_SPACINGS",
+    "RIM_CELLS",
+    "ROUGH_FIT_RATIO",
+    "cloud_acceptance_values",
+    "local_depths",
+    "measure_cloud_flat",
+    "measure_cloud_sphere",
+    "scale_u",
+]
 
-#: A plane patch longer than this many flat diagonals is not the flat (as for a store).
-BACKDROP_FACTOR = 1.2
 #: Grid cell of a flat's patch, in median point spacings: coarse enough that a patch of
 #: points is one connected region, fine enough that its border is the flat's rim.
 GRID_SPACINGS = 2.5
 #: A dumbbell candidate whose residual RMS exceeds this many times the best fit of its cloud
-#: straddles a sphere's edge and the rod (radius within 20 %, RMS 1.4-1.7 mm against 0.14 mm
-#: on the black-box row at 3.1 m): set aside, as one dumbbell holds two spheres of one size.
+#: straddles a sphere's edge and the rod (its radius within the search's 20 %, its residuals
+#: ten times a sphere's on the black-box row): set aside, as a dumbbell's two spheres are alike.
 ROUGH_FIT_RATIO = 3.0
 #: Border cells of a flat's patch left out (about 5 point spacings: a store leaves out its
 #: edge pixels and 2 more, where the face meets a side face and the points bend away).
@@ -171,6 +185,8 @@ def measure_cloud_flat(points, box: BlackBoxScanner, standard: FlatStandard, exc
         if inl is None:
             break
         on = p[idx[inl]]
+        if len(on) < 10:
+            break
         plane = PlaneModel.from_estimate(on, toward=np.zeros(3))
         member, inside, span = _patch(on, plane)
         if span > BACKDROP_FACTOR * diagonal:

@@ -176,7 +176,7 @@ _TRANSFORM = (("tx_mm", "t<sub>x</sub>", "mm", 1.0), ("ty_mm", "t<sub>y</sub>", 
               ("scale", "scale k", "1", 1.0))
 
 
-def _transform(d: dict):
+def _transform(run: RunData, d: dict):
     """A black box's origin, angles and scale with their standard uncertainties (a
     parameter held fixed, with zero uncertainty, is marked)."""
     rows = []
@@ -188,7 +188,7 @@ def _transform(d: dict):
     return table(["Parameter", "Unit", "Value ± u (k = 1)"], rows, left=2)
 
 
-def _matrix(d: dict):
+def _matrix(run: RunData, d: dict):
     """The 4x4 ``T_world_scanner`` (scale inside its 3x3), row by row."""
     return table(["", "1", "2", "3", "4"], [[f"row {i + 1}", *(f"{v:.9g}" for v in row)]
                                            for i, row in enumerate(d["matrix"])], left=1)
@@ -200,8 +200,8 @@ def black_box_parts(run: RunData) -> list[dict]:
     if not doc:
         return []
     serials = (run.config().get("certificate") or {}).get("scanners") or {}
-    return [{"name": d["scanner"], "serial": serials.get(d["scanner"]), "transform": guard(lambda r: _transform(d), run),
-             "matrix": guard(lambda r: _matrix(d), run), "rms": um(d.get("rms_mm")), "n_centres": d.get("n_centres"),
+    return [{"name": d["scanner"], "serial": serials.get(d["scanner"]), "transform": guard(_transform, run, d),
+             "matrix": guard(_matrix, run, d), "rms": um(d.get("rms_mm")), "n_centres": d.get("n_centres"),
              "reference": d["scanner"] == doc.get("reference"), "scale_free": bool(doc.get("scale")),
              "acceptance": guard(acceptance_values, run, d["scanner"], "Depths (its frame's z)")}
             for d in doc.get("scanners") or []]
