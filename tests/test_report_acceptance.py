@@ -251,3 +251,29 @@ def test_a_malformed_acceptance_file_is_named(rd):
 def test_the_report_step_reads_the_acceptance_files(rd):
     rels = {f.rel for f in report_inputs(rd)}
     assert {rd.acceptance.rel, rd.acceptance_standards.rel, rd.ballbar_centres.rel} <= rels
+
+
+def test_a_black_box_s_transform_and_acceptance_rows_are_shown(rd):
+    """A black box (``black_boxes.json``): its origin, angles and scale with their u
+    and its 4x4 under Scanners, with its acceptance values; its certificate rows beside
+    the modelled scanners', marked."""
+    from fringecal.calibration.blackbox import BlackBoxScanner
+
+    cov = np.diag([0.09**2, 0.08**2, 0.43**2, 2e-4**2, 2.5e-4**2, 1.3e-5**2, 3e-5**2])
+    box = BlackBoxScanner("box", np.array([1385.21, 7.795, 252.48, 0.001, -0.002, 0.0064, 1.0002]), cov, 0.0305, 48)
+    rd.black_boxes.save({"reference": "scanner1", "scale": True, "scanners": [box.to_dict()]})
+    values = VALUES + [("sphere", "P_S", "sphere-2-01", "box", 0.058, 0.056, 4000, 12),
+                       ("dumbbell", "SD", "dumbbell-2-01", "box", 0.020, 0.055, 0, 0)]
+    doc = _doc(values)
+    doc["black_boxes"] = ["box"]
+    page = _page(rd, doc)
+    rows = _rows(_section(page))
+    assert rows[2] == ["P_S probing error size", "box (black box)", "1", "58.0 µm", "100.0 µm", "56.0 µm",
+                       "uncertainty zone"]  # 58 + 56 um > 100 um, judged as a modelled scanner's
+    assert rows[4] == ["SD sphere-spacing error", "box (black box)", "1", "20.0 µm", "100.0 µm", "55.0 µm",
+                       "conformance"]
+    part = re.search(r"<h3>Black-box scanner box</h3>(.*?)<h3>Strongest", page, re.S).group(1)
+    assert "1385.210 ± 0.090" in part and "1.000200 ± 0.000030" in part and "48 sphere centres lie 30.5 µm RMS" in part
+    assert f"{box.matrix()[0, 3]:.9g}" in part and f"{box.matrix()[0, 0]:.9g}" in part
+    assert "Depths (its frame&#39;s z)" in part and "20.0 µm" in part and "Could not be shown" not in page
+    assert rd.black_boxes.rel in {f.rel for f in report_inputs(rd)}

@@ -209,3 +209,44 @@ def test_prepare_keys_the_acceptance_and_removes_it_when_switched_off(tmp_path):
     assert rd.truth.acceptance_positions.load().empty and not rd.acceptance_standards.exists()
     assert not rd.acquisition.load()["kind"].isin(TESTS).any()
     assert keys_off["simulate-sphere"] == {} and keys_off["simulate-flat"] == {}
+
+
+def test_a_black_box_s_acceptance_clouds_are_the_same_through_both_doors(run, tmp_path):
+    """A black box's acceptance sphere and flat (here scanner2's stores): the simulated
+    run's cloud store (``store_black_box_cloud``) and ``fringecal simulate``'s
+    ``<scanner>.ply`` read back by the decode step (``cloud_store_from_file``) hold the
+    same points, so the acceptance test measures the same P_F, P_S and F in both; with
+    the true transform the sphere is its certified size within the renderer's bias at
+    200 px."""
+    import shutil
+
+    from fringecal.acceptance.cloud import cloud_acceptance_values
+    from fringecal.acceptance.standards import AcceptanceConfig
+    from fringecal.calibration.blackbox import BlackBoxScanner
+    from fringecal.scancloud import cloud_store_from_file, read_cloud_store
+    from fringecal.simulate.black_box import own_frame, write_black_box_ply
+    from fringecal.steps.simulate_render import store_black_box_cloud
+
+    rd, _ = run
+    table = rd.acquisition.load()
+    mine = table[table["kind"].isin(("sphere", "flat")) & (table["scanner"] == "scanner2")]
+    scanner = scaled_scanner(rd.truth.sensors.load().scanner("scanner2"), WIDTH)
+    doors = {"run": {}, "dataset": {}}
+    for r in mine.itertuples():
+        stored = shutil.copytree(rd.store(r.measurement).path, tmp_path / f"{r.measurement}.zarr")
+        store_black_box_cloud(stored, scanner)                                  # fringecal run -c
+        ply = tmp_path / r.measurement / "scanner2.ply"
+        ply.parent.mkdir()
+        write_black_box_ply(rd.store(r.measurement).path, scanner, ply)        # fringecal simulate
+        read = cloud_store_from_file(ply, tmp_path / f"{r.measurement}-ds.zarr")  # then run --dataset
+        np.testing.assert_array_equal(read_cloud_store(read)[0], read_cloud_store(stored)[0])
+        doors["run"].setdefault(r.kind, {})[r.pose] = {"scanner2": str(stored)}
+        doors["dataset"].setdefault(r.kind, {})[r.pose] = {"scanner2": str(read)}
+    box = BlackBoxScanner("scanner2", np.r_[own_frame(scanner).params, 1.0], np.zeros((7, 7)), 0.0, 0)
+    doc = {"scanners": [box.to_dict()]}
+    standards = AcceptanceStandards.model_validate(rd.acceptance_standards.load())
+    values = {door: cloud_acceptance_values(stores, doc, standards, AcceptanceConfig(), {})
+              for door, stores in doors.items()}
+    assert values["run"] == values["dataset"] and values["run"][1] == []
+    got = {v["parameter"]: v for v in values["run"][0]}
+    assert set(got) == {"P_F", "P_S", "F"} and abs(got["P_S"]["value_mm"]) < 0.3

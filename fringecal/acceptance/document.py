@@ -1,7 +1,8 @@
 """The acceptance test of a calibrated rig per VDI/VDE 2634 parts 2 and 3: every
 sphere, flat and dumbbell position measured with the rig from its stores alone
-(:mod:`.measure`), the ball-bar's lengths as E, each quality parameter against its
-limit with its uncertainty and the ISO 14253-1 verdict (:mod:`.evaluate`).
+(:mod:`.measure`; a black-box scanner's in its clouds, :mod:`.cloud`), the ball-bar's
+lengths as E, each quality parameter against its limit with its uncertainty and the
+ISO 14253-1 verdict (:mod:`.evaluate`).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
+from fringecal.acceptance.cloud import cloud_acceptance_values
 from fringecal.acceptance.evaluate import DEPTH_COLUMNS, VALUE_COLUMNS, certificate, form_u
 from fringecal.acceptance.measure import AcceptanceMeasurementError, measure_flat_store, measure_sphere_store
 from fringecal.acceptance.standards import AcceptanceConfig, AcceptanceStandards, ScannerSpecification
@@ -140,26 +142,51 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
     return pd.DataFrame(rows, columns=VALUE_COLUMNS + DEPTH_COLUMNS), failures
 
 
-def acceptance_document(rig: Rig, standards: AcceptanceStandards, config: AcceptanceConfig, rejection: dict,
+def _split(stores: dict, boxes: set) -> tuple[dict, dict]:
+    """``stores`` (kind -> position -> scanner -> path) of the modelled scanners and of
+    the black boxes ``boxes``."""
+    parts: tuple[dict, dict] = ({}, {})
+    for kind, positions in stores.items():
+        for position, by_scanner in positions.items():
+            for scanner, path in by_scanner.items():
+                part = parts[scanner in boxes]
+                part.setdefault(kind, {}).setdefault(position, {})[scanner] = path
+    return parts
+
+
+def acceptance_document(rig: Rig | None, standards: AcceptanceStandards, config: AcceptanceConfig, rejection: dict,
                         length_config: LengthUncertaintyConfig, covariance: dict | None, stores: dict,
-                        verification: dict | None = None, positions: list[dict] = ()) -> tuple[dict, pd.DataFrame]:
+                        verification: dict | None = None, positions: list[dict] = (),
+                        black_boxes: dict | None = None) -> tuple[dict, pd.DataFrame]:
     """The acceptance document (:func:`.evaluate.certificate`) and its values for ``rig``.
 
     ``stores`` and ``rejection``, ``length_config``, ``covariance`` as for
     :func:`measure_acceptance`; E comes from ``verification`` (a ball-bar verification:
     ``calibrated`` positions and their ``uncertainty``, as ``verification.json`` holds
-    them) when given; ``positions`` are where the objects stood, for the report. ``rig``
-    None: a rig of black boxes only, whose acceptance is the ball-bar's E alone (no
-    sensors to measure the objects with)."""
-    values, failures = measure_acceptance(stores, rig, standards, config, rejection, length_config, covariance)
+    them) when given; ``positions`` are where the objects stood, for the report.
+    ``black_boxes``: ``black_boxes.json`` when the rig has black-box scanners, whose
+    positions in ``stores`` are clouds measured with their transforms
+    (:func:`.cloud.cloud_acceptance_values`); ``rig`` None: a rig of black boxes only."""
+    boxes = {d["scanner"] for d in black_boxes["scanners"]} if black_boxes else set()
+    modelled, clouds = _split(stores, boxes)
+    values, failures = measure_acceptance(modelled, rig, standards, config, rejection, length_config, covariance) \
+        if rig is not None else (pd.DataFrame(columns=VALUE_COLUMNS + DEPTH_COLUMNS), [])
+    if any(clouds.values()):
+        rows, fails = cloud_acceptance_values(clouds, black_boxes, standards, config, rejection)
+        failures += fails
+        if rows:
+            cloud_values = pd.DataFrame(rows, columns=VALUE_COLUMNS + DEPTH_COLUMNS)
+            values = pd.concat([values, cloud_values], ignore_index=True) if len(values) else cloud_values
     values, outside = outside_volume(values, config.specification)
     failures += outside
     if verification is not None:
         e = _e_values(verification, config.coverage_factor)
         values = pd.concat([values, e], ignore_index=True) if len(values) else e
-    scanners = [s.name for s in rig.scanners] if rig is not None else []
+    scanners = ([s.name for s in rig.scanners] if rig is not None else []) + \
+        [d["scanner"] for d in (black_boxes or {}).get("scanners", [])]
     doc = certificate(values, config.limits, config.coverage_factor, config.exclude_fraction, scanners, failures,
                       list(positions), config.specification)
+    doc["black_boxes"] = sorted(boxes)  # scanners whose values were measured in their clouds
     return doc, values
 
 

@@ -64,7 +64,7 @@ from fringecal.verification.ballbar import SightingConfig, find_sightings
 from fringecal.verification.measure import store_maps
 
 __all__ = ["SphereMeasurement", "FlatMeasurement", "RaySphere", "trim_by_residual", "sphere_along_rays",
-           "probe_sphere", "probe_flat",
+           "probe_sphere", "probe_flat", "largest_plane",
            "measure_sphere_store", "measure_flat_store", "AcceptanceMeasurementError"]
 
 #: Distance (mm) from the robust object within which points belong to it.
@@ -354,7 +354,7 @@ def measure_sphere_store(store, scanner: Scanner, standard: SphereStandard, excl
         raise AcceptanceMeasurementError(f"{store}: sphere: {err}") from None
 
 
-def _largest_plane(p: np.ndarray, rng, segment_mm: float, trials: int = 300):
+def largest_plane(p: np.ndarray, rng, segment_mm: float, trials: int = 300):
     """Inlier mask (n,) of the plane through the most points of ``p`` (n, 3)."""
     best, best_n = None, -1
     n = len(p)
@@ -390,7 +390,7 @@ def measure_flat_store(store, scanner: Scanner, standard: FlatStandard, exclude_
         if len(rows) < 10:
             break
         p = xyz[rows, cols]
-        inl = _largest_plane(p, rng, segment_mm)
+        inl = largest_plane(p, rng, segment_mm)
         if inl is None:
             break
         mask = np.zeros_like(ok)

@@ -1,8 +1,10 @@
 """The acceptance test per VDI/VDE 2634 parts 2 and 3
 (:func:`fringecal.acceptance.document.acceptance_document`): every sphere, dumbbell and
-flat position measured with the calibrated sensors from its stores alone, the ball-bar's
-lengths of the verification as E, each quality parameter against its limit with its
-uncertainty and the ISO 14253-1 verdict.
+flat position measured with the calibrated sensors from its stores alone (a black-box
+scanner's in its clouds, carried by its calibrated transform and scale:
+:mod:`fringecal.acceptance.cloud`), the ball-bar's lengths of the verification as E,
+each quality parameter against its limit with its uncertainty and the ISO 14253-1
+verdict.
 
 Writes ``acceptance.json`` (:func:`fringecal.acceptance.evaluate.certificate`) and
 ``tables/acceptance_values.csv``. A run with neither acceptance objects nor a
@@ -29,11 +31,10 @@ ACCEPTANCE_KINDS = ("sphere", "dumbbell", "flat")
 
 def acceptance_stores(rd: RunDir) -> dict[str, dict[str, dict[str, str]]]:
     """kind -> position -> scanner -> store path of the run's acceptance measurements
-    (a black-box scanner's clouds are not evaluated: the test measures with sensors)."""
+    (a black-box scanner's stores are its clouds)."""
     table = rd.acquisition.load()
-    boxes = black_box_scanners(rd)
     out: dict[str, dict[str, dict[str, str]]] = {k: {} for k in ACCEPTANCE_KINDS}
-    for r in table[table["kind"].isin(ACCEPTANCE_KINDS) & ~table["scanner"].isin(boxes)].itertuples():
+    for r in table[table["kind"].isin(ACCEPTANCE_KINDS)].itertuples():
         out[r.kind].setdefault(str(r.pose), {})[str(r.scanner)] = str(rd.store(r.measurement).path)
     return out
 
@@ -55,18 +56,18 @@ class Acceptance(Step):
 
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         stores = [rd.store(m) for kind in ACCEPTANCE_KINDS for m in stores_of_kind(rd, kind)]
-        if black_boxes_only(rd):  # black boxes only: E from the ball-bar
-            return [rd.sensors_prior, rd.verification, rd.acceptance_standards, rd.acquisition,
-                    rd.truth.acceptance_positions]
-        return [rd.calibration, rd.covariance, rd.verification, rd.acceptance_standards, rd.acquisition,
-                rd.truth.acceptance_positions] + stores
+        common = [rd.verification, rd.acceptance_standards, rd.acquisition, rd.truth.acceptance_positions] + stores
+        boxes = [rd.black_boxes] if black_box_scanners(rd) else []
+        if black_boxes_only(rd):  # black boxes only: no sensors
+            return [rd.sensors_prior] + common + boxes
+        return [rd.calibration, rd.covariance] + common + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.acceptance, rd.acceptance_values]
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         modelled = not black_boxes_only(rd)
-        stores = acceptance_stores(rd) if modelled else {}
+        stores = acceptance_stores(rd)
         standards = (AcceptanceStandards(**rd.acceptance_standards.load()) if rd.acceptance_standards.exists()
                      else AcceptanceStandards())
         verified = rd.verification.exists()
@@ -79,7 +80,8 @@ class Acceptance(Step):
         doc, values = acceptance_document(rd.calibration.load() if modelled else None, standards, cfg.acceptance,
                                           cfg.extraction.rejection, cfg.verification.uncertainty,
                                           rd.covariance.load() if modelled else None, stores,
-                                          rd.verification.load() if verified else None, _positions(rd))
+                                          rd.verification.load() if verified else None, _positions(rd),
+                                          rd.black_boxes.load() if black_box_scanners(rd) else None)
         for f in doc["failures"]:
             log.warning("acceptance %s position %s, scanner %s: %s", f["test"], f["position"], f["scanner"],
                         f["reason"])

@@ -22,7 +22,7 @@ def report_inputs(rd: RunDir) -> list:
             rd.residuals_per_sphere, rd.residuals_per_measurement, rd.residuals_binned, rd.histogram("eps1"),
             rd.histogram("eps2"), rd.control_points, rd.poses_calibrated,
             rd.crossval, rd.verification, rd.ballbar_centres, rd.acceptance, rd.acceptance_standards,
-            rd.evaluation]
+            rd.evaluation, rd.black_boxes]
 
 
 class Report(Step):

@@ -23,11 +23,13 @@ def build(run: RunData) -> dict:
         return {"absent": f.rel}
     doc = run.json(f)
     params = doc.get("parameters") or []
+    boxes = [str(b) for b in doc.get("black_boxes") or []]
     k = num(doc.get("coverage_factor"), "g")
     return {"absent": None, "standard": doc.get("standard", "VDI/VDE 2634 parts 2 and 3"), "k": k,
             "decision_rule": doc.get("decision_rule", "ISO 14253-1"),
             "certificate": table(["Test", "Scanner", "Positions", "Measured", "Limit (MPE)", f"U (k = {k})",
-                                  "Verdict"], [_certificate_row(p) for p in params], left=2),
+                                  "Verdict"], [_certificate_row(p, boxes) for p in params], left=2),
+            "black_boxes": ", ".join(boxes),
             "decision": _decision(doc, params), "figure": guard(figure, run, doc),
             "per_position": _values(doc), "failures": [_failure(f) for f in doc.get("failures") or []]}
 
@@ -38,9 +40,10 @@ def _verdict_cell(v) -> tuple | str:
     return (str(v), klass) if klass else str(v)
 
 
-def _certificate_row(p: dict) -> list:
+def _certificate_row(p: dict, boxes=()) -> list:
     mpe = p.get("mpe_mm")
-    return [f"{p.get('name')} {p.get('title') or ''}".strip(), p.get("scanner"), p.get("positions"),
+    scanner = f"{p.get('scanner')} (black box)" if p.get("scanner") in boxes else p.get("scanner")
+    return [f"{p.get('name')} {p.get('title') or ''}".strip(), scanner, p.get("positions"),
             um(p.get("measured_mm")), um(mpe) if mpe is not None else "not limited", um(p.get("U_mm")),
             _verdict_cell(p.get("verdict"))]
 

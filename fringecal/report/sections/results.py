@@ -44,6 +44,9 @@ def _diagnoses(bs: dict):
 def build(run: RunData) -> dict:
     """The adjustment's figures from ``bundle_summary.json`` (and ``evaluation.json``)."""
     bs = run.json(run.rd.bundle_summary)
+    if bs.get("black_boxes_only"):
+        raise Missing("a rig of black-box scanners only has no sensor model, so no F, eps1 or eps2; each black "
+                      "box's transform is under Scanners")
     sigma = bs.get("sigma_mm") or {}
     dof = bs.get("degrees_of_freedom") or {}
     return {

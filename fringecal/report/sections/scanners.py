@@ -1,8 +1,9 @@
 """One part per scanner: its 14 + 14 parameters with their uncertainties, the residuals
 and the coverage by control points over its camera's and projector's images, the
 uncertainty a measured point inherits from the calibration at three depths of its
-measuring volume, and its acceptance values; then the strongest correlations of the
-adjustment."""
+measuring volume, and its acceptance values; one part per black-box scanner: its
+transform and scale with their uncertainties (``black_boxes.json``), its 4x4 matrix
+and its acceptance values; then the strongest correlations of the adjustment."""
 
 from __future__ import annotations
 
@@ -15,12 +16,13 @@ from markupsafe import Markup
 from fringecal.report import figures
 from fringecal.report.figures import Image
 from fringecal.report.formatting import PARAM_LABELS, PARAM_UNITS, finite, length, num, plus_minus, um
-from fringecal.report.rundata import Missing, RunData, guard
+from fringecal.report.rundata import Missing, RunData, Shown, guard
 from fringecal.report.sections.certificate import VERDICT_CLASSES
 from fringecal.report.tables import table
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES
 
-__all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths", "acceptance_values"]
+__all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths", "acceptance_values",
+           "black_box_parts"]
 
 #: Cells across the camera image of an uncertainty map.
 MAP_CELLS = 24
@@ -143,7 +145,7 @@ def uncertainty_maps(run: RunData, scanner: str) -> dict:
                               default=float("nan")))}
 
 
-def acceptance_values(run: RunData, scanner: str):
+def acceptance_values(run: RunData, scanner: str, depths_title: str = "Camera depths"):
     """The scanner's acceptance parameters (``acceptance.json``) with the depths of their positions."""
     doc = run.json(run.rd.acceptance)
     depth = {}
@@ -164,18 +166,61 @@ def acceptance_values(run: RunData, scanner: str):
                      (verdict, VERDICT_CLASSES[verdict]) if verdict in VERDICT_CLASSES else verdict])
     if not rows:
         raise Missing(f"{run.rd.acceptance.rel} has no parameter of {scanner}")
-    return table(["Parameter", "Positions", "Camera depths", "Measured", "U (k = 2)", "MPE", "Verdict"], rows, left=1)
+    return table(["Parameter", "Positions", depths_title, "Measured", "U (k = 2)", "MPE", "Verdict"], rows, left=1)
+
+
+#: a black box's transform parameters: (key of black_boxes.json, label, unit, factor from the file's unit)
+_TRANSFORM = (("tx_mm", "t<sub>x</sub>", "mm", 1.0), ("ty_mm", "t<sub>y</sub>", "mm", 1.0),
+              ("tz_mm", "t<sub>z</sub>", "mm", 1.0), ("omega_rad", "&omega;", "mrad", 1e3),
+              ("phi_rad", "&phi;", "mrad", 1e3), ("kappa_rad", "&kappa;", "mrad", 1e3),
+              ("scale", "scale k", "1", 1.0))
+
+
+def _transform(run: RunData, d: dict):
+    """A black box's origin, angles and scale with their standard uncertainties (a
+    parameter held fixed, with zero uncertainty, is marked)."""
+    rows = []
+    for key, label, unit, f in _TRANSFORM:
+        value, u = f * float(d[key]), f * float(d["std"][key])
+        shown = plus_minus(value, u) if u > 0 else Markup('<span class="fixed">{} (fixed)</span>').format(
+            f"{value:.7g}")
+        rows.append([Markup(label), unit, shown])
+    return table(["Parameter", "Unit", "Value ± u (k = 1)"], rows, left=2)
+
+
+def _matrix(run: RunData, d: dict):
+    """The 4x4 ``T_world_scanner`` (scale inside its 3x3), row by row."""
+    return table(["", "1", "2", "3", "4"], [[f"row {i + 1}", *(f"{v:.9g}" for v in row)]
+                                           for i, row in enumerate(d["matrix"])], left=1)
+
+
+def black_box_parts(run: RunData) -> list[dict]:
+    """One part per black-box scanner of ``black_boxes.json`` (none without it)."""
+    doc = run.maybe_json(run.rd.black_boxes)
+    if not doc:
+        return []
+    serials = (run.config().get("certificate") or {}).get("scanners") or {}
+    return [{"name": d["scanner"], "serial": serials.get(d["scanner"]), "transform": guard(_transform, run, d),
+             "matrix": guard(_matrix, run, d), "rms": um(d.get("rms_mm")), "n_centres": d.get("n_centres"),
+             "reference": d["scanner"] == doc.get("reference"), "scale_free": bool(doc.get("scale")),
+             "acceptance": guard(acceptance_values, run, d["scanner"], "Depths (its frame's z)")}
+            for d in doc.get("scanners") or []]
 
 
 def build(run: RunData) -> dict:
-    """One part per scanner of the calibration, and the correlations."""
+    """One part per scanner of the calibration, one per black box, and the correlations."""
+    boxes = black_box_parts(run)
+    if boxes and not run.rd.calibration.exists():  # black boxes only: no sensor model, no correlations to show
+        return {"scanners": [], "black_boxes": boxes, "correlations": Shown(note="Not available: a rig of "
+                                                                               "black-box scanners has no sensor "
+                                                                               "parameters.")}
     rig = run.load(run.rd.calibration)
     serials = (run.config().get("certificate") or {}).get("scanners") or {}
     scanners = [{"name": sc.name, "serial": serials.get(sc.name), "parameters": _parameters(rig, k),
                  "residuals": guard(residual_maps, run, sc.name), "uncertainty": guard(uncertainty_maps, run, sc.name),
                  "acceptance": guard(acceptance_values, run, sc.name)}
                 for k, sc in enumerate(rig.scanners)]
-    return {"scanners": scanners, "correlations": guard(correlations, run)}
+    return {"scanners": scanners, "black_boxes": boxes, "correlations": guard(correlations, run)}
 
 
 def correlations(run: RunData, k: int = 10) -> dict:
