@@ -64,7 +64,7 @@ from fringecal.scancloud import load_points
 from fringecal.spheres.cloud_spheres import cloud_sphere_fits
 from fringecal.spheres.fit import FitError, PlaneModel
 from fringecal.spheres.robust import RejectionConfig
-from fringecal.verification.black_box import verify_with_black_boxes
+from fringecal.verification.black_box import ROUGH_FIT_RATIO, verify_with_black_boxes
 from fringecal.verification.settings import VerificationConfig
 
 __all__ = [
@@ -81,10 +81,6 @@ __all__ = [
 #: Grid cell of a flat's patch, in median point spacings: coarse enough that a patch of
 #: points is one connected region, fine enough that its border is the flat's rim.
 GRID_SPACINGS = 2.5
-#: A dumbbell candidate whose residual RMS exceeds this many times the best fit of its cloud
-#: straddles a sphere's edge and the rod (its radius within the search's 20 %, its residuals
-#: ten times a sphere's on the black-box row): set aside, as a dumbbell's two spheres are alike.
-ROUGH_FIT_RATIO = 3.0
 #: Border cells of a flat's patch left out (about 5 point spacings: a store leaves out its
 #: edge pixels and 2 more, where the face meets a side face and the points bend away).
 RIM_CELLS = 2

@@ -51,7 +51,14 @@ from fringecal.verification.lengths import evaluate_ballbar
 from fringecal.verification.measure import store_sightings
 from fringecal.verification.uncertainty import iso14253_verdict, sighting_points
 
-__all__ = ["black_box_scanners_of", "verify_with_black_boxes"]
+__all__ = ["ROUGH_FIT_RATIO", "black_box_scanners_of", "verify_with_black_boxes"]
+
+#: A black box's candidate whose residual RMS exceeds this many times the best fit of its
+#: cloud straddles a sphere's edge and the rod (its radius within the search's 20 %, its
+#: residuals ten times a sphere's on the black-box row): set aside, as a bar's (or a
+#: dumbbell's) two spheres are alike. On the mixed thesis rig such a candidate made
+#: ball-bar position 5 "3 bar spheres found" in every seed.
+ROUGH_FIT_RATIO = 3.0
 
 
 def black_box_scanners_of(doc: dict) -> dict[str, BlackBoxScanner]:
@@ -74,7 +81,8 @@ def _world_jacobian(box: BlackBoxScanner, c: np.ndarray, step: float = 1e-7) -> 
 
 
 def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Artefact,
-               rejection: RejectionConfig, rms_ratio: float | None = None) -> tuple[list[dict], list[dict]]:
+               rejection: RejectionConfig, rms_ratio: float | None = ROUGH_FIT_RATIO
+               ) -> tuple[list[dict], list[dict]]:
     radius = float(np.mean(ballbar.radii[:2]))
     out, failures = [], []
     for scanner, store in stores.items():
@@ -182,7 +190,8 @@ def _length_u(a: dict, b: dict, joint: dict, u_certificate: float) -> tuple[floa
 def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: Artefact, rejection: dict, settings,
                             diagonal_mm: float, max_incidence_deg: float | None = 60.0,
                             pixel_integration_px: float = 0.0,
-                            rms_ratio: float | None = None) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
+                            rms_ratio: float | None = ROUGH_FIT_RATIO
+                            ) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
     """Centres, failures, the evaluated lengths (:func:`.lengths.evaluate_ballbar`
     as a dict) and the lengths' budgets of every position (``stores``: position ->
     scanner -> store path), modelled and black-box scanners together
@@ -190,7 +199,8 @@ def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: 
     the footprint the modelled sightings' phases are corrected with (the control
     points', ``control_points.pixel_integration_px``; 0: as decoded); ``rms_ratio``: a
     black box's candidate fit whose residual RMS exceeds this many times the best of its
-    cloud is set aside (None: every candidate of the right radius is a sighting)."""
+    cloud is set aside (:data:`ROUGH_FIT_RATIO`; None: every candidate of the right
+    radius is a sighting)."""
     rejection = RejectionConfig(**rejection)
     boxes = black_box_scanners_of(black_boxes)
     joint = dict(black_boxes["joint_covariance"])
