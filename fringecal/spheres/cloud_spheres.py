@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from fringecal.schemas import SphereFitsTable
+from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, within_reach
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.poses_and_links import sphere_fit_row
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
@@ -69,23 +70,22 @@ _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 class _Cubes:
     """A cloud sorted into cubes of edge ``cell``: each occupied cube's points (a slice
-    of the sorted cloud), their mean, and sums for local planes."""
+    of the cloud's cube order), their mean, and sums for local planes; one compiled pass
+    each (:mod:`fringecal.spheres.cloud_kernels`)."""
 
     def __init__(self, points: np.ndarray, cell: float):
         self.cell = cell
-        self.origin = np.floor(points.min(axis=0) / cell) - 1  # a margin of one cube for neighbours
-        keys = self._keys(np.floor(points / cell) - self.origin)
-        order = np.argsort(keys)
-        self.points = points[order]
-        sorted_keys = keys[order]
-        self.start = np.flatnonzero(np.r_[True, np.diff(sorted_keys) != 0])
+        self.cloud = np.ascontiguousarray(points, float)
+        low = np.array([self.cloud[:, i].min() for i in range(3)])  # column by column: see scancloud
+        self.origin = np.floor(low / cell) - 1  # a margin of one cube for neighbours
+        keys = cube_keys(self.cloud, cell, self.origin)
+        self.order = np.argsort(keys)
+        sorted_keys = keys[self.order]
+        self.start = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
         self.keys = sorted_keys[self.start]
         self.count = np.diff(np.r_[self.start, len(keys)])
-        centred = self.points - self.points.mean(axis=0)
-        self.shift = self.points.mean(axis=0)
-        self.s1 = np.add.reduceat(centred, self.start, axis=0)
-        self.s2 = np.add.reduceat(np.column_stack([centred[:, a] * centred[:, b] for a, b in _PAIRS]), self.start,
-                                  axis=0)
+        self.shift = np.array([self.cloud[:, i].mean() for i in range(3)])
+        self.s1, self.s2 = cube_sums(self.cloud, self.order, self.start, self.shift)
 
     @staticmethod
     def _keys(q: np.ndarray) -> np.ndarray:
@@ -131,7 +131,7 @@ class _Cubes:
         j = j[j >= 0]
         if not len(j):
             return np.zeros((0, 3))
-        p = np.concatenate([self.points[a:a + c] for a, c in zip(self.start[j], self.count[j])])
+        p = self.cloud[np.concatenate([self.order[a:a + c] for a, c in zip(self.start[j], self.count[j])])]
         return p[np.linalg.norm(p - centre, axis=1) <= reach]
 
 
@@ -229,9 +229,8 @@ def refit_cloud_sphere(points: np.ndarray, centre: np.ndarray, radius: float, ro
     Returns the :class:`fringecal.spheres.robust.RobustSphereFit`; a fit covering less
     than :data:`MIN_COVERAGE` of the sphere raises :class:`FitError`."""
     reach = search_radii * radius
-    near = np.all(np.abs(points - centre) <= reach, axis=1)
-    sel = points[near]
-    sel = sel[np.linalg.norm(sel - centre, axis=1) <= reach]
+    points = np.ascontiguousarray(points, float)
+    sel = points[within_reach(points, np.asarray(centre, float), float(reach))]
     flags = {}
     if max_incidence_deg is not None:
         normal = (sel - centre) / np.linalg.norm(sel - centre, axis=1, keepdims=True)

@@ -1,0 +1,82 @@
+"""Compiled single passes over a black-box scanner's cloud (millions of points).
+
+numpy's version of each pass walks the cloud several times and allocates an array of
+its size per step (``floor``, the keys, the sorted copy, the centred copy, six
+products); on 2 million points that is some 0.7 s per cloud, against a few tens of
+milliseconds here. The arithmetic is the same, term by term, so the sums differ from
+numpy's only by the order of additions (rounding).
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+__all__ = ["cube_keys", "cube_sums", "within_reach"]
+
+#: bits of each axis's cube index in a key (2 million cubes across)
+KEY_BITS = 21
+
+
+@nb.njit(cache=True, nogil=True)
+def cube_keys(points, cell, origin):
+    """One int64 per point: its cube of edge ``cell`` counted from ``origin`` (cube
+    indices, (3,) float), ``KEY_BITS`` bits an axis, x highest."""
+    n = points.shape[0]
+    keys = np.empty(n, np.int64)
+    for i in range(n):
+        qx = np.int64(np.floor(points[i, 0] / cell) - origin[0])
+        qy = np.int64(np.floor(points[i, 1] / cell) - origin[1])
+        qz = np.int64(np.floor(points[i, 2] / cell) - origin[2])
+        keys[i] = (qx << 42) | (qy << 21) | qz
+    return keys
+
+
+@nb.njit(cache=True, nogil=True)
+def cube_sums(points, order, start, shift):
+    """Per cube (the points ``order[start[k]:start[k + 1]]``): the sums of the points
+    less ``shift`` (m, 3) and of their products xx, yy, zz, xy, xz, yz (m, 6)."""
+    m = start.shape[0]
+    s1 = np.zeros((m, 3))
+    s2 = np.zeros((m, 6))
+    n = order.shape[0]
+    for k in range(m):
+        end = start[k + 1] if k + 1 < m else n
+        for j in range(start[k], end):
+            i = order[j]
+            x = points[i, 0] - shift[0]
+            y = points[i, 1] - shift[1]
+            z = points[i, 2] - shift[2]
+            s1[k, 0] += x
+            s1[k, 1] += y
+            s1[k, 2] += z
+            s2[k, 0] += x * x
+            s2[k, 1] += y * y
+            s2[k, 2] += z * z
+            s2[k, 3] += x * y
+            s2[k, 4] += x * z
+            s2[k, 5] += y * z
+    return s1, s2
+
+
+@nb.njit(cache=True, nogil=True)
+def within_reach(points, centre, reach):
+    """Indices of the points at most ``reach`` from ``centre`` (Euclidean distance, as
+    ``np.linalg.norm(points - centre, axis=1) <= reach``), in the cloud's order."""
+    n = points.shape[0]
+    out = np.empty(n, np.int64)
+    count = 0
+    for i in range(n):
+        dx = points[i, 0] - centre[0]
+        if dx > reach or dx < -reach:
+            continue
+        dy = points[i, 1] - centre[1]
+        if dy > reach or dy < -reach:
+            continue
+        dz = points[i, 2] - centre[2]
+        if dz > reach or dz < -reach:
+            continue
+        if np.sqrt(dx * dx + dy * dy + dz * dz) <= reach:
+            out[count] = i
+            count += 1
+    return out[:count]
