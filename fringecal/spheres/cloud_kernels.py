@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["cube_keys", "cube_sums", "within_reach"]
+__all__ = ["cube_keys", "cube_sums", "within_reach", "within_reach_of_any"]
 
 #: bits of each axis's cube index in a key (2 million cubes across)
 KEY_BITS = 21
@@ -79,4 +79,30 @@ def within_reach(points, centre, reach):
         if np.sqrt(dx * dx + dy * dy + dz * dz) <= reach:
             out[count] = i
             count += 1
+    return out[:count]
+
+
+@nb.njit(cache=True, nogil=True)
+def within_reach_of_any(points, centres, reach):
+    """Indices of the points at most ``reach`` from at least one of ``centres`` (k, 3),
+    in the cloud's order: one pass for all of a cloud's spheres, whose neighbourhoods
+    :func:`within_reach` then picks from the few points left."""
+    n = points.shape[0]
+    out = np.empty(n, np.int64)
+    count = 0
+    for i in range(n):
+        for k in range(centres.shape[0]):
+            dx = points[i, 0] - centres[k, 0]
+            if dx > reach or dx < -reach:
+                continue
+            dy = points[i, 1] - centres[k, 1]
+            if dy > reach or dy < -reach:
+                continue
+            dz = points[i, 2] - centres[k, 2]
+            if dz > reach or dz < -reach:
+                continue
+            if np.sqrt(dx * dx + dy * dy + dz * dz) <= reach:
+                out[count] = i
+                count += 1
+                break
     return out[:count]

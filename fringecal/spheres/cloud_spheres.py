@@ -24,12 +24,12 @@ import numpy as np
 import pandas as pd
 
 from fringecal.schemas import SphereFitsTable
-from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, within_reach
+from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, within_reach, within_reach_of_any
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.poses_and_links import sphere_fit_row
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
-__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "vote_centres", "refit_cloud_sphere"]
+__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "vote_centres", "refit_cloud_sphere", "near_any"]
 
 
 @dataclass(frozen=True)
@@ -217,6 +217,15 @@ def _distinct(rows: list[dict], radius: float) -> list[dict]:
 MIN_COVERAGE = 0.15
 
 
+def near_any(points: np.ndarray, centres: np.ndarray, radius: float, search_radii: float = 1.25) -> np.ndarray:
+    """The points of a cloud within ``search_radii`` radii of any of ``centres`` (k, 3), in
+    the cloud's order: what :func:`refit_cloud_sphere` of each of them needs (the same
+    points, in the same order, as from the whole cloud), found in one pass."""
+    points = np.ascontiguousarray(points, float)
+    centres = np.ascontiguousarray(np.reshape(centres, (-1, 3)), float)
+    return points[within_reach_of_any(points, centres, float(search_radii * radius))]
+
+
 def refit_cloud_sphere(points: np.ndarray, centre: np.ndarray, radius: float, rod_axes: np.ndarray | None = None,
                        rejection: RejectionConfig | None = None, max_incidence_deg: float | None = 60.0,
                        search_radii: float = 1.25):
@@ -230,7 +239,7 @@ def refit_cloud_sphere(points: np.ndarray, centre: np.ndarray, radius: float, ro
     than :data:`MIN_COVERAGE` of the sphere raises :class:`FitError`."""
     reach = search_radii * radius
     points = np.ascontiguousarray(points, float)
-    sel = points[within_reach(points, np.asarray(centre, float), float(reach))]
+    sel = points[within_reach(points, np.ascontiguousarray(centre, float), float(reach))]
     flags = {}
     if max_incidence_deg is not None:
         normal = (sel - centre) / np.linalg.norm(sel - centre, axis=1, keepdims=True)
