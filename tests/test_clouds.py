@@ -194,8 +194,10 @@ def test_measure_takes_a_black_box_s_cloud_beside_the_stacks(tmp_path):
 def test_the_compiled_cube_passes_are_numpy_s_arithmetic():
     """The cubes' keys, order and sums of a cloud (fringecal.spheres.cloud_kernels) are
     numpy's step-by-step formulation's: keys and counts exactly, sums to rounding (1e-9
-    of their size), on 60 000 points of caps and a backdrop, coordinates near 3.6 m."""
-    from fringecal.spheres.cloud_spheres import _PAIRS, _Cubes
+    of their size), the neighbourhoods' sums bit for bit, on 60 000 points of caps and a
+    backdrop, coordinates near 3.6 m."""
+    from fringecal.spheres.cloud_kernels import neighbourhood_sums
+    from fringecal.spheres.cloud_spheres import _NEIGHBOUR_OFFSETS, _PAIRS, _Cubes
 
     rng = np.random.default_rng(5)
     caps = visible_caps(scanner_view((np.eye(3), np.array([0.0, 0.0, 3600.0])), list(ARTEFACT.ids)), 25.0, rng, 2000)
@@ -214,6 +216,18 @@ def test_the_compiled_cube_passes_are_numpy_s_arithmetic():
     np.testing.assert_array_equal(cubes.count, np.diff(np.r_[start, len(points)]))
     np.testing.assert_allclose(cubes.s1, s1, rtol=0, atol=1e-9 * np.abs(s1).max())
     np.testing.assert_allclose(cubes.s2, s2, rtol=0, atol=1e-9 * np.abs(s2).max())
+    # the 26 neighbours' sums added as numpy adds them, cube by cube: the same bits
+    n, t1, t2 = cubes.count.astype(float), cubes.s1.copy(), cubes.s2.copy()
+    for off in _NEIGHBOUR_OFFSETS:
+        i = np.minimum(np.searchsorted(cubes.keys, cubes.keys + off), len(cubes.keys) - 1)
+        ok = cubes.keys[i] == cubes.keys + off
+        n[ok] += cubes.count[i[ok]]
+        t1[ok] += cubes.s1[i[ok]]
+        t2[ok] += cubes.s2[i[ok]]
+    for ours, numpy_s in zip(neighbourhood_sums(cubes.keys, cubes.count, cubes.s1, cubes.s2, _NEIGHBOUR_OFFSETS),
+                             (n, t1, t2)):
+        np.testing.assert_array_equal(ours, numpy_s)
+    assert (n > cubes.count).mean() > 0.9  # neighbours were found and added
 
 
 def test_one_pass_neighbourhoods_are_each_sphere_s_own():

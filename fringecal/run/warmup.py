@@ -136,7 +136,8 @@ def warm_up() -> None:
     from fringecal.fringe.sequence import FringeSequence
     from fringecal.pointcloud import triangulate_image_points, triangulate_maps
     from fringecal.simulate.control_points import simulate_control_points, thesis_truth
-    from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, within_reach, within_reach_of_any
+    from fringecal.spheres.cloud_kernels import (cube_keys, cube_sums, neighbourhood_sums, within_reach,
+                                                  within_reach_of_any)
     from fringecal.spheres.fit import SphereModel, angular_coverage
     from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
@@ -161,7 +162,9 @@ def warm_up() -> None:
     # a black-box scanner's cloud: its cubes and the spheres' neighbourhoods (fringecal.spheres.cloud_spheres)
     keys = cube_keys(points, 6.25, np.floor(points.min(axis=0) / 6.25) - 1)
     order = np.argsort(keys)
-    cube_sums(points, order, np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0]), points.mean(axis=0))
+    start = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
+    s1, s2 = cube_sums(points, order, start, points.mean(axis=0))
+    neighbourhood_sums(keys[order][start], np.diff(np.r_[start, len(keys)]), s1, s2, np.array([1, -1], np.int64))
     within_reach(points, points[0], 31.25)
     within_reach_of_any(points, points[:2].copy(), 31.25)
 

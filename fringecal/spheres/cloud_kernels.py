@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["cube_keys", "cube_sums", "within_reach", "within_reach_of_any"]
+__all__ = ["cube_keys", "cube_sums", "neighbourhood_sums", "within_reach", "within_reach_of_any"]
 
 #: bits of each axis's cube index in a key (2 million cubes across)
 KEY_BITS = 21
@@ -57,6 +57,31 @@ def cube_sums(points, order, start, shift):
             s2[k, 4] += x * z
             s2[k, 5] += y * z
     return s1, s2
+
+
+@nb.njit(cache=True, nogil=True)
+def neighbourhood_sums(keys, count, s1, s2, offsets):
+    """Each cube's point count and sums (:func:`cube_sums`) with those of its occupied
+    neighbours added, the neighbours in the order of ``offsets`` (key differences) as
+    numpy's cube-by-cube version adds them (the same sums, bit for bit); ``keys``
+    sorted ascending."""
+    m = keys.shape[0]
+    n = count.astype(np.float64)
+    t1 = s1.copy()
+    t2 = s2.copy()
+    for o in range(offsets.shape[0]):
+        j = 0  # the targets keys[i] + offset ascend with i: one merge-like walk per offset
+        for i in range(m):
+            target = keys[i] + offsets[o]
+            while j < m and keys[j] < target:
+                j += 1
+            if j < m and keys[j] == target:
+                n[i] += count[j]
+                for a in range(3):
+                    t1[i, a] += s1[j, a]
+                for a in range(6):
+                    t2[i, a] += s2[j, a]
+    return n, t1, t2
 
 
 @nb.njit(cache=True, nogil=True)

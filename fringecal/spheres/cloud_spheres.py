@@ -24,7 +24,8 @@ import numpy as np
 import pandas as pd
 
 from fringecal.schemas import SphereFitsTable
-from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, within_reach, within_reach_of_any
+from fringecal.spheres.cloud_kernels import (cube_keys, cube_sums, neighbourhood_sums, within_reach,
+                                              within_reach_of_any)
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.poses_and_links import sphere_fit_row
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
@@ -66,6 +67,11 @@ def _cube_means(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray
 
 
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+#: the 26 neighbours of a cube as differences of keys (:func:`_Cubes._keys`; the cubes
+#: have a margin of one, so no index borrows from the next axis)
+_NEIGHBOUR_OFFSETS = np.array([(int(a) << 42) + (int(b) << 21) + int(c)
+                               for a, b, c in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T
+                               if a or b or c], np.int64)
 
 
 class _Cubes:
@@ -103,16 +109,7 @@ class _Cubes:
     def normals(self) -> np.ndarray:
         """Each cube's normal: the smallest principal direction of the points of it and
         its 26 neighbours, turned toward the origin (the scanner)."""
-        n = self.count.astype(float).copy()
-        s1, s2 = self.s1.copy(), self.s2.copy()
-        for off in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
-            if not off.any():
-                continue
-            j = self.lookup(self.keys + int((off[0] << 42) + (off[1] << 21) + off[2]))
-            ok = j >= 0
-            n[ok] += self.count[j[ok]]
-            s1[ok] += self.s1[j[ok]]
-            s2[ok] += self.s2[j[ok]]
+        n, s1, s2 = neighbourhood_sums(self.keys, self.count, self.s1, self.s2, _NEIGHBOUR_OFFSETS)
         mean = s1 / n[:, None]
         cov = np.empty((len(n), 3, 3))
         for k, (a, b) in enumerate(_PAIRS):
