@@ -136,8 +136,8 @@ def warm_up() -> None:
     from fringecal.fringe.sequence import FringeSequence
     from fringecal.pointcloud import triangulate_image_points, triangulate_maps
     from fringecal.simulate.control_points import simulate_control_points, thesis_truth
-    from fringecal.spheres.cloud_kernels import (cube_keys, cube_sums, neighbourhood_sums, within_reach,
-                                                  within_reach_of_any)
+    from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, neighbourhood_sums
+    from fringecal.spheres.cloud_kernels import within_reach, within_reach_of_any
     from fringecal.spheres.fit import SphereModel, angular_coverage
     from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
