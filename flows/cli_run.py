@@ -325,7 +325,7 @@ class _ServerStart:
     def _start(self) -> None:
         try:
             self.server.start()
-        except BaseException as err:  # handed to the main thread by wait()
+        except Exception as err:  # handed to the main thread by wait()
             self.error = err
 
     def wait(self):

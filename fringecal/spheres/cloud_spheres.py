@@ -24,13 +24,12 @@ import numpy as np
 import pandas as pd
 
 from fringecal.schemas import SphereFitsTable
-from fringecal.spheres.cloud_kernels import (cube_keys, cube_sums, neighbourhood_sums, within_reach,
-                                              within_reach_of_any)
+from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, neighbourhood_sums, within_reach, within_reach_of_any
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.poses_and_links import sphere_fit_row
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
-__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "vote_centres", "refit_cloud_sphere", "near_any"]
+__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "near_any", "refit_cloud_sphere", "vote_centres"]
 
 
 @dataclass(frozen=True)
