@@ -240,6 +240,8 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
                          "starting Prefect and its temporary server for this command (a first run on a machine "
                          "also sets up its database)")
             with reporter.running():  # from here a line at least every 30 s, also while the server starts
+                # the server's process starts up while this one imports the flow's modules
+                starting = _launch_temporary_server()
                 from fringecal.flows.run_flow import NotAccepted, run_flow
 
                 if not verbose:
@@ -251,7 +253,7 @@ def _execute(cfg, run_dir: Path, runner: Optional[str], dask_address: Optional[s
                 task_runner = make_task_runner(kind, policy.workers, dask_address or cfg.runner.dask_address,
                                                policy.workers)
                 flow = run_flow.with_options(task_runner=task_runner)
-                server = _temporary_server()
+                server = starting.wait()
                 if server is not None:  # local Dask workers report to it instead of each starting
                     os.environ["PREFECT_API_URL"] = server.api_url  # a temporary server of their own
                 reporter.say(f"running the flow into {run_dir} ({kind})")
@@ -306,22 +308,54 @@ def _what(config: Optional[Path], dataset: Optional[Path]) -> str:
     return str(config) if config else "configs/run_thesis.yaml (the default: the simulated thesis rig)"
 
 
-def _temporary_server():
-    """Start Prefect's temporary server now, from the command's main thread, adopted by
-    the lifeline (:mod:`fringecal.lifeline`: it never outlives the command, even one
-    killed with ``kill -9``). It is the instance Prefect's clients use when no API is
-    configured, so they find it running. None when a Prefect server is configured."""
+class _ServerStart:
+    """Prefect's temporary server starting in a helper thread (its process boots on
+    another core while the command imports the flow); :meth:`wait` returns it once it
+    answers, or raises what its start raised."""
+
+    def __init__(self, server):
+        import threading
+
+        self.server, self.error = server, None
+        self.thread = None
+        if server is not None and not server.running:
+            self.thread = threading.Thread(target=self._start, name="prefect-server-start", daemon=True)
+            self.thread.start()
+
+    def _start(self) -> None:
+        try:
+            self.server.start()
+        except Exception as err:  # handed to the main thread by wait()
+            self.error = err
+
+    def wait(self):
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
+        if self.error is not None:
+            raise self.error
+        return self.server
+
+
+def _launch_temporary_server() -> _ServerStart:
+    """Start Prefect's temporary server, adopted by the lifeline
+    (:mod:`fringecal.lifeline`: it never outlives the command, even one killed with
+    ``kill -9``): a helper thread launches its process and waits for it to answer, while
+    the command goes on (:meth:`_ServerStart.wait`: 3-4 s of the server's start under the
+    flow's imports). It is the instance Prefect's clients use when no API is configured,
+    so they find it running. No server (``wait()`` returns None) when a Prefect server
+    is configured."""
     from prefect.settings import PREFECT_API_URL
 
     if PREFECT_API_URL.value():
-        return None
+        return _ServerStart(None)
     from prefect.server.api.server import SubprocessASGIServer
 
     from fringecal import lifeline
 
     server = SubprocessASGIServer()
     if server.running:
-        return server
+        return _ServerStart(server)
     launch = getattr(server, "_run_uvicorn_command", None)  # Prefect's one spawn of the server process
     if launch is not None:
         def adopted():
@@ -330,10 +364,12 @@ def _temporary_server():
             return proc
 
         server._run_uvicorn_command = adopted
-    server.start()
-    if launch is None and server.server_process is not None:
-        lifeline.adopt(server.server_process)
-    return server
+    starting = _ServerStart(server)
+    if launch is None:
+        starting.wait()
+        if server.server_process is not None:
+            lifeline.adopt(server.server_process)
+    return starting
 
 
 def _apart(cfg, out: Path) -> None:

@@ -13,10 +13,10 @@ kernel. :func:`start` uses that time: when the cache is cold it starts, at once,
   only once Prefect is up;
 * ``python -m fringecal.run.warmup``: the decoder first (the run needs it right after
   the first render), then, at low priority (``nice 10``, so as not to slow the
-  rendering), the triangulation, the sphere fits and the bundle adjustment's residual,
-  normal-equation and bootstrap kernels, through their public functions on tiny inputs
-  of the pipeline's types, so that numba writes them to the cache before the run needs
-  them.
+  rendering), the triangulation, the sphere fits (and the passes over a black-box
+  scanner's cloud) and the bundle adjustment's residual, normal-equation and bootstrap
+  kernels, through their public functions on tiny inputs of the pipeline's types, so
+  that numba writes them to the cache before the run needs them.
 
 Nothing else depends on the warm-up: if a helper is slower than the run, or its types
 miss a signature the run uses, the run compiles that kernel itself, as without it;
@@ -136,6 +136,7 @@ def warm_up() -> None:
     from fringecal.fringe.sequence import FringeSequence
     from fringecal.pointcloud import triangulate_image_points, triangulate_maps
     from fringecal.simulate.control_points import simulate_control_points, thesis_truth
+    from fringecal.spheres import cloud_kernels
     from fringecal.spheres.fit import SphereModel, angular_coverage
     from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
@@ -157,6 +158,15 @@ def warm_up() -> None:
     SphereModel.from_estimate(points, 25.0)
     angular_coverage(d / np.linalg.norm(d, axis=1)[:, None])
     fit_sphere_robust(points, 25.0, expected_radius=25.0, config=RejectionConfig(noise_mm=0.01, min_points=4))
+    # a black-box scanner's cloud: its cubes and the spheres' neighbourhoods (fringecal.spheres.cloud_spheres)
+    keys = cloud_kernels.cube_keys(points, 6.25, np.floor(points.min(axis=0) / 6.25) - 1)
+    order = np.argsort(keys)
+    start = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
+    s1, s2 = cloud_kernels.cube_sums(points, order, start, points.mean(axis=0))
+    cloud_kernels.neighbourhood_sums(keys[order][start], np.diff(np.r_[start, len(keys)]), s1, s2,
+                                     np.array([1, -1], np.int64))
+    cloud_kernels.within_reach(points, points[0], 31.25)
+    cloud_kernels.within_reach_of_any(points, points[:2].copy(), 31.25)
 
     sim = simulate_control_points(rig, artefact, poses.iloc[:2], spacing_px=200, rng=0)
     problem = BundleProblem.from_tables(rig, artefact, sim.control_points, poses.iloc[:2])

@@ -24,11 +24,12 @@ import numpy as np
 import pandas as pd
 
 from fringecal.schemas import SphereFitsTable
+from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, neighbourhood_sums, within_reach, within_reach_of_any
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.poses_and_links import sphere_fit_row
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 
-__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "vote_centres", "refit_cloud_sphere"]
+__all__ = ["CloudCandidateConfig", "cloud_sphere_fits", "near_any", "refit_cloud_sphere", "vote_centres"]
 
 
 @dataclass(frozen=True)
@@ -65,27 +66,31 @@ def _cube_means(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray
 
 
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+#: the 26 neighbours of a cube as differences of keys (:func:`_Cubes._keys`; the cubes
+#: have a margin of one, so no index borrows from the next axis)
+_NEIGHBOUR_OFFSETS = np.array([(int(a) << 42) + (int(b) << 21) + int(c)
+                               for a, b, c in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T
+                               if a or b or c], np.int64)
 
 
 class _Cubes:
     """A cloud sorted into cubes of edge ``cell``: each occupied cube's points (a slice
-    of the sorted cloud), their mean, and sums for local planes."""
+    of the cloud's cube order), their mean, and sums for local planes; one compiled pass
+    each (:mod:`fringecal.spheres.cloud_kernels`)."""
 
     def __init__(self, points: np.ndarray, cell: float):
         self.cell = cell
-        self.origin = np.floor(points.min(axis=0) / cell) - 1  # a margin of one cube for neighbours
-        keys = self._keys(np.floor(points / cell) - self.origin)
-        order = np.argsort(keys)
-        self.points = points[order]
-        sorted_keys = keys[order]
-        self.start = np.flatnonzero(np.r_[True, np.diff(sorted_keys) != 0])
+        self.cloud = np.ascontiguousarray(points, float)
+        low = np.array([self.cloud[:, i].min() for i in range(3)])  # column by column: see scancloud
+        self.origin = np.floor(low / cell) - 1  # a margin of one cube for neighbours
+        keys = cube_keys(self.cloud, cell, self.origin)
+        self.order = np.argsort(keys)
+        sorted_keys = keys[self.order]
+        self.start = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
         self.keys = sorted_keys[self.start]
         self.count = np.diff(np.r_[self.start, len(keys)])
-        centred = self.points - self.points.mean(axis=0)
-        self.shift = self.points.mean(axis=0)
-        self.s1 = np.add.reduceat(centred, self.start, axis=0)
-        self.s2 = np.add.reduceat(np.column_stack([centred[:, a] * centred[:, b] for a, b in _PAIRS]), self.start,
-                                  axis=0)
+        self.shift = np.array([self.cloud[:, i].mean() for i in range(3)])
+        self.s1, self.s2 = cube_sums(self.cloud, self.order, self.start, self.shift)
 
     @staticmethod
     def _keys(q: np.ndarray) -> np.ndarray:
@@ -103,16 +108,7 @@ class _Cubes:
     def normals(self) -> np.ndarray:
         """Each cube's normal: the smallest principal direction of the points of it and
         its 26 neighbours, turned toward the origin (the scanner)."""
-        n = self.count.astype(float).copy()
-        s1, s2 = self.s1.copy(), self.s2.copy()
-        for off in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
-            if not off.any():
-                continue
-            j = self.lookup(self.keys + int((off[0] << 42) + (off[1] << 21) + off[2]))
-            ok = j >= 0
-            n[ok] += self.count[j[ok]]
-            s1[ok] += self.s1[j[ok]]
-            s2[ok] += self.s2[j[ok]]
+        n, s1, s2 = neighbourhood_sums(self.keys, self.count, self.s1, self.s2, _NEIGHBOUR_OFFSETS)
         mean = s1 / n[:, None]
         cov = np.empty((len(n), 3, 3))
         for k, (a, b) in enumerate(_PAIRS):
@@ -131,7 +127,7 @@ class _Cubes:
         j = j[j >= 0]
         if not len(j):
             return np.zeros((0, 3))
-        p = np.concatenate([self.points[a:a + c] for a, c in zip(self.start[j], self.count[j])])
+        p = self.cloud[np.concatenate([self.order[a:a + c] for a, c in zip(self.start[j], self.count[j])])]
         return p[np.linalg.norm(p - centre, axis=1) <= reach]
 
 
@@ -217,6 +213,15 @@ def _distinct(rows: list[dict], radius: float) -> list[dict]:
 MIN_COVERAGE = 0.15
 
 
+def near_any(points: np.ndarray, centres: np.ndarray, radius: float, search_radii: float = 1.25) -> np.ndarray:
+    """The points of a cloud within ``search_radii`` radii of any of ``centres`` (k, 3), in
+    the cloud's order: what :func:`refit_cloud_sphere` of each of them needs (the same
+    points, in the same order, as from the whole cloud), found in one pass."""
+    points = np.ascontiguousarray(points, float)
+    centres = np.ascontiguousarray(np.reshape(centres, (-1, 3)), float)
+    return points[within_reach_of_any(points, centres, float(search_radii * radius))]
+
+
 def refit_cloud_sphere(points: np.ndarray, centre: np.ndarray, radius: float, rod_axes: np.ndarray | None = None,
                        rejection: RejectionConfig | None = None, max_incidence_deg: float | None = 60.0,
                        search_radii: float = 1.25):
@@ -229,9 +234,8 @@ def refit_cloud_sphere(points: np.ndarray, centre: np.ndarray, radius: float, ro
     Returns the :class:`fringecal.spheres.robust.RobustSphereFit`; a fit covering less
     than :data:`MIN_COVERAGE` of the sphere raises :class:`FitError`."""
     reach = search_radii * radius
-    near = np.all(np.abs(points - centre) <= reach, axis=1)
-    sel = points[near]
-    sel = sel[np.linalg.norm(sel - centre, axis=1) <= reach]
+    points = np.ascontiguousarray(points, float)
+    sel = points[within_reach(points, np.ascontiguousarray(centre, float), float(reach))]
     flags = {}
     if max_incidence_deg is not None:
         normal = (sel - centre) / np.linalg.norm(sel - centre, axis=1, keepdims=True)

@@ -22,7 +22,7 @@ import pandas as pd
 from fringecal.calibration.initial import poses_from_table
 from fringecal.rundir import RunDir
 from fringecal.scancloud import read_cloud_store
-from fringecal.spheres.cloud_spheres import refit_cloud_sphere
+from fringecal.spheres.cloud_spheres import near_any, refit_cloud_sphere
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.passes import second_pass
 from fringecal.spheres.poses_and_links import sphere_fit_row
@@ -85,11 +85,14 @@ class SpheresSecond(Step):
         fits = Rows(rd.sphere_fits_labelled, own).load()
         fits = fits[fits["sphere_id"].astype(str) != ""]
         points, _ = read_cloud_store(rd.store(item).path)
+        radii = {str(i): float(artefact.radii[artefact.ids.index(str(i))]) for i in fits["sphere_id"]}
+        if len(fits):  # every sphere's neighbourhood in one pass over the cloud
+            points = near_any(points, fits[["x_mm", "y_mm", "z_mm"]].to_numpy(float), max(radii.values()))
         rows = []
         cones = rods is not None and cfg.extraction.second_pass_rod_cones
         for f in fits.itertuples():
             axes = rod_directions(artefact, rods, f.sphere_id, T) if cones else None
-            radius = float(artefact.radii[artefact.ids.index(str(f.sphere_id))])
+            radius = radii[str(f.sphere_id)]
             try:
                 fit = refit_cloud_sphere(points, np.array([f.x_mm, f.y_mm, f.z_mm]), radius, axes,
                                          RejectionConfig(**cfg.extraction.rejection),
