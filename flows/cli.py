@@ -142,39 +142,7 @@ if __name__ != "__main__":
 
 
 def main():  # pragma: no cover - console entry point
-    try:
-        app()
-    except SystemExit as done:  # typer always ends so: the command is over
-        _exit_now(done.code)
-
-
-def _exit_now(code) -> None:  # pragma: no cover - ends the process
-    """End the process with the command's exit status once Python's own exit work is
-    done -- other threads joined, the ``atexit`` handlers run (Prefect's server stopped,
-    log files closed, helper processes ended), output flushed -- without tearing down
-    the interpreter's modules one by one: after a 24-cloud run that took about 3 s at
-    load 5-7, all of it in C finalisers (no Python frame), which write nothing."""
-    import atexit
-    import os
-    import threading
-
-    if code is None:
-        status = 0
-    elif isinstance(code, int):
-        status = code
-    else:  # sys.exit("message"): printed, status 1, as Python does
-        print(code, file=sys.stderr)
-        status = 1
-    try:
-        threading._shutdown()  # what Python does first at exit: wait for non-daemon threads
-        atexit._run_exitfuncs()
-    finally:
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError):
-                pass
-        os._exit(status)
+    app()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -82,10 +82,9 @@ def test_pose_command_runs_without_prefect(thesis_dir, tmp_path):
     import sys
 
     out = tmp_path / "poses.csv"
-    # the typer app, not main(): main() ends the process at once (flows/cli.py), before the check
-    code = ("import sys; from fringecal.flows.cli import app; sys.argv = ['fringecal', 'pose', '-a', sys.argv[1], '--centres', "
+    code = ("import sys; from fringecal.flows.cli import main; sys.argv = ['fringecal', 'pose', '-a', sys.argv[1], '--centres', "
             "sys.argv[2], '-o', sys.argv[3], '--json']\n"
-            "try:\n    app()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+            "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
             "assert 'prefect' not in sys.modules, 'prefect imported'")
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     env["PREFECT_HOME"] = str(tmp_path / "prefect-home")  # no profile with an API URL
