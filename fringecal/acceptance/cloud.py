@@ -27,8 +27,8 @@ and carried into the world by its calibrated transform and scale
   out; :func:`fringecal.acceptance.measure.probe_flat` in the world.
 - **Dumbbell (SD)**: measured as the ball-bar is measured in clouds
   (:func:`fringecal.verification.black_box.verify_with_black_boxes`: candidates, a
-  candidate fitting :data:`ROUGH_FIT_RATIO` times worse than the cloud's best set aside,
-  the certified radius refitted with the rod masked and the rim left out), its length's
+  candidate fitting ``ROUGH_FIT_RATIO`` times worse than the cloud's best set aside, the
+  certified radius refitted with the rod masked and the rim left out), its length's
   uncertainty first order through the black boxes' joint covariance (for one scanner:
   its scale), each sphere fit's covariance with the scanner's measured scatter between
   spheres, and the dumbbell's certificate.
@@ -64,13 +64,12 @@ from fringecal.scancloud import load_points
 from fringecal.spheres.cloud_spheres import cloud_sphere_fits
 from fringecal.spheres.fit import FitError, PlaneModel
 from fringecal.spheres.robust import RejectionConfig
-from fringecal.verification.black_box import ROUGH_FIT_RATIO, verify_with_black_boxes
+from fringecal.verification.black_box import verify_with_black_boxes
 from fringecal.verification.settings import VerificationConfig
 
 __all__ = [
     "GRID_SPACINGS",
     "RIM_CELLS",
-    "ROUGH_FIT_RATIO",
     "cloud_acceptance_values",
     "local_depths",
     "measure_cloud_flat",
@@ -225,8 +224,7 @@ def _dumbbell_rows(stores: dict, boxes_doc: dict, boxes: dict, standards: Accept
     settings = VerificationConfig(mpe_mm=config.limits.SD or 1.0, certificate_u_mm=2 * bell.length_u_mm,
                                   certificate_k=2.0, coverage_factor=config.coverage_factor)
     centres, fails, _, budget = verify_with_black_boxes(stores, None, boxes_doc, bell.artefact(), rejection,
-                                                        settings, bell.length_mm, config.max_incidence_deg,
-                                                        rms_ratio=ROUGH_FIT_RATIO)
+                                                        settings, bell.length_mm, config.max_incidence_deg)
     measured = {e["measurement"].split(":")[0] for e in budget["lengths"]}
     # a candidate set aside at a position that gave its length (the rod, a vote elsewhere) is no failure
     failures = [{"test": "dumbbell", "position": f.position, "scanner": f.scanner or "", "reason": f.reason}

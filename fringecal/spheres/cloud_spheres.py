@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from fringecal.scancloud import bounding_box
 from fringecal.schemas import SphereFitsTable
 from fringecal.spheres.cloud_kernels import cube_keys, cube_sums, neighbourhood_sums, within_reach, within_reach_of_any
 from fringecal.spheres.fit import FitError
@@ -81,8 +82,7 @@ class _Cubes:
     def __init__(self, points: np.ndarray, cell: float):
         self.cell = cell
         self.cloud = np.ascontiguousarray(points, float)
-        low = np.array([self.cloud[:, i].min() for i in range(3)])  # column by column: see scancloud
-        self.origin = np.floor(low / cell) - 1  # a margin of one cube for neighbours
+        self.origin = np.floor(bounding_box(self.cloud)[0] / cell) - 1  # a margin of one cube for neighbours
         keys = cube_keys(self.cloud, cell, self.origin)
         self.order = np.argsort(keys)
         sorted_keys = keys[self.order]

@@ -81,8 +81,7 @@ def _world_jacobian(box: BlackBoxScanner, c: np.ndarray, step: float = 1e-7) -> 
 
 
 def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Artefact,
-               rejection: RejectionConfig, rms_ratio: float | None = ROUGH_FIT_RATIO
-               ) -> tuple[list[dict], list[dict]]:
+               rejection: RejectionConfig) -> tuple[list[dict], list[dict]]:
     radius = float(np.mean(ballbar.radii[:2]))
     out, failures = [], []
     for scanner, store in stores.items():
@@ -92,11 +91,11 @@ def _sightings(position: str, stores: dict, rig: Rig, boxes: dict, ballbar: Arte
             fits, fails = cloud_sphere_fits(points, position, scanner, radius, rejection=rejection, normals=normals)
             failures += [{"position": position, "scanner": scanner, "sphere_id": "", "reason": f.reason}
                          for f in fails.itertuples()]
-            if rms_ratio is not None and len(fits):
-                rough = fits["rms_mm"] > rms_ratio * fits["rms_mm"].min()
+            if len(fits):
+                rough = fits["rms_mm"] > ROUGH_FIT_RATIO * fits["rms_mm"].min()
                 failures += [{"position": position, "scanner": scanner, "sphere_id": "",
                               "reason": f"candidate {f.candidate}: residual RMS {f.rms_mm:.2f} mm, more than "
-                                        f"{rms_ratio:g} times the cloud's best fit (a sphere's edge and its rod)"}
+                                        f"{ROUGH_FIT_RATIO:g} times the cloud's best fit (a sphere's edge and its rod)"}
                              for f in fits[rough].itertuples()]
                 fits = fits[~rough]
             for f in fits.itertuples():
@@ -189,18 +188,15 @@ def _length_u(a: dict, b: dict, joint: dict, u_certificate: float) -> tuple[floa
 
 def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: Artefact, rejection: dict, settings,
                             diagonal_mm: float, max_incidence_deg: float | None = 60.0,
-                            pixel_integration_px: float = 0.0,
-                            rms_ratio: float | None = ROUGH_FIT_RATIO
-                            ) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
+                            pixel_integration_px: float = 0.0) -> tuple[pd.DataFrame, pd.DataFrame, dict, dict]:
     """Centres, failures, the evaluated lengths (:func:`.lengths.evaluate_ballbar`
     as a dict) and the lengths' budgets of every position (``stores``: position ->
     scanner -> store path), modelled and black-box scanners together
     (``black_boxes``: the document of ``black_boxes.json``); ``pixel_integration_px``:
     the footprint the modelled sightings' phases are corrected with (the control
-    points', ``control_points.pixel_integration_px``; 0: as decoded); ``rms_ratio``: a
-    black box's candidate fit whose residual RMS exceeds this many times the best of its
-    cloud is set aside (:data:`ROUGH_FIT_RATIO`; None: every candidate of the right
-    radius is a sighting)."""
+    points', ``control_points.pixel_integration_px``; 0: as decoded). A black box's
+    candidate fit whose residual RMS exceeds :data:`ROUGH_FIT_RATIO` times the best of
+    its cloud is set aside."""
     rejection = RejectionConfig(**rejection)
     boxes = black_box_scanners_of(black_boxes)
     joint = dict(black_boxes["joint_covariance"])
@@ -212,7 +208,7 @@ def verify_with_black_boxes(stores: dict, rig: Rig, black_boxes: dict, ballbar: 
     reference = float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0]))
     rows, failures, lengths = [], [], []
     for position, by_scanner in stores.items():
-        sightings, fails = _sightings(position, by_scanner, rig, boxes, ballbar, rejection, rms_ratio)
+        sightings, fails = _sightings(position, by_scanner, rig, boxes, ballbar, rejection)
         failures += fails
         groups = _clusters(sightings, radius)
         if len(groups) != 2:
