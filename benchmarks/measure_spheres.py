@@ -22,6 +22,11 @@ Median ratios between 0.5 and 2 say the stated uncertainty is honest (about 0.9 
 
     PYTHONPATH=. python benchmarks/measure_spheres.py runs/thesis --out benchmarks/results/measure_spheres.json
 
+Several runs (e.g. the seeds ``benchmarks/length_coverage.py --keep`` leaves) are pooled:
+each run is one draw of its calibration's errors, shared by all its centres, so the
+median over many runs is the figure that tells whether u is right; the JSON keeps each
+run's own median too.
+
 ``--smoke``: the same (the run decides the size).
 """
 
@@ -99,13 +104,32 @@ def measure(run_dir: Path) -> dict:
     return out
 
 
+def pooled(per_run: list) -> dict:
+    """Every run's rows together: for each budget and kind the median ratio over all
+    rows, and the runs' own medians (each run is one draw of its calibration's errors,
+    which all its centres share, so a single run's median scatters widely)."""
+    out = {}
+    for name in per_run[0]:
+        rows = [dict(r, run=i) for i, run in enumerate(per_run) for r in run[name]["rows"]]
+        summary = {}
+        for kind in ("position", "distance"):
+            k = [r for r in rows if r["kind"] == kind]
+            ratio = np.array([abs(r["error_mm"]) / r["u_mm"] for r in k])
+            summary[kind] = {"n": len(k), "median_ratio": float(np.median(ratio)) if len(k) else None,
+                             "rms_ratio": float(np.sqrt(np.mean(ratio**2))) if len(k) else None,
+                             "per_run_median": [run[name]["summary"][kind]["median_ratio"] for run in per_run]}
+        out[name] = {"summary": summary, "rows": rows}
+    return out
+
+
 def main(argv=None) -> dict:
     ap = add_options(argparse.ArgumentParser(description=__doc__.splitlines()[0]))
-    ap.add_argument("run", type=Path, help="a finished simulated run with ball-bar measurements")
+    ap.add_argument("run", type=Path, nargs="+", help="finished simulated runs with ball-bar measurements")
     args = ap.parse_args(argv)
     doc = conditions("measure_spheres", argv, args.smoke)
-    doc["run"] = str(args.run)
-    doc["budgets"] = measure(args.run)
+    doc["runs"] = [str(r) for r in args.run]
+    per_run = [measure(r) for r in args.run]
+    doc["budgets"] = per_run[0] if len(per_run) == 1 else pooled(per_run)
     return finish(doc, args.out)
 
 

@@ -17,14 +17,19 @@ that sees it and stated two ways:
   A distance's u is far smaller than the positions' (on the thesis rig, tens of um
   against a few tenths of a mm): per point, the position's u says nothing about it.
 
-Each fit is the fixed-radius least-squares sphere of the sphere's points within
-``SHELL_MM`` of its surface (about a first fit of the points within ``SEARCH_MM`` of
-the nominal one), its phases first corrected for the pixel
-integration over the sphere (:mod:`fringecal.spheres.pixel_integration`, as the
-control points are), the pixels whose bias cannot be predicted (the rim) left out,
-and points ``REJECTION_SIGMAS`` robust standard deviations off the sphere dropped (a
-rod, a mount). A sphere seen only in part (fewer than ``MIN_DISC_FRACTION`` of its
-image disc kept) is not measured by that scanner.
+Each sighting is found and fitted as the ball-bar's are, in the whole store (every
+decoded pixel, whatever the cloud kept): the sphere candidate of the certified radius
+(:func:`~fringecal.spheres.candidates.find_sphere_candidates`, normal voting) nearest
+the nominal centre, within the radius plus ``SEARCH_MM``, gives the pixels; those within
+``EDGE_WIDTH_PX`` of the decoded region's edge are left out, the rest fitted robustly
+with the radius fixed
+(:func:`~fringecal.spheres.robust.fit_sphere_robust`: a RANSAC start, then points
+seen or lit at grazing incidence, rods, mounts and residual outliers dropped), the kept points' phases
+corrected for the pixel integration over the sphere
+(:mod:`fringecal.spheres.pixel_integration`, as the control points are; the rim, whose
+bias cannot be predicted, left out) and fitted again. A sphere seen only in part
+(fewer than ``MIN_DISC_FRACTION`` of its image disc kept) is not measured by that
+scanner.
 The linearised fit is :func:`fringecal.verification.budget.sighting_model`, the one
 the ball-bar's length budget uses.
 """
@@ -39,30 +44,37 @@ import pandas as pd
 
 from fringecal.calibration.propagation import triangulate_mm
 from fringecal.measure.cloud import Cloud
+from fringecal.pointcloud import triangulate_maps
 from fringecal.rig import Rig
+from fringecal.spheres.candidates import find_sphere_candidates
 from fringecal.spheres.fit import FitError, SphereModel
 from fringecal.spheres.pixel_integration import phase_integration_bias
+from fringecal.spheres.regions import boundary_flags
+from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 from fringecal.verification.budget import SightingModel, SightingPoints, length_gradient, sighting_model
 from fringecal.verification.ballbar import disc_pixels
 from fringecal.verification.measure import store_scanner
 
-__all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "read_nominal_spheres", "NOMINAL_COLUMNS", "SEARCH_MM", "SHELL_MM", "MIN_POINTS",
+__all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "read_nominal_spheres", "NOMINAL_COLUMNS", "SEARCH_MM", "EDGE_WIDTH_PX", "MIN_POINTS",
            "MIN_DISC_FRACTION"]
 
-#: a sphere's points are first looked for this far beyond its nominal surface (mm)
+#: a sphere is looked for this far beyond its nominal surface: the candidate nearest the
+#: nominal centre, within the radius plus this (mm)
 SEARCH_MM = 15.0
-#: then, about the centre fitted to those, points within this distance of its surface (mm)
-SHELL_MM = 3.0
 #: a scanner's sighting of a sphere needs at least this many points
 MIN_POINTS = 50
 #: a sighting keeps at least this fraction of the sphere's image disc: a sphere seen only
 #: in part (the image's edge, another object in front) gives a fit biased by what hides
 #: it, which no uncertainty here describes (a whole sphere keeps 0.5-0.6 of its disc)
 MIN_DISC_FRACTION = 0.1
-#: points whose residual is this many robust standard deviations from the median are dropped
-REJECTION_SIGMAS = 3.0
-#: rounds of dropping and refitting
-REJECTION_ROUNDS = 5
+#: outliers along a line from the centre that make a rod or a stem (masked by a cone,
+#: as the ball-bar's rod is); the artefact's 30 leave a ball-bar's rod seen over fewer
+#: pixels (320 px images) in the fit, whose junction points then pull it by 0.1-0.5 mm
+MIN_ROD_POINTS = 10
+#: pixels this close to the edge of the decoded region (px) are left out, as the control
+#: points' and the ball-bar's fits leave them out: they mix the sphere with what lies
+#: behind its silhouette, and their pixel-integration bias is not the sphere's alone
+EDGE_WIDTH_PX = 2
 
 
 #: columns of a table of nominal spheres (``fringecal measure --spheres``)
@@ -124,46 +136,60 @@ class MeasuredSphere:
                 "u_position_mm": self.u_position_mm, "n_points": self.n_points, "disc_fraction": self.disc_fraction}
 
 
-def _robust_fit(X: np.ndarray, radius: float) -> tuple[SphereModel, np.ndarray]:
-    """Fixed-radius fit, refitted ``REJECTION_ROUNDS`` times without the points whose
-    residual lies more than ``REJECTION_SIGMAS`` robust standard deviations (1.4826
-    MAD) from the median: a rod, a mount or a neighbour inside the shell."""
-    keep = np.isfinite(X).all(axis=1)
-    fit = SphereModel.from_estimate(X[keep], radius=radius)
-    for _ in range(REJECTION_ROUNDS):
-        r = np.linalg.norm(X - fit.centre, axis=1) - radius
-        med = np.median(r[keep])
-        s = 1.4826 * np.median(np.abs(r[keep] - med))
-        new = np.isfinite(r) & (np.abs(r - med) <= REJECTION_SIGMAS * max(s, 1e-6))
-        if new.sum() < MIN_POINTS or np.array_equal(new, keep):
-            break
-        keep = new
-        fit = SphereModel.from_estimate(X[keep], radius=radius)
-    return fit, keep
+def _point_noise_mm(X: np.ndarray, radius: float) -> float:
+    """The points' noise along the normal, for the robust fit's thresholds when none is
+    configured: 1.4826 MAD of the distances from a plain fixed-radius fit (a rod or a
+    mount among the points widens it, which only widens the first inlier band; the
+    robust fit then takes its threshold from its own inliers). Never below
+    :class:`~fringecal.spheres.robust.RejectionConfig`'s default."""
+    X = X[np.isfinite(X).all(axis=1)]
+    if len(X) < MIN_POINTS:
+        return RejectionConfig.noise_mm
+    r = SphereModel.from_estimate(X, radius=radius).residuals(X)
+    return max(RejectionConfig.noise_mm, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
 
 
-def _fit(scanner, block, uv, tau, radius, footprint_px):
-    """Fixed-radius robust fit of one sighting, its phases corrected for pixel
-    integration against a first fit; -> (SightingPoints, fraction of the image disc
-    kept) or None."""
+def _fit(scanner, block, uv, tau, edge, radius, footprint_px, rejection: RejectionConfig | None):
+    """One sighting fitted as the ball-bar's are (:func:`~fringecal.verification.ballbar.refit_sighting`):
+    the robust fixed-radius fit (:func:`~fringecal.spheres.robust.fit_sphere_robust`:
+    the edge pixels, the silhouette against camera and projector, rods and mounts and
+    residual outliers left out), then the kept points' phases corrected for pixel
+    integration against it (the rim, whose bias cannot be predicted, left out) and
+    fitted again; -> (SightingPoints, fraction of the image disc kept) or None."""
     cam = scanner.camera.image_mm(uv)
-    first, _ = _robust_fit(triangulate_mm(scanner, cam, scanner.projector.image_mm(tau)), radius)
+    X = triangulate_mm(scanner, cam, scanner.projector.image_mm(tau))
+    views = [scanner.camera.pinhole, scanner.projector.pinhole]
+    if rejection is not None:
+        robust = fit_sphere_robust(X, radius, expected_radius=radius, flags={"edge": edge}, viewpoints=views,
+                                   config=rejection)
+    else:   # the noise from the data: a first guess, then the robust fit's own inliers' scale
+        noise = _point_noise_mm(X[~edge], radius)
+        for _ in range(2):
+            robust = fit_sphere_robust(X, radius, expected_radius=radius, flags={"edge": edge}, viewpoints=views,
+                                       config=RejectionConfig(noise_mm=noise, min_rod_points=MIN_ROD_POINTS))
+            if robust.sigma_mm >= 0.9 * noise:
+                break
+            noise = max(RejectionConfig.noise_mm, robust.sigma_mm)
+    keep = robust.kept
+    uv, cam, tau = uv[keep], cam[keep], tau[keep]
     bias = phase_integration_bias(scanner.camera, scanner.projector, uv,
-                                  np.broadcast_to(first.centre, (len(uv), 3)), np.full(len(uv), radius), footprint_px)
+                                  np.broadcast_to(robust.model.centre, (len(uv), 3)), np.full(len(uv), radius),
+                                  footprint_px)
     ok = np.isfinite(bias).all(axis=1)
     if ok.sum() < MIN_POINTS:
         return None
     cam, prj = cam[ok], scanner.projector.image_mm(tau[ok] - bias[ok])
-    fit, keep = _robust_fit(triangulate_mm(scanner, cam, prj), radius)
-    fraction = keep.sum() / disc_pixels(scanner.camera, fit.centre, radius)
-    if keep.sum() < MIN_POINTS or fraction < MIN_DISC_FRACTION:
+    fit = SphereModel.from_estimate(triangulate_mm(scanner, cam, prj), radius=radius)
+    fraction = len(cam) / disc_pixels(scanner.camera, fit.centre, radius)
+    if fraction < MIN_DISC_FRACTION:
         return None
-    return SightingPoints(scanner, block, cam[keep], prj[keep], np.asarray(fit.centre, float), float(radius),
+    return SightingPoints(scanner, block, cam, prj, np.asarray(fit.centre, float), float(radius),
                           float(fit.rms)), float(fraction)
 
 
 def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covariance: np.ndarray,
-                    spheres: pd.DataFrame, footprint_px: float = 1.0, measurement: int = 0) -> list[MeasuredSphere]:
+                    spheres: pd.DataFrame, footprint_px: float = 1.0, measurement: int = 0,
+                    rejection: RejectionConfig | None = None) -> list[MeasuredSphere]:
     """Every sphere of ``spheres`` in every scanner that sees it.
 
     Parameters
@@ -178,12 +204,13 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
         few mm) and the certified radii
     footprint_px : the pixel-integration footprint (0: no correction)
     measurement : which of the cloud's measurements
+    rejection : the robust fit's settings; default: :class:`~fringecal.spheres.robust.RejectionConfig`
+        with ``noise_mm`` estimated from each sighting's points
     """
     stated = covariance is not None
     if not stated:
         covariance = np.zeros((14 * len(rig.sensors),) * 2)
     std = np.sqrt(np.clip(np.diag(covariance), 0, None))
-    xyz = cloud.xyz()
     out = []
     for k, name in enumerate(cloud.scanners):
         if name not in stores:
@@ -193,24 +220,27 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
         block = [s.name for s in rig.scanners].index(name)
         sl = slice(28 * block, 28 * block + 28)
         tau_x, tau_y = np.asarray(ds["tau_x"]), np.asarray(ds["tau_y"])
-        mine = (cloud.points["scanner"] == k) & (cloud.points["measurement"] == measurement)
+        valid = np.asarray(ds["valid"], bool)
+        edge_map = boundary_flags(valid, EDGE_WIDTH_PX)
+        maps = triangulate_maps(scanner.camera, scanner.projector, tau_x, tau_y, valid)
+        candidates = {}
         for s in spheres.itertuples():
             nominal = np.array([s.x_mm, s.y_mm, s.z_mm], float)
-            near = mine & (np.linalg.norm(xyz - nominal, axis=1) < s.radius_mm + SEARCH_MM)
-            if near.sum() < MIN_POINTS:
+            r = float(s.radius_mm)
+            if r not in candidates:
+                candidates[r] = find_sphere_candidates(maps, r, scanner.camera.pinhole)
+            near = [c for c in candidates[r] if np.linalg.norm(c.centre - nominal) < r + SEARCH_MM]
+            if not near:
                 continue
-            try:
-                centre = SphereModel.from_estimate(xyz[near], radius=float(s.radius_mm)).centre
-            except FitError:
+            region = min(near, key=lambda c: np.linalg.norm(c.centre - nominal)).region
+            rows, cols = np.nonzero(region)
+            if len(rows) < MIN_POINTS:
                 continue
-            m = mine & (np.abs(np.linalg.norm(xyz - centre, axis=1) - s.radius_mm) < SHELL_MM)
-            if m.sum() < MIN_POINTS:
-                continue
-            rows, cols = cloud.points["v"][m].astype(int), cloud.points["u"][m].astype(int)
             uv = np.stack([cols, rows], axis=-1).astype(float)
             tau = np.stack([tau_x[rows, cols], tau_y[rows, cols]], axis=-1).astype(float)
             try:
-                pts = _fit(scanner, block, uv, tau, float(s.radius_mm), footprint_px)
+                pts = _fit(scanner, block, uv, tau, edge_map[rows, cols], float(s.radius_mm), footprint_px,
+                           rejection)
             except FitError:
                 continue
             if pts is None:
