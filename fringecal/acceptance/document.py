@@ -93,7 +93,7 @@ def outside_volume(values: pd.DataFrame, specification: ScannerSpecification) ->
 
 
 def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, length_config, covariance,
-                       workers: int = 2) -> tuple[pd.DataFrame, list[dict]]:
+                       workers: int = 2, fit_factors: dict | None = None) -> tuple[pd.DataFrame, list[dict]]:
     """The raw values of every sphere, flat and dumbbell position measured with ``rig``.
 
     Parameters
@@ -106,6 +106,8 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
     length_config : :class:`~fringecal.verification.settings.LengthUncertaintyConfig` (the
         dumbbell's length budget; its Monte Carlo check is not run here)
     covariance : the run's ``calibration_covariance.npz`` arrays, or None
+    fit_factors : scanner -> factor on its sphere fits' uncertainty in the dumbbell's
+        budget (:func:`~fringecal.verification.uncertainty.ballbar_uncertainty`)
 
     Returns
     -------
@@ -132,7 +134,8 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
         if covariance is not None and len(lengths):
             cfg = length_config.model_copy(update={"monte_carlo_draws": 0, "coverage_factor": config.coverage_factor})
             budget = ballbar_uncertainty(centres, pixels, stores["dumbbell"], rig, lengths, bell.length_mm,
-                                         covariance, cfg, config.limits.SD, bell.length_u_mm, ("A", "B"), workers)
+                                         covariance, cfg, config.limits.SD, bell.length_u_mm, ("A", "B"), workers,
+                                         fit_factors=fit_factors)
         sd = length_values(budget, lengths, "SD", "dumbbell", config.coverage_factor, cell=False)
         for row in sd:
             ends = centres[(centres["position"].astype(str) == row["position"])]
@@ -157,7 +160,7 @@ def _split(stores: dict, boxes: set) -> tuple[dict, dict]:
 def acceptance_document(rig: Rig | None, standards: AcceptanceStandards, config: AcceptanceConfig, rejection: dict,
                         length_config: LengthUncertaintyConfig, covariance: dict | None, stores: dict,
                         verification: dict | None = None, positions: list[dict] = (),
-                        black_boxes: dict | None = None) -> tuple[dict, pd.DataFrame]:
+                        black_boxes: dict | None = None, fit_factors: dict | None = None) -> tuple[dict, pd.DataFrame]:
     """The acceptance document (:func:`.evaluate.certificate`) and its values for ``rig``.
 
     ``stores`` and ``rejection``, ``length_config``, ``covariance`` as for
@@ -166,10 +169,12 @@ def acceptance_document(rig: Rig | None, standards: AcceptanceStandards, config:
     them) when given; ``positions`` are where the objects stood, for the report.
     ``black_boxes``: ``black_boxes.json`` when the rig has black-box scanners, whose
     positions in ``stores`` are clouds measured with their transforms
-    (:func:`.cloud.cloud_acceptance_values`); ``rig`` None: a rig of black boxes only."""
+    (:func:`.cloud.cloud_acceptance_values`); ``rig`` None: a rig of black boxes only.
+    ``fit_factors`` as for :func:`measure_acceptance`."""
     boxes = {d["scanner"] for d in black_boxes["scanners"]} if black_boxes else set()
     modelled, clouds = _split(stores, boxes)
-    values, failures = measure_acceptance(modelled, rig, standards, config, rejection, length_config, covariance) \
+    values, failures = measure_acceptance(modelled, rig, standards, config, rejection, length_config, covariance,
+                                          fit_factors=fit_factors) \
         if rig is not None else (pd.DataFrame(columns=VALUE_COLUMNS + DEPTH_COLUMNS), [])
     if any(clouds.values()):
         rows, fails = cloud_acceptance_values(clouds, black_boxes, standards, config, rejection)

@@ -20,6 +20,7 @@ from fringecal.acceptance.document import acceptance_document
 from fringecal.acceptance.standards import AcceptanceStandards
 from fringecal.rundir import RunDir
 from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
+from fringecal.steps.verify import fit_factors
 
 __all__ = ["Acceptance", "acceptance_stores", "ACCEPTANCE_KINDS"]
 
@@ -60,7 +61,7 @@ class Acceptance(Step):
         boxes = [rd.black_boxes] if black_box_scanners(rd) else []
         if black_boxes_only(rd):  # black boxes only: no sensors
             return [rd.sensors_prior] + common + boxes
-        return [rd.calibration, rd.covariance] + common + boxes
+        return [rd.calibration, rd.covariance, rd.bundle_summary] + common + boxes
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         return [rd.acceptance, rd.acceptance_values]
@@ -81,7 +82,8 @@ class Acceptance(Step):
                                           cfg.extraction.rejection, cfg.verification.uncertainty,
                                           rd.covariance.load() if modelled else None, stores,
                                           rd.verification.load() if verified else None, _positions(rd),
-                                          rd.black_boxes.load() if black_box_scanners(rd) else None)
+                                          rd.black_boxes.load() if black_box_scanners(rd) else None,
+                                          fit_factors(rd.bundle_summary.load(), cfg.verification) if modelled else None)
         for f in doc["failures"]:
             log.warning("acceptance %s position %s, scanner %s: %s", f["test"], f["position"], f["scanner"],
                         f["reason"])

@@ -21,6 +21,7 @@ from fringecal import compile_clock, threads
 from fringecal.atomic import atomic_paths
 from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
+from fringecal.spheres.dispersion import sighting_dispersion
 from fringecal.calibration.models import choose_sensor_model
 from fringecal.calibration.file import rig_to_dict, xml_text
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
@@ -108,6 +109,11 @@ class Bundle(Step):
                                             u.artefact_u_factor)
         boxes = black_box_adjustment(rd, result, cfg.reference_scanner, b.black_box_scale)
         doc = {**summary(result, b.volume_diagonal_mm), **timing, "sensor_model": model}
+        dispersion = sighting_dispersion(result.problem, result.rig)
+        doc["sighting_dispersion"] = {s: d.to_dict() for s, d in dispersion.items()}
+        if dispersion:
+            log.info("sphere centres' scatter between spheres / their fits' u (kappa): %s",
+                     ", ".join(f"{s} {d.kappa:.2f}" for s, d in dispersion.items()))
         if boxes is not None:
             doc["black_boxes"] = {"s0": boxes.s0, "dof": boxes.dof,
                                   "rms_mm": {s: v.rms_mm for s, v in boxes.scanners.items()},

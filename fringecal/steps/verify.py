@@ -22,6 +22,15 @@ __all__ = ["Verify", "ballbar_stores"]
 log = logging.getLogger(__name__)
 
 
+def fit_factors(bundle_summary: dict, settings) -> dict:
+    """scanner -> ``max(1, kappa)`` of the bundle step's ``sighting_dispersion``, the
+    factor on its sphere fits' uncertainty; empty when ``uncertainty.sphere_scatter`` is
+    off or the summary has none."""
+    if not settings.uncertainty.sphere_scatter:
+        return {}
+    return {s: max(1.0, float(d["kappa"])) for s, d in (bundle_summary.get("sighting_dispersion") or {}).items()}
+
+
 def ballbar_stores(rd: RunDir) -> dict[str, dict[str, str]]:
     """position -> scanner -> store path of the run's ball-bar measurements."""
     table = rd.acquisition.load()
@@ -62,7 +71,8 @@ class Verify(Step):
         points_verdict = rd.crossval.load().get("verdict") if rd.crossval.exists() else None
         centres, failures, result, budget = verify_ballbar(ballbar_stores(rd), rd.calibration.load(), rd.ballbar.load(),
                                                            cfg.extraction.rejection, cfg.verification, diagonal,
-                                                           rd.covariance.load(), halves, points_verdict)
+                                                           rd.covariance.load(), halves, points_verdict,
+                                                           fit_factors(rd.bundle_summary.load(), cfg.verification))
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner, f.reason)
         rd.ballbar_centres.save(centres)

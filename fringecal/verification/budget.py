@@ -46,6 +46,7 @@ import numpy as np
 
 from fringecal.calibration.propagation import ParameterCovariances, point_jacobian, scanner_with, triangulate_mm
 from fringecal.rig import Scanner
+from fringecal.spheres.fit import centre_sandwich_covariance
 
 __all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
            "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
@@ -107,10 +108,7 @@ def sighting_model(s: SightingPoints, std28: np.ndarray) -> SightingModel:
     AtA_inv = np.linalg.inv(A.T @ A)
     JX = point_jacobian(s.scanner, s.cam_mm, s.prj_mm, std28)  # (n, 3, 28)
     J = AtA_inv @ (A.T @ np.einsum("ni,nij->nj", A, JX))
-    n = len(X)
-    r = np.linalg.norm(X - s.centre, axis=1) - s.radius_mm
-    meat = (A * (r**2)[:, None]).T @ A * (n / max(n - 3, 1))
-    return SightingModel(s, J, AtA_inv @ meat @ AtA_inv)
+    return SightingModel(s, J, centre_sandwich_covariance(X, s.centre, s.radius_mm))
 
 
 @dataclass(frozen=True)

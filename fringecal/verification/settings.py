@@ -34,6 +34,9 @@ class LengthUncertaintyConfig(StrictModel):
     coverage_factor: float = Field(2.0, gt=0)
     monte_carlo_draws: int = Field(1000, ge=0)
     seed: int = 0
+    #: scale each sphere fit's uncertainty by its scanner's scatter of centres between
+    #: spheres in the calibration's views, max(1, kappa) (fringecal.spheres.dispersion)
+    sphere_scatter: bool = True
 
 
 class VerificationConfig(StrictModel):

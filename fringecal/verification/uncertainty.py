@@ -25,6 +25,7 @@ calibration either, so it is kept at its per-half size.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -37,6 +38,7 @@ from fringecal.store import open_store
 from fringecal.verification.ballbar import SightingConfig
 from fringecal.verification.budget import (
     BUDGET_TERMS,
+    SightingModel,
     SightingPoints,
     block_params,
     bootstrap_bias,
@@ -49,7 +51,7 @@ from fringecal.verification.budget import (
 )
 from fringecal.verification.measure import store_scanner
 
-__all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict", "monte_carlo_disagreement"]
+__all__ = ["sighting_points", "ballbar_uncertainty", "iso14253_verdict", "monte_carlo_disagreement", "scaled_fit"]
 
 
 def sighting_points(store, rig: Rig, scanner: str, pixels, centre, radius_mm: float, rms_mm: float,
@@ -87,7 +89,8 @@ def iso14253_verdict(error_mm: float, U_mm: float, mpe_mm: float | None) -> str:
 def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: Rig, lengths: pd.DataFrame,
                         reference_length_mm: float, arrays: dict, config, mpe_mm: float | None,
                         certificate_u_mm: float, ids=("A", "B"), workers: int = 2,
-                        halves: dict | None = None, points_verdict: str | None = None) -> dict:
+                        halves: dict | None = None, points_verdict: str | None = None,
+                        fit_factors: dict | None = None) -> dict:
     """Budget, expanded uncertainty, Monte Carlo check and verdicts of every length.
 
     Parameters
@@ -103,6 +106,11 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     halves : the run's ``crossval_halves.npz`` arrays (the lengths are then also
         cross-validated: measured with each half-calibration and compared)
     points_verdict : the cross-validation's verdict on the points (``crossval.json``)
+    fit_factors : scanner -> factor (>= 1) on its sphere fits' standard uncertainty: the
+        scatter of its centres between spheres in the calibration's views
+        (:mod:`fringecal.spheres.dispersion`, ``max(1, kappa)``), which a fit's own
+        residuals do not hold; it scales each fit's covariance (the ``sphere fits`` term)
+        and the Monte Carlo's point noise alike
 
     Returns a JSON-ready dict: ``lengths`` (one entry per length, in ``lengths`` order),
     ``budget`` (per contribution the RMS over the lengths and the value at the length
@@ -119,7 +127,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
         key = (str(r.position), str(r.scanner), str(r.sphere_id))
         pts = sighting_points(stores[key[0]][key[1]], rig, key[1], pixels[key], (r.x_mm, r.y_mm, r.z_mm),
                               r.radius_mm, r.rms_mm)
-        models[key] = sighting_model(pts, std_all[28 * pts.block:28 * pts.block + 28])
+        models[key] = scaled_fit(sighting_model(pts, std_all[28 * pts.block:28 * pts.block + 28]),
+                                 (fit_factors or {}).get(key[1], 1.0))
 
     cross = None if halves is None else _cross_validated(models, lengths, halves, len(cov.scale), ids,
                                                          points_verdict)
@@ -159,7 +168,7 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     if cross is not None:
         for entry, c in zip(out, cross["lengths"]):
             entry["cross_validation"] = c
-    return {"coverage_factor": k, "lengths": out, "budget": _budget(out),
+    return {"coverage_factor": k, "lengths": out, "budget": _budget(out), "fit_factors": dict(fit_factors or {}),
             "not_covered": [e["measurement"] for e in out if not e["covered"]],
             "monte_carlo": _mc_summary(out),
             "cross_validation": None if cross is None else {k_: v for k_, v in cross.items() if k_ != "lengths"}}
@@ -168,6 +177,15 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
 #: RMS of the halves' normalised length differences above which they disagree: with
 #: the stated uncertainty right it is 1; its scatter over 9 lengths is about 0.25
 CROSSVAL_RMS_Z_MAX = 2.0
+
+
+def scaled_fit(model: SightingModel, factor: float) -> SightingModel:
+    """``model`` with its fit's standard uncertainty (covariance and point noise) times
+    ``factor``."""
+    if factor == 1.0:
+        return model
+    return SightingModel(replace(model.points, rms_mm=model.points.rms_mm * factor), model.J,
+                         model.C_fit * factor**2)
 
 
 def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params: int, ids,

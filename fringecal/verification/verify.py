@@ -22,7 +22,8 @@ __all__ = ["verify_ballbar"]
 
 def verify_ballbar(stores: dict, rig: Rig, ballbar: Artefact, rejection: dict, settings: VerificationConfig,
                    diagonal_mm: float, covariance: dict | None = None, halves: dict | None = None,
-                   points_verdict: str | None = None) -> tuple[pd.DataFrame, pd.DataFrame, BallBarResult, dict | None]:
+                   points_verdict: str | None = None, fit_factors: dict | None = None
+                   ) -> tuple[pd.DataFrame, pd.DataFrame, BallBarResult, dict | None]:
     """Centres, failures and the evaluated lengths of the ball-bar measured with ``rig``.
 
     Parameters
@@ -35,6 +36,8 @@ def verify_ballbar(stores: dict, rig: Rig, ballbar: Artefact, rejection: dict, s
         them every length gets its budget and is corrected for the calibration's bias
         (bootstrap), else the budget is None
     halves, points_verdict : the cross-validation's half-calibrations and its verdict
+    fit_factors : scanner -> factor on its sphere fits' uncertainty
+        (:func:`~fringecal.verification.uncertainty.ballbar_uncertainty`)
 
     Returns
     -------
@@ -48,7 +51,7 @@ def verify_ballbar(stores: dict, rig: Rig, ballbar: Artefact, rejection: dict, s
         budget = ballbar_uncertainty(centres, pixels, stores, rig, lengths, reference_length, covariance,
                                      settings.uncertainty, settings.mpe_mm,
                                      settings.certificate_u_mm / settings.certificate_k, ballbar.ids[:2],
-                                     halves=halves, points_verdict=points_verdict)
+                                     halves=halves, points_verdict=points_verdict, fit_factors=fit_factors)
         # the lengths corrected for the calibration's bias (bootstrap), when it was estimated
         lengths = lengths.assign(length_mm=[e["length_mm"] for e in budget["lengths"]])
     result = evaluate_ballbar(lengths.length_mm, reference_length, lengths.measurement, settings.mpe_mm,
