@@ -4,7 +4,12 @@ calibrated rig (``verification.json``), the error with the TRUE rig (the evaluat
 ``verification_true_params``: the sphere fits alone) and their difference (the
 calibration's part), each against the budget's stated term (``sphere fits``,
 ``calibration``). A mean beyond its standard error (sd / sqrt(n)) is a bias the budget
-does not hold.
+does not hold. Per run also each scanner's scatter of sphere centres between spheres in
+the calibration's views against their fits' u (``kappa``,
+:mod:`fringecal.spheres.dispersion`; from ``bundle_summary.json``, or computed from the
+run's control points and calibration when the run predates it), and over all positions
+the RMS of the true-rig error over the sphere fits' u (1 when that u holds the fits'
+whole error).
 
     PYTHONPATH=. python benchmarks/coverage_split.py W [W2 ...] [--out FILE]
 
@@ -53,13 +58,40 @@ def rows_of(d: Path) -> list[tuple]:
             for length in ver["lengths"]]
 
 
+def kappa_of(d: Path) -> dict:
+    """scanner -> kappa of the run ``d`` (see the module)."""
+    import json
+
+    from fringecal.calibration.file import read_calibration
+    from fringecal.rundir import RunDir
+    from fringecal.spheres.dispersion import sighting_dispersion
+    from fringecal.steps.bundle import load_problem
+
+    rd = RunDir(d)
+    rec = json.loads(rd.bundle_summary.path.read_text()).get("sighting_dispersion")
+    if rec:
+        return {s: v["kappa"] for s, v in rec.items()}
+    rig = read_calibration(rd.calibration.path).rig
+    return {s: v.kappa for s, v in sighting_dispersion(load_problem(rd, rig.scanners[0].name), rig).items()}
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folders", nargs="+", help="folders of kept run directories, or run directories")
     args = add_options(ap).parse_args(argv)
     doc = conditions("coverage_split", argv, args.smoke)
-    rows = [r for d in run_dirs(args.folders) for r in rows_of(d)]
+    dirs = run_dirs(args.folders)
+    rows = [r for d in dirs for r in rows_of(d)]
     doc["runs"] = sorted({r[0] for r in rows})
+    doc["kappa"] = {d.name: kappa_of(d) for d in dirs}
+    kappas = [k for v in doc["kappa"].values() for k in v.values()]
+    e, et, u, uf, uc = np.array([r[2:] for r in rows], float).T
+    doc["all_positions"] = {"n": len(e), "rms_z": float(np.sqrt(np.mean((e / u) ** 2))),
+                            "true_rig_rms_z_of_sphere_fits": float(np.sqrt(np.nanmean((et / uf) ** 2))),
+                            "kappa_range": [min(kappas), max(kappas)] if kappas else None}
+    print(f"all: n={len(e)} rms z {doc['all_positions']['rms_z']:.2f}, true-rig error / u_fits RMS "
+          f"{doc['all_positions']['true_rig_rms_z_of_sphere_fits']:.2f}, kappa "
+          f"{doc['all_positions']['kappa_range']}", file=sys.stderr)
     doc["positions"] = {}
     for m in sorted({r[1] for r in rows}):
         e, et, u, uf, uc = np.array([r[2:] for r in rows if r[1] == m], float).T

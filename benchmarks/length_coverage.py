@@ -183,8 +183,10 @@ def run_seed(profile: str, i: int, config_path: Path, workdir: Path, with_errors
                             "error_vs_true_mm": dev, "error_vs_certificate_mm": e["error_mm"],
                             "u_mm": e["u_mm"], "U_mm": e["U_mm"], "z": dev / e["u_mm"] if e["u_mm"] > 0 else None,
                             "covered": bool(abs(dev) <= e["U_mm"]), "budget_mm": e["budget_mm"]})
-        model = rd.bundle_summary.load().get("sensor_model") or {}
+        summary = rd.bundle_summary.load()
+        model = summary.get("sensor_model") or {}
         out["sensor_model"] = model.get("model")  # the model the run's data chose (issue 29)
+        out["sighting_dispersion"] = {s: d["kappa"] for s, d in (summary.get("sighting_dispersion") or {}).items()}
         positions = sorted({str(p) for p in v.get("recorded_by", {})})
         measured = sorted({e["measurement"].split(":")[0] for e in budget["lengths"]})
         out.update(ok=True, true_length_mm=true, true_source=source, certified_length_mm=cert,

@@ -101,6 +101,7 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         cov = cal.covariances.total
         if datum == "rig":
             cov = frame_free_covariance(cal.rig, cov)
+    factors = {s: max(1.0, float(d["kappa"])) for s, d in (cal.metadata.get("sighting_dispersion") or {}).items()}
     t_read = t_cloud = 0.0
     parts, fitted, distances = [], [], []
     for g, group in enumerate(entries):   # one measurement in memory at a time
@@ -111,7 +112,7 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         try:
             part = measure_cloud(cal.rig, stores, settings, cov, measurement=g)
             if nominal is not None:
-                found = measure_spheres(part, stores, cal.rig, cov, nominal, measurement=g)
+                found = measure_spheres(part, stores, cal.rig, cov, nominal, measurement=g, fit_factors=factors)
                 name = folders[g].name
                 fitted += [{"measurement": name, **m.as_dict()} for m in found]
                 distances += [{"measurement": name, **r} for r in sphere_distances(found, cov).to_dict("records")]

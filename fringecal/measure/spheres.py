@@ -54,6 +54,7 @@ from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
 from fringecal.verification.budget import SightingModel, SightingPoints, length_gradient, sighting_model
 from fringecal.verification.ballbar import disc_pixels
 from fringecal.verification.measure import store_scanner
+from fringecal.verification.uncertainty import scaled_fit
 
 __all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "read_nominal_spheres", "NOMINAL_COLUMNS", "SEARCH_MM", "EDGE_WIDTH_PX", "MIN_POINTS",
            "MIN_DISC_FRACTION"]
@@ -189,7 +190,8 @@ def _fit(scanner, block, uv, tau, edge, radius, footprint_px, rejection: Rejecti
 
 def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covariance: np.ndarray,
                     spheres: pd.DataFrame, footprint_px: float = 1.0, measurement: int = 0,
-                    rejection: RejectionConfig | None = None) -> list[MeasuredSphere]:
+                    rejection: RejectionConfig | None = None, fit_factors: dict | None = None
+                    ) -> list[MeasuredSphere]:
     """Every sphere of ``spheres`` in every scanner that sees it.
 
     Parameters
@@ -206,6 +208,9 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
     measurement : which of the cloud's measurements
     rejection : the robust fit's settings; default: :class:`~fringecal.spheres.robust.RejectionConfig`
         with ``noise_mm`` estimated from each sighting's points
+    fit_factors : scanner -> factor on its fits' uncertainty, the scatter of its centres
+        between spheres in the calibration's views (``max(1, kappa)``, the calibration
+        file's ``metadata.sighting_dispersion``; :mod:`fringecal.spheres.dispersion`)
     """
     stated = covariance is not None
     if not stated:
@@ -246,7 +251,7 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
             if pts is None:
                 continue
             pts, fraction = pts
-            model = sighting_model(pts, std[sl])
+            model = scaled_fit(sighting_model(pts, std[sl]), (fit_factors or {}).get(name, 1.0))
             var = np.trace(model.J @ covariance[sl, sl] @ model.J.T) + np.trace(model.C_fit)
             out.append(MeasuredSphere(str(s.sphere_id), name, pts.centre,
                                       float(np.sqrt(max(var, 0.0))) if stated else float("nan"),

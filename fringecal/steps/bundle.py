@@ -242,7 +242,8 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     written under a temporary name and renamed into place only when all are complete."""
     meta = {"after": doc["after"], "before": doc["before"], "one_part_in_1p96_sigma": doc["one_part_in_1p96_sigma"],
             "volume_diagonal_mm": doc["volume_diagonal_mm"], "n_control_points": doc["n_control_points"],
-            "iterations": doc["iterations"], "converged": doc["converged"]}
+            "iterations": doc["iterations"], "converged": doc["converged"],
+            "sighting_dispersion": doc.get("sighting_dispersion") or {}}
     model = doc.get("sensor_model")
     per_sphere, per_meas = residual_tables(result)
     tables = {rd.sensors_calibrated: result.sensors_frame(), rd.poses_calibrated: result.poses_frame(),

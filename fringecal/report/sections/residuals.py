@@ -10,7 +10,7 @@ from fringecal.report.formatting import length, natural, um
 from fringecal.report.rundata import Missing, RunData, guard
 from fringecal.report.tables import table
 
-__all__ = ["build", "per_measurement", "per_sphere", "sensor_model"]
+__all__ = ["build", "per_measurement", "per_sphere", "sensor_model", "sphere_scatter"]
 
 SPHERE_HEADS = ["Measurement", "Scanner", "Sphere", "Points", "RMS ε1", "RMS ε2", "Mean ε2", "Max |ε2|"]
 
@@ -24,6 +24,7 @@ def build(run: RunData) -> dict:
         except Missing as why:
             histograms.append({"image": None, "missing": f"Not available: {why}."})
     return {"histograms": histograms, "sensor_model": guard(sensor_model, run),
+            "sphere_scatter": guard(sphere_scatter, run),
             "per_measurement": guard(per_measurement, run), "per_sphere": guard(per_sphere, run)}
 
 
@@ -52,6 +53,18 @@ def sensor_model(run: RunData) -> dict:
             "t_min": rec.get("t_min"), "candidates": candidates, "message": pattern["message"],
             "too_simple": pattern["too_simple"], "z_max": pattern["z_max"], "threshold": pattern["threshold"],
             "statistics": stats}
+
+
+def sphere_scatter(run: RunData):
+    """Per scanner, the scatter of its sphere centres between spheres in the calibration's
+    views against their fits' stated u (``bundle_summary.json``'s ``sighting_dispersion``,
+    :mod:`fringecal.spheres.dispersion`) and the factor the length budgets apply."""
+    rec = run.json(run.rd.bundle_summary).get("sighting_dispersion")
+    if not rec:
+        raise Missing("this run's bundle_summary.json has no sighting_dispersion (a run before it was measured)")
+    return table(["Scanner", "kappa", "Factor on the sphere fits' u", "Views", "Sightings", "Degrees of freedom"],
+                 [[s, f"{d['kappa']:.2f}", f"{max(1.0, d['kappa']):.2f}", d["views"], d["sightings"], d["dof"]]
+                  for s, d in rec.items()], left=1)
 
 
 def per_measurement(run: RunData):
