@@ -68,12 +68,12 @@ def test_the_verification_scales_only_by_a_scatter_above_the_fits():
     assert fit_factors(summary, off) == {} and fit_factors({}, VerificationConfig()) == {}
 
 
-def test_a_scaled_fit_scales_its_covariance_and_its_point_noise():
+def test_a_scaled_fit_scales_its_covariance_not_its_points():
     from fringecal.verification.budget import SightingModel, SightingPoints
     from fringecal.verification.uncertainty import scaled_fit
 
     rig = thesis_truth()[0]
     pts = SightingPoints(rig.scanners[0], 0, np.zeros((3, 2)), np.zeros((3, 2)), np.zeros(3), 25.0, 0.02)
     m = scaled_fit(SightingModel(pts, np.ones((3, 28)), np.diag([1.0, 2.0, 3.0])), 1.5)
-    assert np.allclose(m.C_fit, np.diag([2.25, 4.5, 6.75])) and m.points.rms_mm == pytest.approx(0.03)
+    assert np.allclose(m.C_fit, np.diag([2.25, 4.5, 6.75])) and m.points.rms_mm == pytest.approx(0.02)
     assert np.array_equal(m.J, np.ones((3, 28)))

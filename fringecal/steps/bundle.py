@@ -21,7 +21,6 @@ from fringecal import compile_clock, threads
 from fringecal.atomic import atomic_paths
 from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
-from fringecal.spheres.dispersion import sighting_dispersion
 from fringecal.calibration.models import choose_sensor_model
 from fringecal.calibration.file import rig_to_dict, xml_text
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
@@ -33,6 +32,7 @@ from fringecal.frames import Frame
 from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
+from fringecal.spheres.dispersion import sighting_dispersion
 from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners, black_boxes_only, stores_of
 
 __all__ = ["Bundle", "load_problem"]

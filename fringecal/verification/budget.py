@@ -181,24 +181,28 @@ def _refit(points: np.ndarray, centre: np.ndarray, radius: float, iterations: in
 
 def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCovariances, u_certificate_mm: float,
                         u_bar_temperature_rel: float, draws: int, rng: np.random.Generator,
-                        u_model_mm: float = 0.0) -> np.ndarray:
-    """``draws`` lengths (mm) through the full model (see the module docstring)."""
+                        u_model_mm: float = 0.0, shifts: tuple | None = None) -> np.ndarray:
+    """``draws`` lengths (mm) through the full model (see the module docstring);
+    ``shifts`` (two (3, 3) covariances or None): each refitted centre also moves as a
+    whole by a draw of its own, the sighting's scatter beyond its points' noise."""
     blocks = sorted({a.block, b.block})
     idx = np.concatenate([np.arange(28 * k, 28 * k + 28) for k in blocks])
     F = _draw_sqrt(cov.total[np.ix_(idx, idx)])
     base = {s.block: s.params for s in (a, b)}
     X0 = {id(s): triangulate_mm(s.scanner, s.cam_mm, s.prj_mm) for s in (a, b)}
     normals = {id(s): _normals(X0[id(s)], s.centre) for s in (a, b)}
+    shift = [None if S is None or not np.any(S) else _draw_sqrt(S) for S in (shifts or (None, None))]
     out = np.empty(draws)
     for m in range(draws):
         dtheta = F @ rng.standard_normal(F.shape[1])
         centres = []
-        for s in (a, b):
+        for k, s in enumerate((a, b)):
             j = blocks.index(s.block)
             sc = scanner_with(s.scanner, base[s.block] + dtheta[28 * j:28 * j + 28])
             X = triangulate_mm(sc, s.cam_mm, s.prj_mm)
             X = X + normals[id(s)] * (s.rms_mm * rng.standard_normal(len(X)))[:, None]
-            centres.append(_refit(X, s.centre, s.radius_mm))
+            c = _refit(X, s.centre, s.radius_mm)
+            centres.append(c if shift[k] is None else c + shift[k] @ rng.standard_normal(3))
         L = float(np.linalg.norm(centres[0] - centres[1]))
         out[m] = (L * (1 + u_bar_temperature_rel * rng.standard_normal()) + u_certificate_mm * rng.standard_normal()
                   + u_model_mm * rng.standard_normal())

@@ -25,7 +25,6 @@ calibration either, so it is kept at its per-half size.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -109,8 +108,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     fit_factors : scanner -> factor (>= 1) on its sphere fits' standard uncertainty: the
         scatter of its centres between spheres in the calibration's views
         (:mod:`fringecal.spheres.dispersion`, ``max(1, kappa)``), which a fit's own
-        residuals do not hold; it scales each fit's covariance (the ``sphere fits`` term)
-        and the Monte Carlo's point noise alike
+        residuals do not hold; it scales each fit's covariance (the ``sphere fits`` term),
+        and the Monte Carlo moves each refitted centre by a draw of the difference
 
     Returns a JSON-ready dict: ``lengths`` (one entry per length, in ``lengths`` order),
     ``budget`` (per contribution the RMS over the lengths and the value at the length
@@ -157,8 +156,11 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
         if config.monte_carlo_draws > 0:
             # per length, keyed by its measured value: the same draws in any thread, order or naming
             rng = np.random.default_rng([config.seed, value_key(float(r.length_mm))])
+            f = fit_factors or {}
             samples = monte_carlo_lengths(a.points, b.points, cov, certificate_u_mm, u_bar_rel,
-                                          config.monte_carlo_draws, rng, u_model)
+                                          config.monte_carlo_draws, rng, u_model,
+                                          (_shift(a, f.get(str(r.scanner_a), 1.0)),
+                                           _shift(b, f.get(str(r.scanner_b), 1.0))))
             samples = samples - bias + u_bias * rng.standard_normal(len(samples))
             entry["monte_carlo"] = validate_linear(length, u, k, samples)
         return entry
@@ -180,12 +182,17 @@ CROSSVAL_RMS_Z_MAX = 2.0
 
 
 def scaled_fit(model: SightingModel, factor: float) -> SightingModel:
-    """``model`` with its fit's standard uncertainty (covariance and point noise) times
-    ``factor``."""
+    """``model`` with its fit's standard uncertainty times ``factor`` (its covariance
+    times ``factor**2``)."""
     if factor == 1.0:
         return model
-    return SightingModel(replace(model.points, rms_mm=model.points.rms_mm * factor), model.J,
-                         model.C_fit * factor**2)
+    return SightingModel(model.points, model.J, model.C_fit * factor**2)
+
+
+def _shift(model: SightingModel, factor: float) -> np.ndarray:
+    """The part of a scaled fit's covariance beyond its points' own noise (what the Monte
+    Carlo draws as a shift of the whole sighting): ``(1 - 1 / factor^2) C_fit``."""
+    return model.C_fit * (1.0 - 1.0 / factor**2)
 
 
 def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params: int, ids,
