@@ -164,11 +164,12 @@ def small_run(small_config, tmp_path_factory):
 @pytest.fixture(scope="session")
 def small_dataset(small_config, tmp_path_factory) -> tuple[Path, Path]:
     """The small rig written as a recorded data set by ``fringecal simulate`` (PNG frames),
-    and its truth folder."""
+    and its truth folder; made once per session for all workers (tests copy it to edit it)."""
     from fringecal.run.config import load_run_config
     from fringecal.simulate.export import write_dataset
 
-    d = tmp_path_factory.mktemp("dataset")
-    out, truth = d / "small", d / "small-truth"
-    write_dataset(load_run_config(small_config), out, truth, "png")
-    return out, truth
+    def make(d: Path) -> None:
+        write_dataset(load_run_config(small_config), d / "small", d / "small-truth", "png")
+
+    d = shared_folder(tmp_path_factory, "small-dataset", make)
+    return d / "small", d / "small-truth"
