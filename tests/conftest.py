@@ -67,6 +67,21 @@ def pytest_sessionstart(session):
             lifeline.stop(proc)
 
 
+def pytest_collection_modifyitems(config, items):
+    """In a test worker: the modules with slow tests first, each module's tests together.
+
+    The test command hands out whole modules (``--dist loadfile``, pyproject.toml), so a
+    module's fixtures are made once (work stealing split modules and made, e.g.,
+    test_run_flow's first run twice when the Dask test was stolen), and in this order
+    (``--no-loadscope-reorder``): the long modules first, the last ones small, so
+    that both workers end together."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    slow = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    order = {item: i for i, item in enumerate(items)}
+    items.sort(key=lambda item: (item.nodeid.split("::")[0] not in slow, order[item]))
+
+
 @pytest.fixture(scope="session")
 def thesis_dir() -> Path:
     return THESIS
