@@ -153,11 +153,11 @@ def shared_folder(tmp_path_factory, name: str, make) -> Path:
 
 @pytest.fixture(scope="session")
 def small_run(small_config, tmp_path_factory):
-    """One uninterrupted run of the small rig (every step, in this process, without
-    Prefect: the flow calls the same steps, tests/test_run_flow.py), made once per
-    session for all workers: its run directory (read only) and its summary as
-    ``fringecal run --json`` prints it (tests/test_interrupt.py's reference, the
-    calibration of tests/test_measure.py)."""
+    """One uninterrupted run of the small rig (in this process, without Prefect: the
+    flow calls the same steps, tests/test_run_flow.py; every step but the report, from
+    which no figure of the summary comes), made once per session for all workers: its
+    run directory (read only) and its summary as ``fringecal run --json`` prints it
+    (tests/test_interrupt.py's reference, the calibration of tests/test_measure.py)."""
     import json
 
     from fringecal.run.config import load_run_config
@@ -169,7 +169,7 @@ def small_run(small_config, tmp_path_factory):
         cfg = load_run_config(small_config)
         rd = RunDir(folder / "run").create()
         rd.manifest.save(manifest(cfg))
-        run_pipeline(rd, cfg, workers=2)
+        run_pipeline(rd, cfg, workers=2, until="evaluate")
         (folder / "summary.json").write_text(json.dumps(run_summary(rd, cfg)))
 
     folder = shared_folder(tmp_path_factory, "small-run", make)
