@@ -67,6 +67,21 @@ def pytest_sessionstart(session):
             lifeline.stop(proc)
 
 
+def pytest_collection_modifyitems(config, items):
+    """In a test worker: the modules with slow tests first, each module's tests together.
+
+    The test command hands out whole modules (``--dist loadfile``, pyproject.toml), so a
+    module's fixtures are made once (work stealing split modules and made, e.g.,
+    test_run_flow's first run twice when the Dask test was stolen), and in this order
+    (``--no-loadscope-reorder``): the long modules first, the last ones small, so
+    that both workers end together."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    slow = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    order = {item: i for i, item in enumerate(items)}
+    items.sort(key=lambda item: (item.nodeid.split("::")[0] not in slow, order[item]))
+
+
 @pytest.fixture(scope="session")
 def thesis_dir() -> Path:
     return THESIS
@@ -114,14 +129,62 @@ def small_config(tmp_path_factory) -> Path:
     return write_small_config(tmp_path_factory.mktemp("config"))
 
 
+def shared_folder(tmp_path_factory, name: str, make) -> Path:
+    """A folder made once per test session for every test worker: ``make(folder)`` fills
+    it in the first worker that asks (the others wait for it, under a file lock) unless a
+    worker already did. Without xdist the folder is this session's. Readers must not
+    change it: another worker may be reading it."""
+    import fcntl
+    import shutil
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's folder, above the workers' own
+    folder, done = root / f"shared-{name}", root / f"shared-{name}.done"
+    with open(root / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)  # a worker that failed while making it
+            folder.mkdir()
+            make(folder)
+            done.touch()
+    return folder
+
+
+@pytest.fixture(scope="session")
+def small_run(small_config, tmp_path_factory):
+    """One uninterrupted run of the small rig (in this process, without Prefect: the
+    flow calls the same steps, tests/test_run_flow.py; every step but the report, from
+    which no figure of the summary comes), made once per session for all workers: its
+    run directory (read only) and its summary as ``fringecal run --json`` prints it
+    (tests/test_interrupt.py's reference, the calibration of tests/test_measure.py)."""
+    import json
+
+    from fringecal.run.config import load_run_config
+    from fringecal.run.summary import manifest, run_summary
+    from fringecal.rundir import RunDir
+    from fringecal.steps import run_pipeline
+
+    def make(folder: Path) -> None:
+        cfg = load_run_config(small_config)
+        rd = RunDir(folder / "run").create()
+        rd.manifest.save(manifest(cfg))
+        run_pipeline(rd, cfg, workers=2, until="evaluate")
+        (folder / "summary.json").write_text(json.dumps(run_summary(rd, cfg)))
+
+    folder = shared_folder(tmp_path_factory, "small-run", make)
+    return RunDir(folder / "run"), json.loads((folder / "summary.json").read_text())
+
+
 @pytest.fixture(scope="session")
 def small_dataset(small_config, tmp_path_factory) -> tuple[Path, Path]:
     """The small rig written as a recorded data set by ``fringecal simulate`` (PNG frames),
-    and its truth folder."""
+    and its truth folder; made once per session for all workers (tests copy it to edit it)."""
     from fringecal.run.config import load_run_config
     from fringecal.simulate.export import write_dataset
 
-    d = tmp_path_factory.mktemp("dataset")
-    out, truth = d / "small", d / "small-truth"
-    write_dataset(load_run_config(small_config), out, truth, "png")
-    return out, truth
+    def make(d: Path) -> None:
+        write_dataset(load_run_config(small_config), d / "small", d / "small-truth", "png")
+
+    d = shared_folder(tmp_path_factory, "small-dataset", make)
+    return d / "small", d / "small-truth"

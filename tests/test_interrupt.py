@@ -119,19 +119,11 @@ def _calibrated(out: Path):
 
 
 @pytest.fixture(scope="module")
-def reference(small_config, tmp_path_factory):
+def reference(small_run):
     """The summary of one uninterrupted run of the small rig: the numbers every resumed
-    run must give. Its steps run in this process without Prefect (the flow calls the same
-    steps, tests/test_run_flow.py), which saves a command's start-up and server."""
-    from fringecal.run.config import load_run_config
-    from fringecal.run.summary import manifest, run_summary
-    from fringecal.steps import run_pipeline
-
-    cfg = load_run_config(small_config)
-    rd = RunDir(tmp_path_factory.mktemp("interrupt") / "reference").create()
-    rd.manifest.save(manifest(cfg))
-    run_pipeline(rd, cfg, workers=2)
-    return run_summary(rd, cfg)
+    run must give (the session's run, tests/conftest.py: its steps run without Prefect,
+    which the flow calls as they are, tests/test_run_flow.py)."""
+    return small_run[1]
 
 
 @pytest.mark.flow

@@ -2,7 +2,8 @@
 one PLY with the calibration of a small simulated run, against the truth.
 
 The calibration: the small thesis rig (320 px, the short sequence), poses 1, 5, 9, 12,
-up to the bundle step (its calibration.json carries the covariance). The object:
+ball-bar positions 1, 4, 9: the session's run of it (``small_run``, tests/conftest.py),
+whose calibration.json, from the bundle step, carries the covariance. The object:
 thesis pose 3 rendered by the same true rig (a second run up to ``simulate-render``).
 The truth is moved into the calibration's world (the reference camera's frame, as the
 evaluate step does). At this size the calibration is weak (sensor positions off by a
@@ -40,6 +41,7 @@ pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leave
 
 SCANNERS = ("scanner1", "scanner2")
 #: ball-bar positions (thesis table 6-9) the calibration run renders and never uses: objects
+#: (the small rig's, tests/conftest.py)
 BALLBAR_POSITIONS = (1, 4, 9)
 
 
@@ -53,9 +55,9 @@ def _run(d, poses, until, positions=(1, 9)) -> RunDir:
 
 
 @pytest.fixture(scope="module")
-def cell(tmp_path_factory):
+def cell(small_run, tmp_path_factory):
     root = tmp_path_factory.mktemp("measure")
-    cal = _run(root / "cal", (1, 5, 9, 12), "bundle", positions=BALLBAR_POSITIONS)
+    cal = small_run[0]
     obj = _run(root / "obj", (3,), "simulate-render")
     folder = root / "pose3"
     folder.mkdir()
@@ -68,6 +70,7 @@ def cell(tmp_path_factory):
     truth = truth_in_reference_frame(obj.truth.sensors.load("scanner1"), T_world_reference, cal.calibration.load())
     bar = pd.read_csv(cal.truth.ballbar.path)
     bar_poses = frames_from_rows(cal.truth.ballbar_positions.load())
+    assert sorted(bar_poses) == [f"bb{p:02d}" for p in BALLBAR_POSITIONS]
     ballbar = {}
     for p in bar_poses:
         ballbar[p] = {"stores": {s: cal.store(f"{p}-{s}").path for s in SCANNERS},

@@ -156,11 +156,13 @@ def test_a_scheduled_run_starts_and_finishes(server, tmp_path):
     config = _tiny_config(tmp_path / "config")
     out = tmp_path / "nightly"
     log = tmp_path / "serve.log"
+    # a 2 s interval and the runner asking for due runs every second (Prefect's default: 10 s):
+    # the first scheduled run starts about 3 s after serving starts instead of 10-20 s
+    env = {**_client_env(tmp_path / "home", server), "PREFECT_RUNNER_POLL_FREQUENCY": "1"}
     with open(log, "w") as f:
         proc = subprocess.Popen([str(BIN / "fringecal"), "serve", "--config", str(config), "--out", str(out),
-                                 "--interval", "10", "--name", "test-serve"],
-                                env=_client_env(tmp_path / "home", server), stdout=f, stderr=subprocess.STDOUT,
-                                start_new_session=True)
+                                 "--interval", "2", "--name", "test-serve"],
+                                env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         run = _wait_for_a_finished_scheduled_run(server, proc, log)
         _ctrl_c_stops_serving_within_seconds(proc, log, out)
@@ -219,5 +221,5 @@ def _wait_for_a_finished_scheduled_run(url: str, proc: subprocess.Popen, log: Pa
             if run["state_type"] in ("FAILED", "CRASHED"):
                 message = (run.get("state") or {}).get("message", "")
                 pytest.fail(f"scheduled run {run['name']} {run['state_type']} ({message}):\n{_tail(log, 80)}")
-        time.sleep(2)
+        time.sleep(0.5)
     pytest.fail(f"no scheduled run finished within {RUN_DEADLINE_S} s (runs: {seen}):\n{_tail(log, 80)}")
