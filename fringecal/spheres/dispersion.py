@@ -13,10 +13,11 @@ covariance and the rigid motion ``(R, t)`` fitted by weighted least squares per 
     kappa^2 = sum_views sum_i |W_i (c_i - R s_i - t)|^2 / sum_views (3 n_view - 6)
 
 per scanner (views of at least 3 spheres). kappa is about 1 when the fits' covariance
-says all there is, below 1 by what the adjustment itself absorbs (0.83-0.91 for the
-simulated thesis rig's ideal profile at 320 px), and above 1 when sightings move as a
-whole (1.10-1.55 for its realistic profile, whose per-measurement phase field the fits
-do not see). A ball-bar sighting of the same scanner carries the same kind of error, so
+says all there is, below 1 by what the adjustment itself absorbs (0.68-1.01 per scanner
+for the simulated thesis rig's ideal profile at 320 px over 12 seeds), and above 1 when
+sightings move as a whole (0.88-1.71 over 16 seeds of its realistic profile, whose
+per-measurement phase field the fits do not see; 2.5 at 512 px, where the fits' own u is
+smaller; ``benchmarks/coverage_split.py``). A ball-bar sighting of the same scanner carries the same kind of error, so
 the verification scales its sphere fits' covariance by ``max(1, kappa)^2``
 (:mod:`fringecal.verification.uncertainty`).
 """
@@ -27,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fringecal.calibration.increments import rotation_exp
 from fringecal.calibration.model import BundleProblem
 from fringecal.calibration.propagation import triangulate_mm
 from fringecal.registration import kabsch
@@ -53,16 +55,6 @@ class ScannerDispersion:
         return {"kappa": self.kappa, "dof": self.dof, "views": self.views, "sightings": self.sightings}
 
 
-def _rotation(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation matrix of the rotation vector ``w`` (3,)."""
-    angle = float(np.linalg.norm(w))
-    if angle == 0.0:
-        return np.eye(3)
-    k = w / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
 def _weighted_chi2(centres: np.ndarray, table: np.ndarray, W: np.ndarray, iterations: int = 5) -> float:
     """sum |W_i (c_i - R s_i - t)|^2 at the weighted least-squares rigid motion:
     Gauss-Newton from the unweighted (Kabsch) one. centres, table (n, 3); W (n, 3, 3)."""
@@ -78,7 +70,7 @@ def _weighted_chi2(centres: np.ndarray, table: np.ndarray, W: np.ndarray, iterat
         J = -np.einsum("nij,njk->nik", W, np.concatenate([np.broadcast_to(np.eye(3), (len(q), 3, 3)), -skew], axis=2))
         J = J.reshape(-1, 6)
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
-        R = _rotation(step[3:]) @ R
+        R = rotation_exp(step[3:]) @ R
         t = t + step[:3]
         if np.linalg.norm(step) < 1e-12:
             break
