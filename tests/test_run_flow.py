@@ -454,6 +454,9 @@ def test_benchmarks_that_read_a_run_directory_run_on_this_run(first_run, tmp_pat
     split = run_benchmark("coverage_split", [str(run_dir), "--smoke"], tmp_path / "c.json")
     lengths = json.loads((run_dir / "verification.json").read_text())["uncertainty"]["lengths"]
     assert sorted(split["positions"]) == sorted(length["measurement"] for length in lengths)
+    # each scanner's scatter between spheres, as the bundle step recorded it
+    recorded = json.loads((run_dir / "bundle_summary.json").read_text())["sighting_dispersion"]
+    assert split["kappa"][run_dir.name] == {s: d["kappa"] for s, d in recorded.items()} and len(recorded) == 2
     scale = run_benchmark("thesis_scale", [str(run_dir), "--smoke"], tmp_path / "t.json")
     assert set(scale["steps_s"]) == {"initialise", "bundle"} and scale["n_control_points"] == summary["n_control_points"]
     # error / stated u of every free sensor parameter (3 sensors free in full, the reference camera's interior)
