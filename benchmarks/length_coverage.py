@@ -3,8 +3,9 @@ interval ``length_mm +- U_mm`` of ``verification.json`` hold the TRUE length?
 
 The simulated experiment (the small rig of ``tests/conftest.py``'s
 ``write_small_config`` with eight of the twelve thesis poses, 1, 2, 3, 5, 7, 9, 11, 12:
-the cross-validation that sizes model error needs at least three measurements of every
-scanner in each half, which four poses do not give; ball-bar positions 1, 4, 9 of
+the cross-validation on halves needs at least three measurements of every scanner in
+each half, which four poses do not give; the lengths' model error comes from the
+calibration's delete-one-measurement jackknife; ball-bar positions 1, 4, 9 of
 thesis table 6-9, 320 px cameras by default, fringe counts 32/31/30/28/24/16
 with 5 steps, control points every pixel) is run ``--seeds`` times without Prefect
 (:func:`fringecal.steps.run_pipeline`, one worker, up to the ``verify`` step; the
@@ -187,6 +188,7 @@ def run_seed(profile: str, i: int, config_path: Path, workdir: Path, with_errors
         model = summary.get("sensor_model") or {}
         out["sensor_model"] = model.get("model")  # the model the run's data chose (issue 29)
         out["sighting_dispersion"] = {s: d["kappa"] for s, d in (summary.get("sighting_dispersion") or {}).items()}
+        out["jackknife"] = summary.get("jackknife")
         positions = sorted({str(p) for p in v.get("recorded_by", {})})
         measured = sorted({e["measurement"].split(":")[0] for e in budget["lengths"]})
         out.update(ok=True, true_length_mm=true, true_source=source, certified_length_mm=cert,

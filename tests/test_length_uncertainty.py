@@ -186,11 +186,11 @@ def test_point_uncertainty_map_against_drawn_calibrations(thesis_rig):
     assert np.allclose(empirical, m.u_mm.values[r, c], rtol=0.15)
 
 
-def test_length_cross_validation_adds_model_error_only_when_the_points_agree_it_is_there(thesis_rig):
+def test_length_cross_validation_calls_model_error_only_when_the_points_agree_it_is_there(thesis_rig):
     """Two half-calibrations whose scanner2 projector differs by 20 um in its principal
-    point while they state 1e-7 of every parameter: the lengths disagree far beyond that. The budget gets
-    the excess only when the points' cross-validation also says model error; with the
-    points consistent the lengths' verdict is inconclusive and nothing is added."""
+    point while they state 1e-7 of every parameter: the lengths disagree far beyond that. The
+    check states the excess only when the points' cross-validation also says model error;
+    with the points consistent the lengths' verdict is inconclusive and states none."""
     import pandas as pd
 
     from fringecal.verification.uncertainty import _cross_validated
@@ -209,9 +209,10 @@ def test_length_cross_validation_adds_model_error_only_when_the_points_agree_it_
     found = _cross_validated(models, lengths, halves, 56, ("A", "B"), "model error")
     d = found["lengths"][0]["difference_mm"]
     assert abs(d) > 0.005 and found["verdict"] == "model error"
-    assert found["model_error_mm"] == pytest.approx(np.sqrt(max(d**2 - found["lengths"][0]["u_predicted_mm"]**2, 0) / 2))
+    assert found["halves_excess_mm"] == pytest.approx(
+        np.sqrt(max(d**2 - found["lengths"][0]["u_predicted_mm"]**2, 0) / 2))
     contradicted = _cross_validated(models, lengths, halves, 56, ("A", "B"), "consistent")
-    assert contradicted["verdict"] == "inconclusive" and contradicted["model_error_mm"] == 0.0
+    assert contradicted["verdict"] == "inconclusive" and contradicted["halves_excess_mm"] == 0.0
 
 
 def test_a_monte_carlo_disagreement_is_stated_with_its_numbers_in_the_summary_and_the_report():

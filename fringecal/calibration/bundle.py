@@ -71,7 +71,9 @@ class BundleOptions(StrictModel):
     of the control points triangulated with the result). ``bootstrap_draws``:
     wild-bootstrap re-adjustments for the calibration's bias and spread
     (:mod:`.bootstrap`); 0: none, the lengths are then not corrected for the
-    adjustment's non-linearity. ``coarse_points``: subsample size of the first stage of
+    adjustment's non-linearity. ``jackknife``: re-adjust once without each measurement
+    (:mod:`.jackknife`) for the lengths' model-error term; false: none, the lengths
+    then carry no model error. ``coarse_points``: subsample size of the first stage of
     large problems (0: off); ``chunk_size``: control points per parallel work item.
     ``black_box_scale``: adjust a scale factor of every black-box scanner
     (:mod:`.blackbox`) besides its exterior.
@@ -97,6 +99,7 @@ class BundleOptions(StrictModel):
     volume_diagonal_mm: Optional[float] = Field(None, gt=0)
     bootstrap_draws: int = Field(32, ge=0, le=1000)
     bootstrap_seed: int = 0
+    jackknife: bool = True
     chunk_size: int = Field(2048, ge=1)
     coarse_points: int = Field(150_000, ge=0)
     black_box_scale: bool = False

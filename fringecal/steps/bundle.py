@@ -23,6 +23,7 @@ from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, expor
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.models import choose_sensor_model
 from fringecal.calibration.file import rig_to_dict, xml_text
+from fringecal.calibration.jackknife import MIN_REPLICAS, jackknife_calibrations
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
 from fringecal.calibration.results import binned_residuals, covariance_arrays, residual_tables, summary
@@ -104,11 +105,26 @@ class Bundle(Step):
         arrays = covariance_arrays(result)
         if len(bootstrap):
             arrays["bootstrap_params"] = np.asarray(bootstrap, float)
+        jackknife = None
+        if b.jackknife:
+            jackknife = jackknife_calibrations(result.problem.with_start(result.rig, result.poses),
+                                               result.options.model_copy(update={"start": "given"}),
+                                               workers=threads.granted())
+            timing["jackknife_seconds"] = jackknife.seconds
+            if jackknife.usable:
+                arrays["jackknife_params"] = jackknife.params
+                arrays["jackknife_left_out"] = np.array(jackknife.left_out, dtype=str)
+            else:
+                log.warning("jackknife: %d replicas of %d measurements (at least %d needed): the lengths get no "
+                            "model-error term", len(jackknife.left_out), len(result.problem.measurements),
+                            MIN_REPLICAS)
         u = cfg.verification.uncertainty
         covariances = parameter_covariances(arrays, abs(u.artefact_cte_per_c) * u.artefact_temperature_u_c,
                                             u.artefact_u_factor)
         boxes = black_box_adjustment(rd, result, cfg.reference_scanner, b.black_box_scale)
         doc = {**summary(result, b.volume_diagonal_mm), **timing, "sensor_model": model}
+        if jackknife is not None:
+            doc["jackknife"] = jackknife.to_dict()
         dispersion = sighting_dispersion(result.problem, result.rig)
         doc["sighting_dispersion"] = {s: d.to_dict() for s, d in dispersion.items()}
         if dispersion:

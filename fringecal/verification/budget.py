@@ -20,9 +20,10 @@ their standard uncertainties:
   the surface obliquely), so the plain ``s^2 (A^T A)^-1`` understates the lateral
   components (by ~20 % for a ball-bar sphere);
 * ``bar certificate`` and ``bar temperature``: the reference length's own uncertainty;
-* ``model error (cross-validation)``: when the two half-calibrations' lengths differ
-  beyond their stated uncertainty, the excess (:mod:`fringecal.verification.uncertainty`),
-  an estimate of what the model leaves out; 0 when they agree.
+* ``model error (cross-validation)``: the spread of the length over the calibration's
+  delete-one-measurement jackknife beyond the ``calibration`` term
+  (:mod:`fringecal.verification.uncertainty`): what differs between the measurements
+  and the model leaves out; 0 when the replicas scatter no more than that term states.
 
 Linear propagation (GUM): the centre moves with the points as ``dc = (A^T A)^-1 A^T
 (n_i . dX_i)`` (the fixed-radius fit linearised), ``dX_i/dtheta`` by central
@@ -50,7 +51,7 @@ from fringecal.spheres.fit import centre_sandwich_covariance
 
 __all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
            "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
-           "BUDGET_TERMS", "bootstrap_bias", "block_params"]
+           "BUDGET_TERMS", "bootstrap_bias", "block_params", "jackknife_spread", "jackknife_variance"]
 
 #: the contributions of a length's budget, in report order
 BUDGET_TERMS = ("calibration", "calibration bias correction", "artefact CMM", "artefact temperature", "sphere fits",
@@ -137,7 +138,7 @@ def length_gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[
 def length_budget(a: SightingModel, b: SightingModel, cov: ParameterCovariances, u_certificate_mm: float,
                   u_bar_temperature_rel: float, u_model_mm: float = 0.0, u_bias_mm: float = 0.0) -> LengthBudget:
     """Linear (GUM) budget of the length between sightings ``a`` and ``b``;
-    ``u_model_mm`` the model error the cross-validation found (0 when consistent),
+    ``u_model_mm`` the length's model error from the jackknife (0: none found),
     ``u_bias_mm`` the uncertainty of the calibration-bias correction
     (:func:`bootstrap_bias`; 0 without one)."""
     g, e, L = length_gradient(a, b, len(cov.scale))
@@ -231,6 +232,26 @@ def bootstrap_bias(a: SightingPoints, b: SightingPoints, params: np.ndarray) -> 
     Ls = np.array([refitted_length(a, b, block_params(p, a.block), block_params(p, b.block)) for p in params])
     spread = float(np.std(Ls, ddof=1))
     return float(Ls.mean() - L), spread / math.sqrt(len(Ls)), spread
+
+
+def jackknife_variance(values) -> float:
+    """``(n - 1) / n * sum (v_i - mean v)^2`` of the values of n delete-one replicas.
+
+    >>> jackknife_variance([1.0, 2.0, 3.0])
+    1.3333333333333333
+    """
+    v = np.asarray(values, float)
+    if v.size < 2:
+        raise ValueError(f"a jackknife variance needs at least 2 replicas, got {v.size}")
+    return float((v.size - 1) / v.size * np.sum((v - v.mean()) ** 2))
+
+
+def jackknife_spread(a: SightingPoints, b: SightingPoints, params: np.ndarray) -> float:
+    """The length's jackknife standard deviation (mm) over the calibration's
+    delete-one-measurement replicas (:mod:`fringecal.calibration.jackknife`; ``params``
+    (n, n_sensors, 14)), each length refitted as :func:`refitted_length` does."""
+    return math.sqrt(jackknife_variance([refitted_length(a, b, block_params(p, a.block), block_params(p, b.block))
+                                         for p in params]))
 
 
 def numerical_tolerance(u: float, significant_digits: int = 2) -> float:

@@ -13,13 +13,19 @@ Monte Carlo check of the linear propagation, and two judgements:
   differs from its table, an unmodelled lens term, ...). For k = 2 about one length in
   twenty may exceed U by chance; the summary says how many did.
 
-With the cross-validation's half-calibrations, every length is also measured with each
-half and the difference compared with its predicted uncertainty; an RMS of the
-normalised differences above ``CROSSVAL_RMS_Z_MAX`` is model error, and its size
-(per half-calibration, the excess of the differences' mean square over the predicted,
-halved) enters every length's budget as ``model error (cross-validation)``: an
-unmodelled effect that differs between the halves does not average away in the full
-calibration either, so it is kept at its per-half size.
+Model error. Every length is measured again with the sensors of each replica of the
+delete-one-measurement jackknife (:mod:`fringecal.calibration.jackknife`, in
+``calibration_covariance.npz``); the jackknife variance holds what differs between the
+calibration's measurements, the observation noise the linear ``calibration`` term
+states and what that term cannot see (a smooth phase error of one measurement, drift,
+the adjustment's non-linearity), so its excess ``sqrt(max(0, var_J - u_calibration^2))``
+is the length's ``model error (cross-validation)``: one figure per length, as large as
+the calibration's geometry makes it there. With the cross-validation's half-
+calibrations every length is also measured with each half and the difference compared
+with its predicted uncertainty (RMS of the normalised differences against
+``CROSSVAL_RMS_Z_MAX``): a check reported beside, no longer a budget term, since a half
+of few poses errs along its weak directions far beyond what the full calibration does
+(:mod:`fringecal.calibration.jackknife` has the case).
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ from fringecal.verification.budget import (
     SightingPoints,
     block_params,
     bootstrap_bias,
+    jackknife_spread,
     length_budget,
     length_gradient,
     monte_carlo_lengths,
@@ -98,7 +105,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     pixels : (position, scanner, sphere_id) -> (rows, cols) of each fit's kept pixels
     stores : position -> scanner -> store path
     rig : the calibrated rig; lengths : :func:`fringecal.verification.lengths.ballbar_lengths`
-    arrays : the run's ``calibration_covariance.npz``
+    arrays : the run's ``calibration_covariance.npz`` (with ``jackknife_params`` each
+        length gets its model-error term from the jackknife replicas)
     config : :class:`~fringecal.verification.settings.LengthUncertaintyConfig`
     certificate_u_mm : standard uncertainty of the certified length
     workers : threads for the lengths' Monte Carlo runs
@@ -131,7 +139,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
 
     cross = None if halves is None else _cross_validated(models, lengths, halves, len(cov.scale), ids,
                                                          points_verdict)
-    u_model = 0.0 if cross is None else cross["model_error_mm"]
+    replicas = arrays.get("jackknife_params")
+    jack = None if replicas is None or len(replicas) < 2 else _jackknifed(models, lengths, replicas, cov, ids)
     boot = arrays["bootstrap_params"] if "bootstrap_params" in arrays else None
     if boot is not None and len(boot) < 2:
         boot = None
@@ -143,6 +152,7 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
         bias = u_bias = spread = 0.0
         if boot is not None:
             bias, u_bias, spread = bootstrap_bias(a.points, b.points, boot)
+        u_model = 0.0 if jack is None else jack[i]["model_error_mm"]
         budget = length_budget(a, b, cov, certificate_u_mm, u_bar_rel, u_model, u_bias)
         u = budget.combined_mm
         length = float(r.length_mm) - bias
@@ -170,10 +180,15 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     if cross is not None:
         for entry, c in zip(out, cross["lengths"]):
             entry["cross_validation"] = c
+    if jack is not None:
+        for entry, j in zip(out, jack):
+            entry["jackknife"] = j
     return {"coverage_factor": k, "lengths": out, "budget": _budget(out), "fit_factors": dict(fit_factors or {}),
             "not_covered": [e["measurement"] for e in out if not e["covered"]],
             "monte_carlo": _mc_summary(out),
-            "cross_validation": None if cross is None else {k_: v for k_, v in cross.items() if k_ != "lengths"}}
+            "cross_validation": None if cross is None else {k_: v for k_, v in cross.items() if k_ != "lengths"},
+            "jackknife": None if jack is None else {"replicas": int(len(replicas)),
+                                                    "model_error_rms_mm": _rms([j["model_error_mm"] for j in jack])}}
 
 
 #: RMS of the halves' normalised length differences above which they disagree: with
@@ -195,17 +210,38 @@ def _shift(model: SightingModel, factor: float) -> np.ndarray:
     return model.C_fit * (1.0 - 1.0 / factor**2)
 
 
+def _rms(values) -> float:
+    return float(np.sqrt(np.mean(np.square(values)))) if len(values) else 0.0
+
+
+def _jackknifed(models: dict, lengths: pd.DataFrame, replicas: np.ndarray, cov, ids) -> list[dict]:
+    """Per length: its value with every jackknife replica's sensors ((n, n_sensors, 14);
+    the same pixels, both spheres refitted), their jackknife standard deviation, the
+    linear calibration term it is compared with (``g^T Cov_calibration g``) and the
+    excess, the length's model-error term (mm)."""
+    out = []
+    for r in lengths.itertuples():
+        a = models[(str(r.position), str(r.scanner_a), ids[0])]
+        b = models[(str(r.position), str(r.scanner_b), ids[1])]
+        spread = jackknife_spread(a.points, b.points, replicas)
+        g, _, _ = length_gradient(a, b, len(cov.scale))
+        u_linear = float(np.sqrt(max(float(g @ cov.calibration @ g), 0.0)))
+        out.append({"spread_mm": spread, "u_calibration_mm": u_linear,
+                    "model_error_mm": float(np.sqrt(max(0.0, spread**2 - u_linear**2))), "replicas": len(replicas)})
+    return out
+
+
 def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params: int, ids,
                      points_verdict: str | None = None) -> dict:
     """Every length measured with each half-calibration (``crossval_halves.npz``), the
     difference against its predicted standard uncertainty sqrt(g^T (C_a + C_b) g): the
     fits' own noise is common to both and cancels, the calibrations' errors do not.
 
-    Model error enters the budget only when the points' cross-validation finds it too.
-    Lengths that disagree while the points agree are ``inconclusive``: seen with half
-    calibrations of few poses each (4 and 3 at 320 px), whose weak directions make the
-    linear prediction of their difference far too small (a 6.6 mm "model error" in one
-    of 50 simulated ideal experiments); that is no model error of the full calibration."""
+    A check, not a budget term (the jackknife gives that). ``halves_excess_mm`` is the
+    halves' excess per half-calibration when both the lengths and the points call it
+    model error. Lengths that disagree while the points agree are ``inconclusive``:
+    seen with half calibrations of few poses each (4 and 3 at 320 px), whose weak
+    directions make the linear prediction of their difference far too small."""
     C = halves["covariance_a"] + halves["covariance_b"]
 
     def params(which: str, block: int) -> np.ndarray:
@@ -232,7 +268,7 @@ def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params
     else:
         verdict = "model error"
     return {"lengths": rows, "rms_z": rms_z, "rms_z_max": CROSSVAL_RMS_Z_MAX, "verdict": verdict,
-            "points_verdict": points_verdict, "model_error_mm": excess if verdict == "model error" else 0.0}
+            "points_verdict": points_verdict, "halves_excess_mm": excess if verdict == "model error" else 0.0}
 
 
 def _budget(entries: list) -> dict:

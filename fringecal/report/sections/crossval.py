@@ -1,6 +1,9 @@
-"""Cross-validation: the two half-calibrations compared (``crossval.json``)."""
+"""Cross-validation: the two half-calibrations compared (``crossval.json``), and the
+calibration's jackknife (``bundle_summary.json``) with the model error it gives the lengths."""
 
 from __future__ import annotations
+
+import numpy as np
 
 from fringecal.report.formatting import um
 from fringecal.report.rundata import RunData
@@ -16,12 +19,35 @@ def _agreement(frame: dict) -> str:
             f"{um(frame['rms_predicted_mm'])})")
 
 
+def _jackknife(bundle: dict | None, verification: dict | None) -> str | None:
+    """The jackknife's replicas (``bundle_summary.json``) and, from the verification, the
+    model-error term it gave the lengths (RMS and largest)."""
+    jk = (bundle or {}).get("jackknife")
+    if not jk:
+        return None
+    text = f"{jk['replicas']} replicas, each without one measurement"
+    if jk.get("skipped"):
+        text += f" (none without {', '.join(jk['skipped'])}: " + "; ".join(jk["skipped"].values()) + ")"
+    lengths = ((verification or {}).get("uncertainty") or {}).get("lengths") or []
+    terms = [(e["measurement"], e["jackknife"]) for e in lengths if "jackknife" in e]
+    if terms:
+        worst = max(terms, key=lambda t: t[1]["model_error_mm"])
+        rms = float(np.sqrt(np.mean([t[1]["model_error_mm"] ** 2 for t in terms])))
+        text += (f"; model error of the ball-bar lengths (their spread over the replicas beyond the "
+                 f"calibration term) {um(rms)} RMS, largest {um(worst[1]['model_error_mm'])} at {worst[0]}")
+    elif jk["replicas"] < jk.get("min_replicas", 0):
+        text += f": fewer than {jk['min_replicas']}, no model-error term"
+    return text
+
+
 def build(run: RunData) -> dict:
-    """Per scanner the halves' agreement in three frames, the halves and the largest
-    parameter difference; only ``reason`` when the split was not possible."""
+    """Per scanner the halves' agreement in three frames, the halves, the largest
+    parameter difference and the jackknife; only ``reason`` (and the jackknife) when
+    the split was not possible."""
     cv = run.json(run.rd.crossval)
+    jackknife = _jackknife(run.maybe_json(run.rd.bundle_summary), run.maybe_json(run.rd.verification))
     if cv.get("verdict") == "not possible":
-        return {"not_possible": f"Not possible: {cv.get('reason')}"}
+        return {"not_possible": f"Not possible: {cv.get('reason')}", "jackknife": jackknife}
     rows = [[name, *(_agreement(sc[f]) for f in FRAMES),
              (sc["verdict"], "pass" if sc["verdict"] == "consistent" else "fail"), um(sc["model_error_mm"])]
             for name, sc in cv["scanners"].items()]
@@ -31,6 +57,6 @@ def build(run: RunData) -> dict:
     return {"not_possible": None, "verdict": cv["verdict"],
             "table": table(["Scanner", "Own frame: z²/3 (RMS difference vs predicted)", "Aligned on the reference",
                             "World (reported only)", "Verdict", "Model error per half"], rows, left=1),
-            "halves": halves or None,
+            "halves": halves or None, "jackknife": jackknife,
             "largest": (f"{par.get('parameter')}: {par.get('max_normalised', 0):.1f} times its combined "
                         f"uncertainty (RMS over all {par.get('rms_normalised', 0):.2f})" if par else None)}
