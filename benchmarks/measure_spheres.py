@@ -17,6 +17,11 @@ calibration's world as the ``evaluate`` step does):
   frame-free covariance projects out), minus the true centre; 3-D |error| / u;
 * each **distance** between the two centres: |error| / u.
 
+As the command does, each scanner's fits are scaled by its scatter factor between
+spheres (``sighting_dispersion`` of the calibration's metadata), and the distances carry
+the calibration's replicas (``replicas`` of ``calibration.json``): the bootstrap's bias
+subtracted, the jackknife's model error added.
+
 Median ratios between 0.5 and 2 say the stated uncertainty is honest (about 0.9 for a
 3-D error against sqrt(trace), about 0.7 for a 1-D one, when u is right).
 
@@ -67,6 +72,8 @@ def measure(run_dir: Path) -> dict:
     bar = rd.truth.ballbar.load()
     poses = frames_from_rows(rd.truth.ballbar_positions.load())
     budgets = {"total": cal.covariances.total, "adjustment": cal.covariances.calibration}
+    # as `fringecal measure` states them: each scanner's scatter factor, the calibration's replicas
+    factors = {s: max(1.0, float(d["kappa"])) for s, d in (cal.metadata.get("sighting_dispersion") or {}).items()}
     out = {}
     for name, C in budgets.items():
         cov = frame_free_covariance(rig, C)
@@ -80,7 +87,7 @@ def measure(run_dir: Path) -> dict:
             stores = {s: open_store(p) for s, p in by_scanner.items()}
             try:
                 cloud = measure_cloud(rig, stores, MeasureSettings(uncertainty=False))
-                found = measure_spheres(cloud, stores, rig, cov, nominal)
+                found = measure_spheres(cloud, stores, rig, cov, nominal, fit_factors=factors)
             finally:
                 for ds in stores.values():
                     ds.close()
@@ -88,7 +95,7 @@ def measure(run_dir: Path) -> dict:
                 e = float(np.linalg.norm(to_rig_frame(rig, xi, m.centre) - true[m.sphere]))
                 rows.append({"position": position, "what": f"{m.sphere} ({m.scanner})", "error_mm": e,
                              "u_mm": m.u_position_mm, "kind": "position"})
-            for r in sphere_distances(found, cov).itertuples():
+            for r in sphere_distances(found, cov, cal.covariances.calibration, cal.replicas).itertuples():
                 e = float(r.distance_mm - np.linalg.norm(true[r.sphere_a] - true[r.sphere_b]))
                 rows.append({"position": position, "what": f"{r.sphere_a}-{r.sphere_b}", "error_mm": e,
                              "u_mm": float(r.u_mm), "kind": "distance"})

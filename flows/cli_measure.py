@@ -65,11 +65,13 @@ def _print_spheres(spheres: dict, datum: str) -> None:
     console.print(t if spheres["fitted"] else "spheres: none found (none seen whole enough by any scanner)")
     if spheres["distances"]:
         d = Table(title="distances between sphere centres, each with its own u (what a CMM compares)")
-        for col in ("measurement", "from", "to", "distance (mm)", "u (um)"):
+        for col in ("measurement", "from", "to", "distance (mm)", "u (um)", "of it model error (um)",
+                    "bias subtracted (um)"):
             d.add_column(col, justify="left" if col in ("measurement", "from", "to") else "right")
         for r in spheres["distances"]:
             d.add_row(r["measurement"], f"{r['sphere_a']} ({r['scanner_a']})", f"{r['sphere_b']} ({r['scanner_b']})",
-                      f"{r['distance_mm']:.4f}", _um(r["u_mm"]))
+                      f"{r['distance_mm']:.4f}", _um(r["u_mm"]), _um(r.get("model_error_mm")),
+                      _um(r.get("bias_mm")))
         console.print(d)
 
 

@@ -157,7 +157,7 @@ def test_sphere_positions_in_the_rig_frame_and_their_distances_within_their_stat
         for m in spheres:
             position.append(np.linalg.norm(to_rig_frame(rig, xi, m.centre) - true[m.sphere]) / m.u_position_mm)
             u_position.append(m.u_position_mm)
-        for r in sphere_distances(spheres, cov).itertuples():
+        for r in sphere_distances(spheres, cov, cal.covariances.calibration, cal.replicas).itertuples():
             distance.append(abs(r.distance_mm - np.linalg.norm(true[r.sphere_a] - true[r.sphere_b])) / r.u_mm)
             u_distance.append(r.u_mm)
     print("positions", np.round(position, 2), "distances", np.round(distance, 2))
@@ -191,6 +191,11 @@ def test_measure_command_states_the_spheres_and_their_distances(cell, tmp_path):
     true = float(np.linalg.norm(bar["centres"][1] - bar["centres"][0]))
     assert abs(d["distance_mm"] - true) < 3 * d["u_mm"]
     assert d["u_mm"] < 0.5 * min(f["u_position_mm"] for f in spheres["fitted"])
+    # the calibration file's replicas: the bootstrap's bias subtracted, the jackknife's model error inside u
+    cal = read_calibration(cell["calibration"])
+    assert set(cal.replicas) == {"bootstrap", "jackknife"}
+    assert np.isfinite(d["bias_mm"]) and abs(d["bias_mm"]) < d["u_mm"]
+    assert 0 <= d["model_error_mm"] <= d["u_mm"]
 
 
 def test_the_ply_is_read_back_whole_by_plyfile(cell):

@@ -32,6 +32,13 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
   ``artefact_scale`` (parameter change per unit relative scale of the artefact) with
   ``artefact_scale_u_rel`` (its relative standard uncertainty: CTE times the
   temperature uncertainty). :func:`read_calibration` gives them back.
+* ``replicas`` -- the sensor parameters of the calibration's re-adjustments, each a row
+  in ``covariance``'s parameter order: ``bootstrap`` (wild-bootstrap replicas,
+  :mod:`fringecal.calibration.bootstrap`: a derived quantity's bias is the mean over
+  them minus its value) and ``jackknife`` (one per measurement left out, named in
+  ``left_out``, :mod:`fringecal.calibration.jackknife`: a quantity's spread over them
+  beyond its linear ``adjustment`` term is its model error). ``fringecal measure``
+  states sphere distances with both, as the verification states the ball-bar's lengths.
 * ``sensor_model`` -- the sensor model the run used and why (configured, or chosen by
   held-out measurements with every candidate's held-out error and the residual-pattern
   statistic; :mod:`fringecal.calibration.models`). Sensors with thin-prism terms carry
@@ -61,7 +68,7 @@ from fringecal.sensor import PARAM_NAMES, PRISM_NAMES, Sensor, SensorFormat
 
 __all__ = ["write_calibration_xml", "xml_text", "read_calibration_xml", "write_calibration_json",
            "read_calibration_json", "rig_to_dict", "rig_from_dict", "CalibrationFileError", "Calibration",
-           "read_calibration", "covariance_document", "parameter_names"]
+           "read_calibration", "covariance_document", "parameter_names", "replicas_document", "REPLICA_KINDS"]
 
 _GROUPS = {
     "external": ("x0", "y0", "z0", "omega", "phi", "kappa"),
@@ -96,6 +103,24 @@ def covariance_document(rig: Rig, covariances) -> dict:
             "artefact_scale_u_rel": float(covariances.u_scale)}
 
 
+#: the kinds of replicas a calibration document may carry
+REPLICA_KINDS = ("bootstrap", "jackknife")
+
+
+def replicas_document(replicas: dict, left_out=None) -> dict:
+    """The ``replicas`` block: kind -> ``{"params": (n, 14 n_sensors) rows}`` from
+    kind -> (n, n_sensors, 14) arrays; the jackknife's with ``left_out`` (its measurements)."""
+    out = {}
+    for kind, params in replicas.items():
+        if kind not in REPLICA_KINDS:
+            raise ValueError(f"unknown kind of replicas {kind!r}; expected one of {REPLICA_KINDS}")
+        p = np.asarray(params, float)
+        out[kind] = {"params": p.reshape(len(p), -1).tolist()}
+        if kind == "jackknife" and left_out is not None:
+            out[kind]["left_out"] = [str(m) for m in left_out]
+    return out
+
+
 def _parameter_entries(names, values, free, uncertainty, k: int) -> dict:
     """name -> {value, unit, free[, u]} of one sensor (row ``k`` of ``uncertainty``)."""
     out = {}
@@ -107,12 +132,12 @@ def _parameter_entries(names, values, free, uncertainty, k: int) -> dict:
 
 
 def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None,
-                sensor_model: dict | None = None) -> dict:
+                sensor_model: dict | None = None, replicas: dict | None = None) -> dict:
     """The JSON document of ``rig``; ``covariances``
-    (:class:`~fringecal.calibration.propagation.ParameterCovariances`), ``provenance`` and
+    (:class:`~fringecal.calibration.propagation.ParameterCovariances`), ``provenance``,
     ``sensor_model`` (the model's choice and its evidence,
-    :func:`fringecal.calibration.models.choose_sensor_model`) are added when given (see
-    the module notes)."""
+    :func:`fringecal.calibration.models.choose_sensor_model`) and ``replicas`` (a
+    :func:`replicas_document`) are added when given (see the module notes)."""
 
     out = {"software": "fringecal", "version": __version__, "reference_scanner": rig.reference,
            "scanners": [], "metadata": dict(metadata or {})}
@@ -122,6 +147,8 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
         out["covariance"] = covariance_document(rig, covariances)
     if provenance is not None:
         out["provenance"] = dict(provenance)
+    if replicas:
+        out["replicas"] = replicas
     k = 0
     for scanner in rig.scanners:
         entry = {"name": scanner.name, "sensors": []}
@@ -223,6 +250,50 @@ class Calibration:
     provenance: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
     black_boxes: dict | None = None  # the black-box scanners (fringecal.calibration.blackbox), if any
+    replicas: dict = field(default_factory=dict)  # kind -> (n, n_sensors, 14) re-adjusted sensor parameters
+
+
+def _rows(rows, names: list[str], where: str, key: str = "params") -> np.ndarray:
+    """(n, len(names)) finite values of a list of rows; errors name the row and parameter."""
+    if not isinstance(rows, list):
+        raise CalibrationFileError(f"{where}: expected {key}, one row per replica")
+    for r, row in enumerate(rows):
+        if not isinstance(row, list) or len(row) != len(names):
+            got = f"{len(row)} values" if isinstance(row, list) else type(row).__name__
+            raise CalibrationFileError(f"{where}: {key} row {r} has {got}, expected {len(names)} (the "
+                                       "covariance's parameters in order)")
+    try:
+        params = np.asarray(rows, float).reshape(len(rows), len(names))
+    except (TypeError, ValueError) as err:
+        raise CalibrationFileError(f"{where}: {key}: {type(err).__name__}: {err}") from None
+    if not np.isfinite(params).all():
+        r, c = np.argwhere(~np.isfinite(params))[0]
+        raise CalibrationFileError(f"{where}: {key} row {r}, {names[c]}: not a finite number")
+    return params
+
+
+def _replicas(doc: dict, rig: Rig, source: str) -> dict:
+    """kind -> arrays of a document's ``replicas`` block (:func:`replicas_document`)."""
+    names = parameter_names(rig)
+    out = {}
+    if not isinstance(doc, dict):
+        raise CalibrationFileError(f"{source}: replicas: expected an object of bootstrap, jackknife")
+    for kind, block in doc.items():
+        where = f"{source}: replicas {kind!r}"
+        if kind not in ("bootstrap", "jackknife"):
+            raise CalibrationFileError(f"{where}: unknown kind; expected bootstrap or jackknife")
+        if not isinstance(block, dict):
+            raise CalibrationFileError(f"{where}: expected an object with params")
+        out[kind] = _rows(block.get("params"), names, where).reshape(-1, len(names) // 14, 14)
+        if kind == "jackknife" and "noise_params" in block:
+            draws = block.get("noise_draws")
+            noise = _rows(block["noise_params"], names, where, "noise_params")
+            n = len(out[kind])
+            if not isinstance(draws, int) or draws < 1 or len(noise) != draws * n:
+                raise CalibrationFileError(f"{where}: noise_params has {len(noise)} rows, expected noise_draws "
+                                           f"({draws!r}) times the {n} replicas")
+            out["jackknife_noise"] = noise.reshape(draws, n, len(names) // 14, 14)
+    return out
 
 
 def _covariances(doc: dict, rig: Rig, source: str):
@@ -287,7 +358,9 @@ def read_calibration(path) -> Calibration:
     d = _json_document(path)
     rig = rig_from_dict(d, str(path))
     cov = _covariances(d["covariance"], rig, str(path)) if "covariance" in d else None
-    return Calibration(rig, cov, dict(d.get("provenance") or {}), dict(d.get("metadata") or {}), d.get("black_boxes"))
+    replicas = _replicas(d["replicas"], rig, str(path)) if "replicas" in d else {}
+    return Calibration(rig, cov, dict(d.get("provenance") or {}), dict(d.get("metadata") or {}), d.get("black_boxes"),
+                       replicas)
 
 
 def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:

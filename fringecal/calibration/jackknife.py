@@ -1,5 +1,5 @@
-"""Delete-one-measurement jackknife of the calibration: how much a result moves between
-the measurements it was calibrated from.
+"""Delete-one-measurement jackknife of the calibration, against the same jackknife of
+worlds that hold only the noise the adjustment's covariance assumes.
 
 Each replica is the calibration re-adjusted without one measurement (one artefact pose:
 its control points and its pose), from the calibration's solution. For a quantity
@@ -10,34 +10,45 @@ the jackknife variance (Quenouille, Tukey; Efron & Stein 1981;
     var_J(q) = (n - 1) / n * sum_i (q_(i) - mean q_(.))^2,
 
 which holds everything that differs between the measurements: the observation noise the
-adjustment's covariance states, and also what the covariance cannot see because it
+adjustment's covariance states, and also what that covariance cannot see because it
 takes every control point's error as independent -- a smooth phase error of one
-measurement moves all its points together; the scanner drifts between measurements --
-and the adjustment's non-linearity along weak directions. Its excess over the linear
-term, ``sqrt(max(0, var_J - u_linear^2))``, is the verification's ``model error
-(cross-validation)`` of a length (:mod:`fringecal.verification.uncertainty`).
+measurement moves all its points together; a scanner drifts between measurements.
+
+The jackknife overstates, though, where the measurements are few and unequal: leaving
+out a pose that alone shows part of the volume costs more than 1/n of the information,
+and ``(n - 1) / n`` does not know it. On the simulated thesis rig with 8 poses at 320 px,
+ideal profile (noise only), var_J was about twice the linear calibration term's
+variance on average over 150 ball-bar lengths, and the coverage of U rose from 0.967
+to 0.980 when the plain excess was added. So the calibration is also jackknifed in
+``noise_draws`` worlds that hold the noise alone: the projector observations replaced
+by those the calibrated model predicts plus each control point's own residual times a
+random sign (the wild bootstrap's replicas, :mod:`.bootstrap`, with signs of their own),
+each such world jackknifed over the same measurements. Their mean variance
+``var_J,noise`` is what the jackknife shows when the covariance holds everything, with
+the same geometry and the same over-statement. The model error of ``q`` is then
+
+    u_model(q) = u_linear(q) * sqrt(max(0, var_J(q) / var_J,noise(q) - 1)),
+
+``u_linear`` its linear calibration term: zero where the measurements scatter as the
+noise makes them, and the excess, at the linear term's scale, where they scatter more
+(:func:`fringecal.verification.budget.jackknife_model_error`). An unmodelled error that
+differs between measurements is over-stated by the jackknife as the noise is; the ratio
+removes both alike.
 
 Why not the halves of :mod:`.crossval` for that figure: a half-calibration has half the
 poses, and its error along a weak direction grows faster than its stated u when
 something unmodelled pushes it there. On the simulated thesis rig (realistic profile,
 320 px, 8 poses: halves of 4) one seed in 16 had half-calibrations 4-7 mm apart on the
 ball-bar (37 times their predicted u) while the full calibration erred by 0.15-0.26 mm;
-the halves' excess then put 4.3 mm into every length's budget. A replica keeps all but
-one pose, so its geometry is nearly the calibration's: in that seed the jackknife gives
-34-160 um per length. Errors common to every measurement (an artefact that differs
-from its table, a lens term outside the model) move every replica alike; neither the
-jackknife nor the halves can see them.
-
-Measured on kept coverage runs (`benchmarks/length_coverage.py --keep`, 320 px, 8 poses)
-and the default runs (512 px, 12 poses), jackknife spread / linear calibration term of
-the ball-bar lengths: ideal profile about 1 (0.6-1.3 at 512 px; up to 2.5 at 320 px
-where the bootstrap finds the adjustment non-linear), realistic profile 1.1-3.8 at 320 px
-and 2-13 at 512 px (the smooth phase error of each measurement).
+the halves' excess put 4.3 mm into every length's budget. A replica keeps all poses but
+one, so its geometry is nearly the calibration's. Errors common to every measurement (an
+artefact that differs from its table, a lens term outside the model) move every replica
+alike; neither the jackknife nor the halves can see them.
 
 A measurement whose removal leaves a problem that cannot be calibrated (a scanner left
-without the views it needs) gets no replica; the record names it, and the variance is
-taken over the replicas there are (``MIN_REPLICAS`` at least: the bundle step stores
-fewer as none).
+without the views it needs) gets no replica, in the noise worlds neither; the record
+names it, and the variances are taken over the replicas there are (``MIN_REPLICAS`` at
+least: the bundle step stores fewer as none).
 """
 
 from __future__ import annotations
@@ -45,78 +56,108 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from fringecal.calibration.bundle import BundleOptions, StartValueError, bundle_adjust
+from fringecal.calibration.bootstrap import predicted_projector_mm
+from fringecal.calibration.bundle import BundleResult, StartValueError, bundle_adjust
 from fringecal.calibration.crossval import subproblem
 from fringecal.calibration.diagnostics import DegenerateCalibrationError
-from fringecal.calibration.model import BundleProblem
+from fringecal.calibration.keyed import keyed_signs, row_keys
 from fringecal.threads import numba_threads
 
-__all__ = ["MIN_REPLICAS", "Jackknife", "jackknife_calibrations"]
+__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations"]
 
 log = logging.getLogger(__name__)
 
 #: fewest replicas a jackknife variance is taken from
 MIN_REPLICAS = 3
+#: noise-only worlds jackknifed for the baseline (its variance's relative scatter is
+#: about sqrt(2 / (NOISE_DRAWS (n - 1))): 0.27 with 8 measurements)
+NOISE_DRAWS = 4
+#: first sign stream of the noise worlds (the bootstrap's replicas use 0, 1, ...)
+_NOISE_STREAM = 1_000_000
 
 
 @dataclass(frozen=True)
 class Jackknife:
-    """The replicas of a delete-one-measurement jackknife.
+    """The replicas of a delete-one-measurement jackknife and of its noise-only baseline.
 
     left_out : the measurement each replica leaves out, (n,)
     params : (n, n_sensors, 14) each replica's sensor parameters, rig order
+    noise_params : (draws, n, n_sensors, 14) the same replicas in each noise-only world
     skipped : measurement -> why it has no replica
     seconds : wall time of all replicas
     """
 
     left_out: tuple[str, ...]
     params: np.ndarray = field(repr=False)
+    noise_params: np.ndarray = field(repr=False)
     skipped: dict
     seconds: float
 
     @property
     def usable(self) -> bool:
-        return len(self.left_out) >= MIN_REPLICAS
+        return len(self.left_out) >= MIN_REPLICAS and len(self.noise_params) > 0
 
     def to_dict(self) -> dict:
         return {"replicas": len(self.left_out), "left_out": list(self.left_out), "skipped": dict(self.skipped),
-                "min_replicas": MIN_REPLICAS}
+                "noise_draws": int(len(self.noise_params)), "min_replicas": MIN_REPLICAS}
 
 
-def jackknife_calibrations(problem: BundleProblem, options: BundleOptions, workers: int = 1) -> Jackknife:
-    """Re-adjust ``problem`` once without each of its measurements.
+def noise_world(result: BundleResult, draw: int, seed: int = 0):
+    """``result``'s problem with the projector observations of noise-only world ``draw``:
+    the calibrated model's prediction plus each control point's residual times a sign
+    keyed by the point's coordinates (points whose ray misses their sphere keep their
+    observation). Start values: the calibration's solution."""
+    problem = result.problem.with_start(result.rig, result.poses)
+    predicted = predicted_projector_mm(result)
+    ok = np.isfinite(predicted).all(axis=1)
+    signs = keyed_signs(row_keys(problem.cam_mm, problem.prj_mm), seed, _NOISE_STREAM + draw)
+    noisy = predicted + signs[:, None] * (problem.prj_mm - predicted)
+    return replace(problem, prj_mm=np.where(ok[:, None], noisy, problem.prj_mm))
 
-    ``problem`` carries the calibration's solution as start values
-    (``problem.with_start(rig, poses)``); ``options`` as the calibration's, with
-    ``start="given"``. ``workers`` replicas run at once, each on one numba thread.
-    """
-    names = [str(m) for m in problem.measurements]
+
+def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,
+                           workers: int = 1) -> Jackknife:
+    """Re-adjust ``result``'s problem once without each of its measurements, and the same
+    in ``noise_draws`` noise-only worlds (:func:`noise_world`), with the result's options
+    from its solution; ``workers`` adjustments at once, each on one numba thread."""
+    options = result.options.model_copy(update={"start": "given"})
+    problems = [result.problem.with_start(result.rig, result.poses)]
+    problems += [noise_world(result, d, seed) for d in range(noise_draws)]
+    names = [str(m) for m in result.problem.measurements]
     t0 = time.perf_counter()
 
-    def replica(m: str):
+    def replica(task):
+        k, m = task
         try:
-            fit = bundle_adjust(subproblem(problem, [x for x in names if x != m]), options)
+            fit = bundle_adjust(subproblem(problems[k], [x for x in names if x != m]), options)
         except (DegenerateCalibrationError, StartValueError) as err:
-            return m, None, f"{type(err).__name__}: {str(err).splitlines()[0]}"
-        return m, fit.rig.params, None
+            return None, f"{type(err).__name__}: {str(err).splitlines()[0]}"
+        return fit.rig.params, None
 
-    def on_one_thread(m: str):  # each replica's kernels on one thread: the replicas run in parallel
+    def on_one_thread(task):  # each replica's kernels on one thread: the replicas run in parallel
         with numba_threads(1):
-            return replica(m)
+            return replica(task)
 
+    tasks = [(k, m) for k in range(len(problems)) for m in names]
     if workers <= 1:
-        results = [replica(m) for m in names]
+        done = [replica(t) for t in tasks]
     else:
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            results = list(pool.map(on_one_thread, names))
-    kept = [(m, p) for m, p, _ in results if p is not None]
-    skipped = {m: why for m, _, why in results if why is not None}
-    for m, why in skipped.items():
-        log.info("jackknife: no replica without measurement %s (%s)", m, why)
-    shape = (0,) + problem.rig.params.shape
-    params = np.stack([p for _, p in kept]) if kept else np.empty(shape)
-    return Jackknife(tuple(m for m, _ in kept), params, skipped, round(time.perf_counter() - t0, 3))
+            done = list(pool.map(on_one_thread, tasks))
+    params = [[done[k * len(names) + j][0] for j in range(len(names))] for k in range(len(problems))]
+    why = {m: w for (k, m), (_, w) in zip(tasks, done) if k == 0 and w is not None}
+    keep = [j for j, m in enumerate(names) if m not in why]
+    complete = [k for k in range(1, len(problems)) if all(params[k][j] is not None for j in keep)]
+    for m, w in why.items():
+        log.info("jackknife: no replica without measurement %s (%s)", m, w)
+    shape = result.rig.params.shape
+
+    def stack(k):
+        return np.stack([params[k][j] for j in keep]) if keep else np.empty((0,) + shape)
+
+    noise = np.stack([stack(k) for k in complete]) if complete else np.empty((0, len(keep)) + shape)
+    return Jackknife(tuple(names[j] for j in keep), stack(0), noise, why, round(time.perf_counter() - t0, 3))

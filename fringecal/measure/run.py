@@ -101,6 +101,7 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         cov = cal.covariances.total
         if datum == "rig":
             cov = frame_free_covariance(cal.rig, cov)
+    adjustment = None if cov is None else cal.covariances.calibration  # a distance's jackknife is compared with it
     factors = {s: max(1.0, float(d["kappa"])) for s, d in (cal.metadata.get("sighting_dispersion") or {}).items()}
     t_read = t_cloud = 0.0
     parts, fitted, distances = [], [], []
@@ -115,7 +116,8 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
                 found = measure_spheres(part, stores, cal.rig, cov, nominal, measurement=g, fit_factors=factors)
                 name = folders[g].name
                 fitted += [{"measurement": name, **m.as_dict()} for m in found]
-                distances += [{"measurement": name, **r} for r in sphere_distances(found, cov).to_dict("records")]
+                table = sphere_distances(found, cov, adjustment, cal.replicas)
+                distances += [{"measurement": name, **r} for r in table.to_dict("records")]
             parts.append(part.points)
             for k, (name, box) in enumerate(boxes.items()):
                 if name in group:

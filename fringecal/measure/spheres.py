@@ -13,7 +13,11 @@ that sees it and stated two ways:
 * every **distance** between two fitted centres (:func:`sphere_distances`):
   ``u_mm``, the calibration's part through the gradient of the distance over every
   sensor parameter (both centres' Jacobians at once, so what the two share cancels:
-  a common orientation of the scanners, the frame) and both fits' own along the line.
+  a common orientation of the scanners, the frame) and both fits' own along the line;
+  with the replicas a calibration file carries, the bootstrap's bias subtracted and the
+  jackknife's model error added, as for the ball-bar's lengths. (A position gets
+  neither: a replica's frame is its own reference camera's, which the adjustment
+  determines only weakly, so a position's spread over the replicas is mostly the frame's.)
   A distance's u is far smaller than the positions' (on the thesis rig, tens of um
   against a few tenths of a mm): per point, the position's u says nothing about it.
 
@@ -51,12 +55,19 @@ from fringecal.spheres.fit import FitError, SphereModel
 from fringecal.spheres.pixel_integration import phase_integration_bias
 from fringecal.spheres.regions import boundary_flags
 from fringecal.spheres.robust import RejectionConfig, fit_sphere_robust
-from fringecal.verification.budget import SightingModel, SightingPoints, length_gradient, sighting_model
+from fringecal.verification.budget import (
+    SightingModel,
+    SightingPoints,
+    bootstrap_bias,
+    jackknife_model_error,
+    length_gradient,
+    sighting_model,
+)
 from fringecal.verification.ballbar import disc_pixels
 from fringecal.verification.measure import store_scanner
 from fringecal.verification.uncertainty import scaled_fit
 
-__all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "read_nominal_spheres", "NOMINAL_COLUMNS", "SEARCH_MM", "EDGE_WIDTH_PX", "MIN_POINTS",
+__all__ = ["MeasuredSphere", "measure_spheres", "sphere_distances", "DISTANCE_COLUMNS", "read_nominal_spheres", "NOMINAL_COLUMNS", "SEARCH_MM", "EDGE_WIDTH_PX", "MIN_POINTS",
            "MIN_DISC_FRACTION"]
 
 #: a sphere is looked for this far beyond its nominal surface: the candidate nearest the
@@ -259,24 +270,51 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
     return out
 
 
-def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | None) -> pd.DataFrame:
+DISTANCE_COLUMNS = ["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_mm", "u_mm", "bias_mm",
+                    "model_error_mm"]
+
+
+def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | None,
+                     adjustment: np.ndarray | None = None, replicas: Mapping[str, np.ndarray] | None = None
+                     ) -> pd.DataFrame:
     """Every distance between two measured centres of different spheres, with its
-    standard uncertainty: ``sphere_a, scanner_a, sphere_b, scanner_b, distance_mm,
-    u_mm`` (the calibration's part through both centres at once, and the fits'; NaN
-    without a covariance)."""
+    standard uncertainty, as the verification states a ball-bar length:
+    ``sphere_a, scanner_a, sphere_b, scanner_b, distance_mm, u_mm, bias_mm, model_error_mm``.
+
+    ``u_mm`` holds the calibration's part through both centres at once (``covariance``,
+    (14 n_sensors) square) and the fits'; NaN without a covariance. With the
+    calibration's ``replicas`` (:attr:`fringecal.calibration.file.Calibration.replicas`):
+    the bootstrap's bias of the distance is subtracted (``bias_mm``; its u enters ``u_mm``,
+    :func:`~fringecal.verification.budget.bootstrap_bias`) and the jackknife's spread
+    beyond that of its noise-only worlds, at the scale of the linear term of
+    ``adjustment`` (the adjustment's share of ``covariance``), enters as ``model_error_mm``
+    (:func:`~fringecal.verification.budget.jackknife_model_error`). NaN where the
+    calibration carries no such replicas."""
     rows = []
     if not measured:
-        return pd.DataFrame(rows, columns=["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_mm", "u_mm"])
+        return pd.DataFrame(rows, columns=DISTANCE_COLUMNS)
     stated = covariance is not None
     n = covariance.shape[0] if stated else 28 * (1 + max(m.model.points.block for m in measured))
     if not stated:
         covariance = np.zeros((n, n))
+    boot = (replicas or {}).get("bootstrap")
+    boot = boot if boot is not None and len(boot) >= 2 else None
+    jack, noise = (replicas or {}).get("jackknife"), (replicas or {}).get("jackknife_noise")
+    jack = jack if jack is not None and noise is not None and len(jack) >= 2 and adjustment is not None else None
     for i, a in enumerate(measured):
         for b in measured[i + 1:]:
             if a.sphere == b.sphere:
                 continue
             g, e, L = length_gradient(a.model, b.model, n)
             var = float(g @ covariance @ g) + float(e @ (a.model.C_fit + b.model.C_fit) @ e)
+            bias = model_error = float("nan")
+            if boot is not None:
+                bias, u_bias, _ = bootstrap_bias(a.model.points, b.model.points, boot)
+                L, var = L - bias, var + u_bias**2
+            if jack is not None:
+                model_error = jackknife_model_error(a.model, b.model, jack, noise, adjustment)["model_error_mm"]
+                var += model_error**2
             rows.append({"sphere_a": a.sphere, "scanner_a": a.scanner, "sphere_b": b.sphere, "scanner_b": b.scanner,
-                         "distance_mm": L, "u_mm": float(np.sqrt(max(var, 0.0))) if stated else float("nan")})
-    return pd.DataFrame(rows, columns=["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_mm", "u_mm"])
+                         "distance_mm": L, "u_mm": float(np.sqrt(max(var, 0.0))) if stated else float("nan"),
+                         "bias_mm": bias, "model_error_mm": model_error})
+    return pd.DataFrame(rows, columns=DISTANCE_COLUMNS)

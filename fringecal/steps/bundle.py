@@ -22,7 +22,7 @@ from fringecal.atomic import atomic_paths
 from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.models import choose_sensor_model
-from fringecal.calibration.file import rig_to_dict, xml_text
+from fringecal.calibration.file import REPLICA_KINDS, replicas_document, rig_to_dict, xml_text
 from fringecal.calibration.jackknife import MIN_REPLICAS, jackknife_calibrations
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
@@ -107,12 +107,11 @@ class Bundle(Step):
             arrays["bootstrap_params"] = np.asarray(bootstrap, float)
         jackknife = None
         if b.jackknife:
-            jackknife = jackknife_calibrations(result.problem.with_start(result.rig, result.poses),
-                                               result.options.model_copy(update={"start": "given"}),
-                                               workers=threads.granted())
+            jackknife = jackknife_calibrations(result, seed=b.bootstrap_seed, workers=threads.granted())
             timing["jackknife_seconds"] = jackknife.seconds
             if jackknife.usable:
                 arrays["jackknife_params"] = jackknife.params
+                arrays["jackknife_noise_params"] = jackknife.noise_params
                 arrays["jackknife_left_out"] = np.array(jackknife.left_out, dtype=str)
             else:
                 log.warning("jackknife: %d replicas of %d measurements (at least %d needed): the lengths get no "
@@ -273,7 +272,9 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     files = [rd.calibration, rd.calibration.xml, *tables, *figures, rd.bundle_summary, rd.covariance]
     with atomic_paths([f.path for f in files]) as tmps:
         tmp = dict(zip([f.rel for f in files], tmps))
-        calibration = rig_to_dict(result.rig, meta, covariances, provenance, model)
+        replicas = {kind: arrays[f"{kind}_params"] for kind in REPLICA_KINDS if f"{kind}_params" in arrays}
+        calibration = rig_to_dict(result.rig, meta, covariances, provenance, model,
+                                  replicas_document(replicas, arrays.get("jackknife_left_out")))
         if black_boxes is not None:
             calibration["black_boxes"] = black_boxes
         tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")

@@ -21,9 +21,10 @@ their standard uncertainties:
   components (by ~20 % for a ball-bar sphere);
 * ``bar certificate`` and ``bar temperature``: the reference length's own uncertainty;
 * ``model error (cross-validation)``: the spread of the length over the calibration's
-  delete-one-measurement jackknife beyond the ``calibration`` term
-  (:mod:`fringecal.verification.uncertainty`): what differs between the measurements
-  and the model leaves out; 0 when the replicas scatter no more than that term states.
+  delete-one-measurement jackknife beyond the spread the same jackknife shows in worlds
+  of noise alone, at the ``calibration`` term's scale (:func:`jackknife_model_error`):
+  what differs between the measurements and the model leaves out; 0 when the replicas
+  scatter no more than the noise makes them.
 
 Linear propagation (GUM): the centre moves with the points as ``dc = (A^T A)^-1 A^T
 (n_i . dX_i)`` (the fixed-radius fit linearised), ``dX_i/dtheta`` by central
@@ -51,7 +52,8 @@ from fringecal.spheres.fit import centre_sandwich_covariance
 
 __all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
            "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
-           "BUDGET_TERMS", "bootstrap_bias", "block_params", "jackknife_spread", "jackknife_variance"]
+           "BUDGET_TERMS", "bootstrap_bias", "block_params", "jackknife_spread", "jackknife_variance",
+           "jackknife_model_error"]
 
 #: the contributions of a length's budget, in report order
 BUDGET_TERMS = ("calibration", "calibration bias correction", "artefact CMM", "artefact temperature", "sphere fits",
@@ -252,6 +254,27 @@ def jackknife_spread(a: SightingPoints, b: SightingPoints, params: np.ndarray) -
     (n, n_sensors, 14)), each length refitted as :func:`refitted_length` does."""
     return math.sqrt(jackknife_variance([refitted_length(a, b, block_params(p, a.block), block_params(p, b.block))
                                          for p in params]))
+
+
+def jackknife_model_error(a: SightingModel, b: SightingModel, params: np.ndarray, noise_params: np.ndarray,
+                          adjustment: np.ndarray) -> dict:
+    """The model-error term of the length between ``a`` and ``b``
+    (:mod:`fringecal.calibration.jackknife`): its jackknife variance over ``params``
+    (n, n_sensors, 14) against the mean of the same over the noise-only worlds
+    ``noise_params`` (draws, n, n_sensors, 14), at the scale of its linear calibration
+    term ``u = sqrt(g^T C g)`` (``adjustment`` the adjustment's sensor covariance,
+    (14 n_sensors) square): ``u sqrt(max(0, var_J / var_J,noise - 1))``.
+
+    Returns ``spread_mm`` (sqrt var_J), ``noise_spread_mm`` (sqrt var_J,noise),
+    ``u_calibration_mm``, ``model_error_mm``, ``replicas`` and ``noise_draws``."""
+    spread = jackknife_spread(a.points, b.points, params)
+    noise = math.sqrt(float(np.mean([jackknife_spread(a.points, b.points, p) ** 2 for p in noise_params])))
+    g, _, _ = length_gradient(a, b, adjustment.shape[0])
+    u_linear = math.sqrt(max(float(g @ adjustment @ g), 0.0))
+    excess = max(0.0, (spread / noise) ** 2 - 1.0) if noise > 0 else 0.0
+    return {"spread_mm": spread, "noise_spread_mm": noise, "u_calibration_mm": u_linear,
+            "model_error_mm": u_linear * math.sqrt(excess), "replicas": int(len(params)),
+            "noise_draws": int(len(noise_params))}
 
 
 def numerical_tolerance(u: float, significant_digits: int = 2) -> float:

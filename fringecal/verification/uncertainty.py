@@ -15,12 +15,13 @@ Monte Carlo check of the linear propagation, and two judgements:
 
 Model error. Every length is measured again with the sensors of each replica of the
 delete-one-measurement jackknife (:mod:`fringecal.calibration.jackknife`, in
-``calibration_covariance.npz``); the jackknife variance holds what differs between the
-calibration's measurements, the observation noise the linear ``calibration`` term
-states and what that term cannot see (a smooth phase error of one measurement, drift,
-the adjustment's non-linearity), so its excess ``sqrt(max(0, var_J - u_calibration^2))``
-is the length's ``model error (cross-validation)``: one figure per length, as large as
-the calibration's geometry makes it there. With the cross-validation's half-
+``calibration_covariance.npz``) and of the same jackknife in worlds of noise alone; the
+jackknife variance holds what differs between the calibration's measurements, the
+observation noise the linear ``calibration`` term states and what that term cannot see
+(a smooth phase error of one measurement, drift), and the noise worlds' variance what
+it holds when the noise is all there is, so ``u_calibration sqrt(max(0, var_J /
+var_J,noise - 1))`` is the length's ``model error (cross-validation)``: one figure per
+length, as large as the calibration's geometry makes it there. With the cross-validation's half-
 calibrations every length is also measured with each half and the difference compared
 with its predicted uncertainty (RMS of the normalised differences against
 ``CROSSVAL_RMS_Z_MAX``): a check reported beside, no longer a budget term, since a half
@@ -47,7 +48,7 @@ from fringecal.verification.budget import (
     SightingPoints,
     block_params,
     bootstrap_bias,
-    jackknife_spread,
+    jackknife_model_error,
     length_budget,
     length_gradient,
     monte_carlo_lengths,
@@ -139,8 +140,9 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
 
     cross = None if halves is None else _cross_validated(models, lengths, halves, len(cov.scale), ids,
                                                          points_verdict)
-    replicas = arrays.get("jackknife_params")
-    jack = None if replicas is None or len(replicas) < 2 else _jackknifed(models, lengths, replicas, cov, ids)
+    replicas, noise = arrays.get("jackknife_params"), arrays.get("jackknife_noise_params")
+    jack = None if replicas is None or noise is None or len(replicas) < 2 or not len(noise) else _jackknifed(
+        models, lengths, replicas, noise, cov, ids)
     boot = arrays["bootstrap_params"] if "bootstrap_params" in arrays else None
     if boot is not None and len(boot) < 2:
         boot = None
@@ -214,20 +216,16 @@ def _rms(values) -> float:
     return float(np.sqrt(np.mean(np.square(values)))) if len(values) else 0.0
 
 
-def _jackknifed(models: dict, lengths: pd.DataFrame, replicas: np.ndarray, cov, ids) -> list[dict]:
-    """Per length: its value with every jackknife replica's sensors ((n, n_sensors, 14);
-    the same pixels, both spheres refitted), their jackknife standard deviation, the
-    linear calibration term it is compared with (``g^T Cov_calibration g``) and the
-    excess, the length's model-error term (mm)."""
+def _jackknifed(models: dict, lengths: pd.DataFrame, replicas: np.ndarray, noise: np.ndarray, cov,
+                ids) -> list[dict]:
+    """Per length its model-error term from the jackknife replicas ((n, n_sensors, 14))
+    and their noise-only baseline ((draws, n, n_sensors, 14);
+    :func:`~fringecal.verification.budget.jackknife_model_error`)."""
     out = []
     for r in lengths.itertuples():
         a = models[(str(r.position), str(r.scanner_a), ids[0])]
         b = models[(str(r.position), str(r.scanner_b), ids[1])]
-        spread = jackknife_spread(a.points, b.points, replicas)
-        g, _, _ = length_gradient(a, b, len(cov.scale))
-        u_linear = float(np.sqrt(max(float(g @ cov.calibration @ g), 0.0)))
-        out.append({"spread_mm": spread, "u_calibration_mm": u_linear,
-                    "model_error_mm": float(np.sqrt(max(0.0, spread**2 - u_linear**2))), "replicas": len(replicas)})
+        out.append(jackknife_model_error(a, b, replicas, noise, cov.calibration))
     return out
 
 
