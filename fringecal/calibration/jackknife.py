@@ -19,7 +19,8 @@ out a pose that alone shows part of the volume costs more than 1/n of the inform
 and ``(n - 1) / n`` does not know it. On the simulated thesis rig with 8 poses at 320 px,
 ideal profile (noise only), var_J was about twice the linear calibration term's
 variance on average over 150 ball-bar lengths, and the coverage of U rose from 0.967
-to 0.980 when the plain excess was added. So the calibration is also jackknifed in
+to 0.980 when the plain excess was added (``benchmarks/length_coverage.py``, commit
+b3fd933). So the calibration is also jackknifed in
 ``noise_draws`` worlds that hold the noise alone: the projector observations replaced
 by those the calibrated model predicts plus each control point's own residual times a
 random sign (the wild bootstrap's replicas, :mod:`.bootstrap`, with signs of their own),
@@ -61,13 +62,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from fringecal.calibration.bootstrap import predicted_projector_mm
-from fringecal.calibration.bundle import BundleResult, StartValueError, bundle_adjust
+from fringecal.calibration.bundle import BundleOptions, BundleResult, StartValueError, minimise
 from fringecal.calibration.crossval import subproblem
-from fringecal.calibration.diagnostics import DegenerateCalibrationError
+from fringecal.calibration.diagnostics import DegenerateCalibrationError, check_rank, check_structure
+from fringecal.calibration.model import BundleProblem, Evaluator
 from fringecal.calibration.keyed import keyed_signs, row_keys
 from fringecal.threads import numba_threads
 
-__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations"]
+__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations", "noise_world", "readjusted"]
 
 log = logging.getLogger(__name__)
 
@@ -119,11 +121,33 @@ def noise_world(result: BundleResult, draw: int, seed: int = 0):
     return replace(problem, prj_mm=np.where(ok[:, None], noisy, problem.prj_mm))
 
 
+def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
+    """Sensor parameters (n_sensors, 14) of ``problem`` adjusted from its start values:
+    the adjustment's own minimisation (:func:`.bundle.minimise`, stopping as a bootstrap
+    replica does), after the checks that refuse a degenerate problem (its structure, the
+    rank at the start), without what a replica does not need (the noise-floor test, the
+    uncertainty, the diagnoses at the solution)."""
+    found = check_structure(problem)
+    if any(d.severity == "error" for d in found):
+        raise DegenerateCalibrationError(found)
+    ev = Evaluator(problem, chunk_size=options.chunk_size)
+    x0 = ev.layout.pack(problem.rig.params, problem.poses, problem.rig.prism)
+    e0 = ev.evaluate(x0, True)
+    if not (e0.ok.all() and np.isfinite(e0.cost)):
+        raise StartValueError(f"the start values cannot form rays at {int(np.sum(~e0.ok))} control points")
+    rank = check_rank(e0.normal(problem.gamma1, problem.gamma2), ev.layout, problem, "start values")
+    if any(d.severity == "error" for d in rank):
+        raise DegenerateCalibrationError(found + rank)
+    report, _, _ = minimise(ev, x0, e0, options, coarse=False, replica=True)
+    return ev.layout.unpack(report.x, problem.rig.params, problem.poses)[0]
+
+
 def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,
                            workers: int = 1) -> Jackknife:
     """Re-adjust ``result``'s problem once without each of its measurements, and the same
     in ``noise_draws`` noise-only worlds (:func:`noise_world`), with the result's options
-    from its solution; ``workers`` adjustments at once, each on one numba thread."""
+    from its solution (:func:`readjusted`); ``workers`` adjustments at once, each on one
+    numba thread."""
     options = result.options.model_copy(update={"start": "given"})
     problems = [result.problem.with_start(result.rig, result.poses)]
     problems += [noise_world(result, d, seed) for d in range(noise_draws)]
@@ -133,10 +157,9 @@ def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS,
     def replica(task):
         k, m = task
         try:
-            fit = bundle_adjust(subproblem(problems[k], [x for x in names if x != m]), options)
+            return readjusted(subproblem(problems[k], [x for x in names if x != m]), options), None
         except (DegenerateCalibrationError, StartValueError) as err:
             return None, f"{type(err).__name__}: {str(err).splitlines()[0]}"
-        return fit.rig.params, None
 
     def on_one_thread(task):  # each replica's kernels on one thread: the replicas run in parallel
         with numba_threads(1):
