@@ -49,7 +49,7 @@ def test_coverage_summary_reads_the_file():
     doc = _load("coverage_realistic.json")
     s = bs.summarise(RESULTS / "coverage_realistic.json")
     rows = _rows(s)
-    assert rows["summary.coverage"] == f"{doc['summary']['coverage']:.4g}" == "0.9388"
+    assert rows["summary.coverage"] == f"{doc['summary']['coverage']:.4g}" == "0.966"
     assert rows["summary.n_lengths"] == str(doc["summary"]["n_lengths"]) == "147"
     assert doc["summary"]["seeds_failed"] == [37] and doc["summary"]["credible"] is True
     assert s.outside == []  # inside 0.93-0.97: nothing to explain
@@ -152,7 +152,10 @@ def test_every_figure_outside_its_credible_range_says_why(site, tmp_path):
     assert four.outside == [f"coverage: lengths whose error is within U 0.8333 is outside its credible range 0.93-0.97: "
                             f"{_load('coverage_4poses_ideal.json')['credible_range_why']}"]
     assert "calibrate with enough poses for the cross-validation" in html
-    assert bs.summarise(RESULTS / "coverage_ideal.json").outside == []  # 0.967: inside
+    assert bs.summarise(RESULTS / "coverage_realistic.json").outside == []  # 0.966: inside
+    ideal = bs.summarise(RESULTS / "coverage_ideal.json")  # 0.980: above, and says why
+    assert ideal.outside == [f"summary.coverage 0.98 is outside its credible range 0.93-0.97: "
+                             f"{_load('coverage_ideal.json')['credible_range_why']}"]
     bare = tmp_path / "results" / "c.json"
     bare.parent.mkdir()
     bare.write_text('{"benchmark": "coverage", "summary": {"coverage": 0.83, "credible_range": [0.93, 0.97]}}')

@@ -526,6 +526,27 @@ def test_missing_optional_files_give_notes(rd):
     _well_formed(page)
 
 
+def test_crossval_section_states_the_jackknife_and_the_model_error_it_gave(rd):
+    """The bundle step's jackknife (its replicas and noise-only worlds, from the summary)
+    and the model-error term it gave each length (the verification's): RMS and largest,
+    also when the halves could not be calibrated."""
+    bs = rd.bundle_summary.load()
+    assert bs["jackknife"]["replicas"] == 12 and bs["jackknife"]["noise_draws"] == 4
+    ver = rd.verification.load()
+    terms = [0.012, 0.030, 0.021, 0.008, 0.017, 0.026, 0.011, 0.019, 0.005]
+    for e, t in zip(ver["uncertainty"]["lengths"], terms):
+        e["jackknife"] = {"spread_mm": 0.04, "noise_spread_mm": 0.01, "u_calibration_mm": 0.01, "model_error_mm": t,
+                          "replicas": 12, "noise_draws": 4}
+    rd.verification.save(ver)
+    rd.crossval.save({"verdict": "not possible", "reason": "too few measurements in each half"})
+    text = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", " ", _section(write_report(rd).read_text(encoding="utf-8"),
+                                                                    "crossval")))
+    assert "Not possible: too few measurements in each half" in text
+    assert "12 replicas, each without one measurement, in the data and in 4 worlds of noise alone" in text
+    rms = 1000 * float(np.sqrt(np.mean(np.square(terms))))
+    assert f"{rms:.1f} µm RMS, largest 30.0 µm at bb02" in text
+
+
 def test_timing_shows_kernel_compilation_apart(rd):
     """A first run's compilation is shown per step and in total; a warm run has no column."""
     page = render_report(rd, TIMINGS, generated="2026-05-06 07:08:09",

@@ -33,8 +33,8 @@ def verify_ballbar(stores: dict, rig: Rig, ballbar: Artefact, rejection: dict, s
     rejection : the run's ``extraction.rejection`` settings
     diagonal_mm : the calibrated volume's diagonal (for "one part in N")
     covariance : the calibration's covariance arrays (``calibration_covariance.npz``); with
-        them every length gets its budget and is corrected for the calibration's bias
-        (bootstrap), else the budget is None
+        them every length gets its budget, is corrected for the calibration's bias
+        (bootstrap) and gets its model error (jackknife), else the budget is None
     halves, points_verdict : the cross-validation's half-calibrations and its verdict
     fit_factors : scanner -> factor on its sphere fits' uncertainty
         (:func:`~fringecal.verification.uncertainty.ballbar_uncertainty`)

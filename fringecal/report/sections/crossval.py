@@ -25,7 +25,8 @@ def _jackknife(bundle: dict | None, verification: dict | None) -> str | None:
     jk = (bundle or {}).get("jackknife")
     if not jk:
         return None
-    text = f"{jk['replicas']} replicas, each without one measurement"
+    text = (f"{jk['replicas']} replicas, each without one measurement, in the data and in "
+            f"{jk.get('noise_draws', 0)} worlds of noise alone")
     if jk.get("skipped"):
         text += f" (none without {', '.join(jk['skipped'])}: " + "; ".join(jk["skipped"].values()) + ")"
     lengths = ((verification or {}).get("uncertainty") or {}).get("lengths") or []
@@ -33,8 +34,9 @@ def _jackknife(bundle: dict | None, verification: dict | None) -> str | None:
     if terms:
         worst = max(terms, key=lambda t: t[1]["model_error_mm"])
         rms = float(np.sqrt(np.mean([t[1]["model_error_mm"] ** 2 for t in terms])))
-        text += (f"; model error of the ball-bar lengths (their spread over the replicas beyond the "
-                 f"calibration term) {um(rms)} RMS, largest {um(worst[1]['model_error_mm'])} at {worst[0]}")
+        text += (f"; model error of the ball-bar lengths (their spread over the replicas beyond the noise "
+                 f"worlds', at the calibration term's scale) {um(rms)} RMS, largest "
+                 f"{um(worst[1]['model_error_mm'])} at {worst[0]}")
     elif jk["replicas"] < jk.get("min_replicas", 0):
         text += f": fewer than {jk['min_replicas']}, no model-error term"
     return text
