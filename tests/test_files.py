@@ -46,12 +46,15 @@ def test_replicas_round_trip_bit_for_bit_and_bad_ones_are_named(tmp_path, thesis
 
     boot = thesis_rig.params * (1 + rng.normal(size=(5,) + thesis_rig.params.shape) * 1e-6)
     jack = thesis_rig.params * (1 + rng.normal(size=(4,) + thesis_rig.params.shape) * 1e-6)
-    doc = rig_to_dict(thesis_rig, replicas=replicas_document({"bootstrap": boot, "jackknife": jack}, "1234"))
+    noise = thesis_rig.params * (1 + rng.normal(size=(2, 4) + thesis_rig.params.shape) * 1e-6)
+    doc = rig_to_dict(thesis_rig, replicas=replicas_document({"bootstrap": boot, "jackknife": jack,
+                                                              "jackknife_noise": noise}, "1234"))
     p = tmp_path / "cal.json"
     p.write_text(json.dumps(doc))
     back = read_calibration(p).replicas
     np.testing.assert_array_equal(back["bootstrap"], boot)
     np.testing.assert_array_equal(back["jackknife"], jack)
+    np.testing.assert_array_equal(back["jackknife_noise"], noise)
     assert doc["replicas"]["jackknife"]["left_out"] == ["1", "2", "3", "4"]
     write_calibration_json(thesis_rig, tmp_path / "plain.json")
     assert read_calibration(tmp_path / "plain.json").replicas == {}
@@ -65,6 +68,11 @@ def test_replicas_round_trip_bit_for_bit_and_bad_ones_are_named(tmp_path, thesis
     bad["replicas"]["bootstrap"]["params"][0] = bad["replicas"]["bootstrap"]["params"][0][:-1]
     p.write_text(json.dumps(bad))
     with pytest.raises(CalibrationFileError, match=r"replicas 'bootstrap': params row 0 has 55 values, expected 56"):
+        read_calibration(p)
+    bad = json.loads(json.dumps(doc))
+    bad["replicas"]["jackknife"]["noise_params"].pop()
+    p.write_text(json.dumps(bad))
+    with pytest.raises(CalibrationFileError, match=r"noise_params has 7 rows, expected noise_draws \(2\) times the 4"):
         read_calibration(p)
     bad = json.loads(json.dumps(doc))
     bad["replicas"]["halves"] = bad["replicas"].pop("bootstrap")

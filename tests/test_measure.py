@@ -193,7 +193,7 @@ def test_measure_command_states_the_spheres_and_their_distances(cell, tmp_path):
     assert d["u_mm"] < 0.5 * min(f["u_position_mm"] for f in spheres["fitted"])
     # the calibration file's replicas: the bootstrap's bias subtracted, the jackknife's model error inside u
     cal = read_calibration(cell["calibration"])
-    assert set(cal.replicas) == {"bootstrap", "jackknife"}
+    assert set(cal.replicas) == {"bootstrap", "jackknife", "jackknife_noise"}
     assert np.isfinite(d["bias_mm"]) and abs(d["bias_mm"]) < d["u_mm"]
     assert 0 <= d["model_error_mm"] <= d["u_mm"]
 

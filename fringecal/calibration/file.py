@@ -36,9 +36,10 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
   in ``covariance``'s parameter order: ``bootstrap`` (wild-bootstrap replicas,
   :mod:`fringecal.calibration.bootstrap`: a derived quantity's bias is the mean over
   them minus its value) and ``jackknife`` (one per measurement left out, named in
-  ``left_out``, :mod:`fringecal.calibration.jackknife`: a quantity's spread over them
-  beyond its linear ``adjustment`` term is its model error). ``fringecal measure``
-  states sphere distances with both, as the verification states the ball-bar's lengths.
+  ``left_out``, with the same jackknife of noise-only worlds as ``noise_params``
+  (``noise_draws`` of them), :mod:`fringecal.calibration.jackknife`: a quantity's spread
+  over them beyond the noise worlds' is its model error). ``fringecal measure`` states
+  sphere distances with both, as the verification states the ball-bar's lengths.
 * ``sensor_model`` -- the sensor model the run used and why (configured, or chosen by
   held-out measurements with every candidate's held-out error and the residual-pattern
   statistic; :mod:`fringecal.calibration.models`). Sensors with thin-prism terms carry
@@ -104,20 +105,29 @@ def covariance_document(rig: Rig, covariances) -> dict:
 
 
 #: the kinds of replicas a calibration document may carry
-REPLICA_KINDS = ("bootstrap", "jackknife")
+REPLICA_KINDS = ("bootstrap", "jackknife", "jackknife_noise")
 
 
 def replicas_document(replicas: dict, left_out=None) -> dict:
-    """The ``replicas`` block: kind -> ``{"params": (n, 14 n_sensors) rows}`` from
-    kind -> (n, n_sensors, 14) arrays; the jackknife's with ``left_out`` (its measurements)."""
+    """The ``replicas`` block from kind -> sensor parameters: ``bootstrap`` and
+    ``jackknife`` (n, n_sensors, 14), ``jackknife_noise`` (draws, n, n_sensors, 14); each
+    replica a row of 14 n_sensors values. The jackknife's block carries ``left_out`` (its
+    measurements) and its noise-only worlds as ``noise_params`` with ``noise_draws``."""
+    unknown = sorted(set(replicas) - set(REPLICA_KINDS))
+    if unknown:
+        raise ValueError(f"unknown kind of replicas {unknown}; expected {REPLICA_KINDS}")
     out = {}
-    for kind, params in replicas.items():
-        if kind not in REPLICA_KINDS:
-            raise ValueError(f"unknown kind of replicas {kind!r}; expected one of {REPLICA_KINDS}")
-        p = np.asarray(params, float)
-        out[kind] = {"params": p.reshape(len(p), -1).tolist()}
-        if kind == "jackknife" and left_out is not None:
-            out[kind]["left_out"] = [str(m) for m in left_out]
+    for kind in ("bootstrap", "jackknife"):
+        if kind in replicas:
+            p = np.asarray(replicas[kind], float)
+            out[kind] = {"params": p.reshape(len(p), -1).tolist()}
+    if "jackknife" in out:
+        if left_out is not None:
+            out["jackknife"]["left_out"] = [str(m) for m in left_out]
+        if "jackknife_noise" in replicas:
+            q = np.asarray(replicas["jackknife_noise"], float)
+            out["jackknife"]["noise_draws"] = int(len(q))
+            out["jackknife"]["noise_params"] = q.reshape(-1, q.shape[-2] * q.shape[-1]).tolist()
     return out
 
 
@@ -250,7 +260,9 @@ class Calibration:
     provenance: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
     black_boxes: dict | None = None  # the black-box scanners (fringecal.calibration.blackbox), if any
-    replicas: dict = field(default_factory=dict)  # kind -> (n, n_sensors, 14) re-adjusted sensor parameters
+    # kind -> re-adjusted sensor parameters: bootstrap, jackknife (n, n_sensors, 14); jackknife_noise
+    # (draws, n, n_sensors, 14)
+    replicas: dict = field(default_factory=dict)
 
 
 def _rows(rows, names: list[str], where: str, key: str = "params") -> np.ndarray:
