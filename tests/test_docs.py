@@ -148,10 +148,8 @@ def test_every_figure_outside_its_credible_range_says_why(site, tmp_path):
         for line in s.outside:
             assert line.split(": ", 1)[1] != "not explained"
             assert html.count("outside its credible range") >= 1
-    four = bs.summarise(RESULTS / "coverage_4poses_ideal.json")
-    assert four.outside == [f"coverage: lengths whose error is within U 0.8333 is outside its credible range 0.93-0.97: "
-                            f"{_load('coverage_4poses_ideal.json')['credible_range_why']}"]
-    assert "calibrate with enough poses for the cross-validation" in html
+    for name in ("coverage_4poses_ideal.json", "coverage_4poses_realistic.json"):  # 0.967, 0.944: inside
+        assert bs.summarise(RESULTS / name).outside == [], name
     assert bs.summarise(RESULTS / "coverage_realistic.json").outside == []  # 0.966: inside
     ideal = bs.summarise(RESULTS / "coverage_ideal.json")  # 0.980: above, and says why
     assert ideal.outside == [f"summary.coverage 0.98 is outside its credible range 0.93-0.97: "
