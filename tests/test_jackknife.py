@@ -115,6 +115,34 @@ def test_model_error_from_the_jackknife_covers_errors_that_differ_between_measur
     assert 0.5 < wobble["error/u_total"] < 1.3, out
 
 
+def test_a_measurement_that_cannot_be_left_out_is_skipped_in_the_data_and_in_every_noise_world(truth, monkeypatch):
+    """Leaving out measurement 5 is refused (as a degenerate problem would be): it has no
+    replica, neither in the data nor in any noise world, the record says why, and the
+    other measurements' replicas stay aligned row by row across the worlds."""
+    import fringecal.calibration.jackknife as jkm
+    from fringecal.calibration.diagnostics import DegenerateCalibrationError, Diagnosis
+
+    rig, art, poses = truth
+    cp = simulate_control_points(rig, art, poses, spacing_px=80, rng=0).control_points
+    fit = bundle_adjust(BundleProblem.from_tables(rig, art, cp, poses), BundleOptions(start="given"))
+    real = jkm.readjusted
+
+    def refuse_five(problem, options):
+        if "5" not in problem.measurements:
+            raise DegenerateCalibrationError([Diagnosis("pose_unobservable", "error", "measurement 5",
+                                                        "measurement 5 is needed")])
+        return real(problem, options)
+
+    monkeypatch.setattr(jkm, "readjusted", refuse_five)
+    jk = jackknife_calibrations(fit, noise_draws=2)
+    names = [str(m) for m in fit.problem.measurements]
+    assert jk.left_out == tuple(m for m in names if m != "5") and list(jk.skipped) == ["5"]
+    assert jk.skipped["5"] == "degenerate: measurement 5 is needed"
+    assert jk.params.shape == (len(names) - 1,) + rig.params.shape
+    assert jk.noise_params.shape == (2, len(names) - 1) + rig.params.shape
+    assert jk.usable and jk.to_dict()["skipped"] == jk.skipped
+
+
 def test_jackknife_variance_and_too_few_replicas():
     """The textbook formula on known numbers; a variance of one value is refused."""
     assert jackknife_variance([1.0, 2.0, 3.0, 6.0]) == pytest.approx(3 / 4 * 14.0)

@@ -158,8 +158,10 @@ def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS,
         k, m = task
         try:
             return readjusted(subproblem(problems[k], [x for x in names if x != m]), options), None
-        except (DegenerateCalibrationError, StartValueError) as err:
-            return None, f"{type(err).__name__}: {str(err).splitlines()[0]}"
+        except DegenerateCalibrationError as err:
+            return None, "degenerate: " + "; ".join(d.message for d in err.diagnoses if d.severity == "error")
+        except StartValueError as err:
+            return None, f"start values: {err}"
 
     def on_one_thread(task):  # each replica's kernels on one thread: the replicas run in parallel
         with numba_threads(1):
