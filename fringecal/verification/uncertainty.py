@@ -21,9 +21,9 @@ observation noise the linear ``calibration`` term states and what that term cann
 (a smooth phase error of one measurement, drift), and the noise worlds' variance what
 it holds when the noise is all there is, so ``u_calibration sqrt(max(0, var_J /
 var_J,noise - 1))`` is the length's ``model error (cross-validation)``: one figure per
-length, as large as the calibration's geometry makes it there. With the cross-validation's half-
-calibrations every length is also measured with each half and the difference compared
-with its predicted uncertainty (RMS of the normalised differences against
+length, as large as the calibration's geometry makes it there. With the
+cross-validation's half-calibrations every length is also measured with each half and
+the difference compared with its predicted uncertainty (RMS of the normalised differences against
 ``CROSSVAL_RMS_Z_MAX``): a check reported beside, no longer a budget term, since a half
 of few poses errs along its weak directions far beyond what the full calibration does
 (:mod:`fringecal.calibration.jackknife` has the case).
