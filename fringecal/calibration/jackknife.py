@@ -69,7 +69,7 @@ from fringecal.calibration.model import BundleProblem, Evaluator
 from fringecal.calibration.keyed import keyed_signs, row_keys
 from fringecal.threads import numba_threads
 
-__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations", "noise_world", "readjusted"]
+__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations", "noise_worlds", "readjusted"]
 
 log = logging.getLogger(__name__)
 
@@ -108,17 +108,18 @@ class Jackknife:
                 "noise_draws": int(len(self.noise_params)), "min_replicas": MIN_REPLICAS}
 
 
-def noise_world(result: BundleResult, draw: int, seed: int = 0):
-    """``result``'s problem with the projector observations of noise-only world ``draw``:
-    the calibrated model's prediction plus each control point's residual times a sign
-    keyed by the point's coordinates (points whose ray misses their sphere keep their
-    observation). Start values: the calibration's solution."""
+def noise_worlds(result: BundleResult, draws: int, seed: int = 0) -> list[BundleProblem]:
+    """``result``'s problem, from its solution, with the projector observations of
+    ``draws`` noise-only worlds: the calibrated model's prediction plus each control
+    point's residual times a sign keyed by the point's coordinates (points whose ray
+    misses their sphere keep their observation)."""
     problem = result.problem.with_start(result.rig, result.poses)
     predicted = predicted_projector_mm(result)
-    ok = np.isfinite(predicted).all(axis=1)
-    signs = keyed_signs(row_keys(problem.cam_mm, problem.prj_mm), seed, _NOISE_STREAM + draw)
-    noisy = predicted + signs[:, None] * (problem.prj_mm - predicted)
-    return replace(problem, prj_mm=np.where(ok[:, None], noisy, problem.prj_mm))
+    ok = np.isfinite(predicted).all(axis=1)[:, None]
+    residual = problem.prj_mm - predicted
+    keys = row_keys(problem.cam_mm, problem.prj_mm)
+    return [replace(problem, prj_mm=np.where(ok, predicted + keyed_signs(keys, seed, _NOISE_STREAM + d)[:, None]
+                                             * residual, problem.prj_mm)) for d in range(draws)]
 
 
 def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
@@ -145,12 +146,12 @@ def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
 def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,
                            workers: int = 1) -> Jackknife:
     """Re-adjust ``result``'s problem once without each of its measurements, and the same
-    in ``noise_draws`` noise-only worlds (:func:`noise_world`), with the result's options
+    in ``noise_draws`` noise-only worlds (:func:`noise_worlds`), with the result's options
     from its solution (:func:`readjusted`); ``workers`` adjustments at once, each on one
     numba thread."""
     options = result.options.model_copy(update={"start": "given"})
     problems = [result.problem.with_start(result.rig, result.poses)]
-    problems += [noise_world(result, d, seed) for d in range(noise_draws)]
+    problems += noise_worlds(result, noise_draws, seed)
     names = [str(m) for m in result.problem.measurements]
     t0 = time.perf_counter()
 

@@ -141,8 +141,7 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     cross = None if halves is None else _cross_validated(models, lengths, halves, len(cov.scale), ids,
                                                          points_verdict)
     replicas, noise = arrays.get("jackknife_params"), arrays.get("jackknife_noise_params")
-    jack = None if replicas is None or noise is None or len(replicas) < 2 or not len(noise) else _jackknifed(
-        models, lengths, replicas, noise, cov, ids)
+    jackknifed = replicas is not None and noise is not None and len(replicas) >= 2 and len(noise) > 0
     boot = arrays["bootstrap_params"] if "bootstrap_params" in arrays else None
     if boot is not None and len(boot) < 2:
         boot = None
@@ -154,7 +153,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
         bias = u_bias = spread = 0.0
         if boot is not None:
             bias, u_bias, spread = bootstrap_bias(a.points, b.points, boot)
-        u_model = 0.0 if jack is None else jack[i]["model_error_mm"]
+        jack = jackknife_model_error(a, b, replicas, noise, cov.calibration) if jackknifed else None
+        u_model = 0.0 if jack is None else jack["model_error_mm"]
         budget = length_budget(a, b, cov, certificate_u_mm, u_bar_rel, u_model, u_bias)
         u = budget.combined_mm
         length = float(r.length_mm) - bias
@@ -162,6 +162,8 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
         entry = {"measurement": str(r.measurement), "length_mm": length, "error_mm": error,
                  "u_mm": u, "U_mm": k * u, "budget_mm": budget.u_mm,
                  "iso14253": iso14253_verdict(error, k * u, mpe_mm), "covered": bool(abs(error) <= k * u)}
+        if jack is not None:
+            entry["jackknife"] = jack
         if boot is not None:
             entry["calibration_bias"] = {"length_uncorrected_mm": float(r.length_mm), "bias_mm": bias,
                                          "u_bias_mm": u_bias, "bootstrap_spread_mm": spread, "draws": int(len(boot))}
@@ -182,15 +184,12 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
     if cross is not None:
         for entry, c in zip(out, cross["lengths"]):
             entry["cross_validation"] = c
-    if jack is not None:
-        for entry, j in zip(out, jack):
-            entry["jackknife"] = j
     return {"coverage_factor": k, "lengths": out, "budget": _budget(out), "fit_factors": dict(fit_factors or {}),
             "not_covered": [e["measurement"] for e in out if not e["covered"]],
             "monte_carlo": _mc_summary(out),
             "cross_validation": None if cross is None else {k_: v for k_, v in cross.items() if k_ != "lengths"},
-            "jackknife": None if jack is None else {"replicas": int(len(replicas)),
-                                                    "model_error_rms_mm": _rms([j["model_error_mm"] for j in jack])}}
+            "jackknife": None if not jackknifed else {
+                "replicas": int(len(replicas)), "model_error_rms_mm": _rms([e["jackknife"]["model_error_mm"] for e in out])}}
 
 
 #: RMS of the halves' normalised length differences above which they disagree: with
@@ -214,19 +213,6 @@ def _shift(model: SightingModel, factor: float) -> np.ndarray:
 
 def _rms(values) -> float:
     return float(np.sqrt(np.mean(np.square(values)))) if len(values) else 0.0
-
-
-def _jackknifed(models: dict, lengths: pd.DataFrame, replicas: np.ndarray, noise: np.ndarray, cov,
-                ids) -> list[dict]:
-    """Per length its model-error term from the jackknife replicas ((n, n_sensors, 14))
-    and their noise-only baseline ((draws, n, n_sensors, 14);
-    :func:`~fringecal.verification.budget.jackknife_model_error`)."""
-    out = []
-    for r in lengths.itertuples():
-        a = models[(str(r.position), str(r.scanner_a), ids[0])]
-        b = models[(str(r.position), str(r.scanner_b), ids[1])]
-        out.append(jackknife_model_error(a, b, replicas, noise, cov.calibration))
-    return out
 
 
 def _cross_validated(models: dict, lengths: pd.DataFrame, halves: dict, n_params: int, ids,
