@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import add_options, conditions, finish  # noqa: E402
 
-from fringecal.fringe.decode import decode, tau_noise_theory  # noqa: E402
+from fringecal.fringe.decode import DecodeSettings, decode, tau_noise_theory  # noqa: E402
 from fringecal.fringe.importer import _frame_stats, _lit_level, read_frames, write_frames  # noqa: E402
 from fringecal.fringe.measurement import measurement_dataset  # noqa: E402
 from fringecal.fringe.sequence import FringeSequence  # noqa: E402
@@ -158,6 +158,12 @@ def bench_fringecal(frames, w, b, repeats, floors: bool = True):
     _, times = timed(lambda: decode(frames, SEQ, full_scale=2**BITS - 1), repeats, cpu)
     med = statistics.median(times)
     cpu_med = statistics.median(cpu)
+    # the same decode without the phase-ripple step, alternating with it: the step's cost
+    without, with_ = [], []
+    off = DecodeSettings(phase_ripple="off")
+    for _ in range(repeats):
+        without += timed(lambda: decode(frames, SEQ, off, full_scale=2**BITS - 1), 1)[1]
+        with_ += timed(lambda: decode(frames, SEQ, full_scale=2**BITS - 1), 1)[1]
     out = np.empty((size, size), np.float32)
     floor_cpu, sums_cpu, floor, sums = [np.nan], [np.nan], [np.nan], [np.nan]
     if floors:  # this script's own reference kernels (a first run compiles them: not in --smoke)
@@ -194,6 +200,9 @@ def bench_fringecal(frames, w, b, repeats, floors: bool = True):
         "compile_or_cache_load_s": round(compile_s, 3),
         "times_s": [round(t, 4) for t in times],
         "median_s": round(med, 4),
+        "phase_ripple_step": {"without_s": [round(t, 4) for t in without], "with_s": [round(t, 4) for t in with_],
+                              "median_cost_s": round(statistics.median(np.subtract(with_, without)), 4),
+                              "applied": {o: bool(r.applied) for o, r in res.ripple.items()}},
         "camera_px_per_s": round(size * size / med),
         "aim_camera_px_per_s": 20_000_000,
         "best_s": round(min(times), 4),

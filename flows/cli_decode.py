@@ -66,6 +66,14 @@ def _decode(dirs: list[Path], outs: list[Path], settings, store_frames: bool) ->
     return refs
 
 
+def _ripple_cell(ripple: dict | None) -> str:
+    """'corrected 182.1 (Z 6.4e+06)' or 'none seen (Z 1.2)' per orientation."""
+    if not ripple:
+        return "-"
+    return " / ".join(f"{'corrected' if r['applied'] else 'none seen'} {1000 * r['excess_rms_rad']:.1f} "
+                      f"(Z {r['z']:.3g})" for r in ripple.values())
+
+
 @guarded
 def decode_command(
     frames: Path = typer.Option(..., "--frames", "-f",
@@ -75,6 +83,9 @@ def decode_command(
                              help="Store to write (M.zarr); a folder of <name>.zarr stores for several measurements."),
     min_modulation: float = typer.Option(0.02, help="Valid pixels: modulation >= this fraction of full scale."),
     max_phase_error: float = typer.Option(0.3, help="Valid pixels: RMS residual of the tau fit <= this (rad)."),
+    phase_ripple: str = typer.Option("auto", help="Phase ripple the N-step sequence leaves (projector gamma, camera "
+                                                  "response, step errors): auto = correct where the data show it, "
+                                                  "always, off."),
     store_frames: bool = typer.Option(False, "--store-frames", help="Also keep the raw frames in the store."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
@@ -84,7 +95,8 @@ def decode_command(
     from fringecal.store import open_store
 
     try:
-        settings = DecodeSettings(min_modulation=min_modulation, max_phase_error=max_phase_error)
+        settings = DecodeSettings(min_modulation=min_modulation, max_phase_error=max_phase_error,
+                                  phase_ripple=phase_ripple)
     except ValidationError as err:
         raise UserInputError("; ".join(f"--{e['loc'][0].replace('_', '-')}: {e['msg']}" for e in err.errors()))
     from fringecal.flows.validate import input_folder, output_folder
@@ -111,10 +123,10 @@ def decode_command(
     from rich.table import Table
 
     t = Table(title=f"decoded -> {out}")
-    for col in ("frames", "store", "valid %", "median phase error x / y (mrad)"):
+    for col in ("frames", "store", "valid %", "median phase error x / y (mrad)", "phase ripple x / y (mrad, Z)"):
         t.add_column(col)
     for r in rows:
         errs = [r.get(f"median_phase_error_{o}_rad") for o in "xy"]
         t.add_row(r["frames"], r["store"], f"{100 * r['valid_fraction']:.1f}",
-                  " / ".join("-" if e is None else f"{1000 * e:.1f}" for e in errs))
+                  " / ".join("-" if e is None else f"{1000 * e:.1f}" for e in errs), _ripple_cell(r.get("phase_ripple")))
     console.print(t)

@@ -109,6 +109,9 @@ CHECKS = {
     "image_import": _image_import,
     "labelling_rigs": lambda d: d["rigs"]["thesis"]["seeds"]["0"]["with_plan"]["wrong_labels"] == 0,
     "measure": lambda d: d["points"] > 0 and d["ply_bytes"] > 0,
+    # even at 96 px the 3-step gamma ripple is found and corrected, and noise alone is not
+    "phase_ripple": lambda d: d["cases"][0]["orientations"]["x"]["applied"]
+    and not d["cases"][2]["orientations"]["x"]["applied"],
     "noise_calibration": lambda d: d["measurements"][0]["n_pixels"] > 0 and d["unwrap"]["unwrap_errors"]["x"] == 0,
     # a 3 px term stands out of its u (4.0-4.7 u) even on control points every 60 px
     "prism_detectability": lambda d: len(d["sizes"]) == 1 and min(d["sizes"][0]["term_over_u"]) > 3,

@@ -28,13 +28,15 @@ space only, so memory is the frames plus the output maps.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numba as nb
 import numpy as np
 from pydantic import Field
 
 from fringecal.config import StrictModel
+from fringecal.fringe.ripple import PhaseRipple, correct_ripple, estimate_ripple
 from fringecal.fringe.sequence import FringeSequence
 
 __all__ = ["DecodeSettings", "DecodedPhase", "decode", "tau_noise_theory"]
@@ -52,6 +54,10 @@ class DecodeSettings(StrictModel):
 
     min_modulation: float = Field(0.02, ge=0.0, le=1.0)
     max_phase_error: float = Field(0.3, gt=0.0)
+    #: ``auto``: estimate the phase ripple of every orientation and correct it where it
+    #: is significant (evidence Z above 5, RMS at least a tenth of the phase noise); ``always``: correct it whatever Z; ``off``: the decoder
+    #: without the ripple step (:mod:`fringecal.fringe.ripple`)
+    phase_ripple: Literal["auto", "always", "off"] = "auto"
 
 
 @dataclass
@@ -73,6 +79,9 @@ class DecodedPhase:
     saturated: np.ndarray
     valid: np.ndarray
     tau_beat: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the fitted phase ripple per orientation (none where ``phase_ripple: off`` or too
+    #: few valid pixels); ``applied`` says whether tau was corrected
+    ripple: dict[str, PhaseRipple] = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -169,12 +178,36 @@ def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSetting
                  np.float32(full_scale), min_mod, settings.max_phase_error,
                  tau, mod, err, beat, texture, saturated, valid)
     orients = sequence.orientations
+    ripple = {}
+    if settings.phase_ripple != "off":
+        ripple = _ripple_step(frames, sequence, settings, min_mod, tau, mod, err, saturated, valid)
     return DecodedPhase(
         sequence=sequence, full_scale=float(full_scale), settings=settings,
         tau=dict(zip(orients, tau)), modulation=dict(zip(orients, mod)), phase_error=dict(zip(orients, err)),
         texture=texture, saturated=saturated, valid=valid,
-        tau_beat=dict(zip(orients, beat)) if beat_estimate else {},
+        tau_beat=dict(zip(orients, beat)) if beat_estimate else {}, ripple=ripple,
     )
+
+
+def _ripple_step(frames, sequence, settings, min_mod, tau, mod, err, saturated, valid) -> dict[str, PhaseRipple]:
+    """Estimate every orientation's ripple on the valid pixels and correct where asked;
+    ``tau``, ``err`` and ``valid`` are updated in place."""
+    out = {}
+    for i, o in enumerate(sequence.orientations):
+        found = estimate_ripple(frames, sequence, o, tau[i], valid, err[i])
+        if found is None:
+            continue
+        if settings.phase_ripple == "always" or found.significant:
+            lit = ~saturated & (mod[i] >= min_mod)  # the pixels whose tau can become valid
+            tau[i], err[i] = correct_ripple(frames, sequence, o, tau[i], err[i], found, lit)
+            found = replace(found, applied=True)
+        out[o] = found
+    if any(r.applied for r in out.values()):
+        ok = ~saturated
+        for i in range(len(sequence.orientations)):
+            ok &= (err[i] <= settings.max_phase_error) & (mod[i] >= min_mod)
+        valid[...] = ok
+    return out
 
 
 _TWO_PI = 2.0 * np.pi

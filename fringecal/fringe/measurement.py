@@ -68,6 +68,9 @@ def _summary(result: DecodedPhase) -> dict:
             out[f"median_phase_error_{o}_rad"] = float(np.median(result.phase_error[o][v]))
             out[f"median_modulation_{o}_dn"] = float(np.median(result.modulation[o][v]))
             out[f"tau_{o}_range_rad"] = [float(result.tau[o][v].min()), float(result.tau[o][v].max())]
+    if result.ripple:
+        out["phase_ripple"] = {o: {"z": float(r.z), "applied": bool(r.applied), "excess_rms_rad": r.excess_rms_rad}
+                               for o, r in result.ripple.items()}
     return out
 
 
@@ -102,7 +105,9 @@ def measurement_dataset(result: DecodedPhase, attrs: Mapping | None = None, fram
         "contract": "I = A + B cos(t * w + 2 pi k / N); tau = w (eq. 2-22 projector coordinate, rad)",
         "decoder": {**result.settings.model_dump(), "full_scale_dn": _finite_or_none(result.full_scale),
                     "method": "N-step phases, reverse-exponential beat chain for fringe orders, "
-                              "least-squares slope through the origin"},
+                              "least-squares slope through the origin"
+                              + (", phase ripple corrected" if any(r.applied for r in result.ripple.values()) else ""),
+                    "phase_ripple_fit": {o: r.to_dict(seq) for o, r in result.ripple.items()}},
         "summary": _summary(result),
     }
     return xr.Dataset(data, coords=coords, attrs={**base, **dict(attrs or {})})

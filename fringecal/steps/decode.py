@@ -71,3 +71,7 @@ class Decode(Step):
                  "source": row["source"]}
         result = decode_folder(source, rd.store(item).path, cfg.decode, attrs=attrs)
         log.info("%s -> %s: %.1f %% valid", source, item, 100 * float(result.valid.mean()))
+        for o, r in result.ripple.items():
+            if r.applied:
+                log.info("%s: phase ripple %s corrected, %.1f mrad RMS (Z %.3g, phase noise %.1f mrad)", item, o,
+                         1000 * r.excess_rms_rad, r.z, 1000 * r.noise_rms_rad)
