@@ -140,6 +140,17 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
             flag = "[red]lens model too simple[/]" if sm["lens_model_too_simple"] else "no pattern"
             rows.append(("  residual pattern Z (threshold)",
                          f"{sm['residual_pattern_z']:.1f} ({sm['residual_pattern_threshold']:g}): {flag}"))
+    dec = summary.get("decoding")
+    if dec:
+        fits = sum(d["phase_ripple"]["fits"] for d in dec)
+        fixed = [c for d in dec for c in d["phase_ripple"]["corrected"]]
+        zs = [d["phase_ripple"]["largest_z"] for d in dec if d["phase_ripple"]["largest_z"] is not None]
+        if fixed:
+            worst = max(d["phase_ripple"]["largest_corrected_rms_rad"] or 0.0 for d in dec)
+            rows.append(("phase ripple (decoder)", f"[yellow]corrected in {len(fixed)} of {fits}[/] "
+                                                   f"(largest {1000 * worst:.1f} mrad RMS)"))
+        elif fits:
+            rows.append(("phase ripple (decoder)", f"none in {fits} fits (largest Z {max(zs):.1f})"))
     if v:
         rows.append((f"ball-bar max |error| (MPE {1000 * v['mpe_mm']:.0f} um)",
                      f"{1000 * v['max_abs_error_mm']:.1f} um = 1/{v['one_part_in']:,.0f} of "

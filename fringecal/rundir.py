@@ -463,6 +463,20 @@ class RunDir:
         """The acquisition store of ``measurement`` (a ``<group>-<scanner>`` id)."""
         return self._at(StoreFile, f"measurements/{measurement}.zarr")
 
+    def store_summaries(self) -> list[tuple[str, str, dict]]:
+        """``(measurement, scanner, summary)`` of every complete acquisition store of the
+        acquisition table whose attributes hold a ``summary`` (the decoder's; a cloud
+        store of a black box has none), read from the stores' metadata alone."""
+        out = []
+        for row in self.acquisition.load().itertuples():
+            try:
+                summary = self.store(row.measurement).attrs().get("summary")
+            except (OSError, ValueError):  # StoreError (a ValueError): missing or incomplete
+                continue
+            if summary:
+                out.append((row.measurement, row.scanner, summary))
+        return out
+
     # -- spheres, labels, control points -------------------------------------------------
     def maps(self, measurement: str) -> StoreFile:
         """Point maps x, y, z, eps1 (scanner frame) and candidate regions of a measurement."""

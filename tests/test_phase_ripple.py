@@ -159,3 +159,26 @@ def test_fringecal_decode_reports_and_switches_the_correction(scanner, scene, tm
     res = runner.invoke(app, ["decode", "--frames", str(tmp_path / "m"), "--out", str(tmp_path / "x.zarr"),
                               "--phase-ripple", "sometimes"])
     assert res.exit_code != 0 and "--phase-ripple" in res.output
+
+
+def test_the_run_summary_states_per_scanner_what_was_corrected(scanner, scene, tmp_path):
+    from fringecal.fringe.measurement import decoding_summary
+    from fringecal.rundir import RunDir
+
+    rd = RunDir(tmp_path / "run").create()
+    rows = [{"measurement": "1-s1", "kind": "artefact", "pose": "1", "scanner": "s1"},
+            {"measurement": "2-s1", "kind": "artefact", "pose": "2", "scanner": "s1"},
+            {"measurement": "3-s1", "kind": "artefact", "pose": "3", "scanner": "s1"}]  # never decoded
+    acq = pd.DataFrame(rows)
+    acq["store"] = [rd.store(m).rel for m in acq.measurement]
+    acq["source"] = "simulated"
+    rd.acquisition.save(acq)
+    for name, gamma in (("1-s1", GAMMA), ("2-s1", 1.0)):
+        m = render(scanner, scene, NOISY, gamma, seed=3)
+        decode_to_store(m.frames, SEQ3, rd.store(name).path, full_scale=NOISY.max_dn)
+    (d,) = decoding_summary(rd.store_summaries())
+    assert d["scanner"] == "s1" and d["stacks"] == 2
+    r = d["phase_ripple"]
+    assert r["fits"] == 4 and r["corrected"] == ["1-s1 x", "1-s1 y"] and r["largest_z"] > 100
+    assert 0.12 < r["largest_corrected_rms_rad"] < 0.2  # the 3-step gamma-2.2 ripple, 0.16 rad RMS
+    assert 0.05 < d["phase_noise_median_rad"]["x"] < 0.3 and 0 < d["valid_fraction_median"] < 1

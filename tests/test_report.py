@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import xarray as xr
 from typer.testing import CliRunner
 
 from fringecal.artefact import Artefact
@@ -27,6 +28,7 @@ from fringecal.run.config import RunConfig
 from fringecal.rundir import RunDir, package_versions
 from fringecal.simulate.control_points import dlt_start, simulate_control_points, thesis_truth, write_run_inputs
 from fringecal.steps import get_step, run_step
+from fringecal.store import write_store
 from fringecal.verification.lengths import evaluate_ballbar
 from fringecal.verification.uncertainty import iso14253_verdict
 
@@ -545,6 +547,26 @@ def test_crossval_section_states_the_jackknife_and_the_model_error_it_gave(rd):
     assert "12 replicas, each without one measurement, in the data and in 4 worlds of noise alone" in text
     rms = 1000 * float(np.sqrt(np.mean(np.square(terms))))
     assert f"{rms:.1f} µm RMS, largest 30.0 µm at bb02" in text
+
+
+def test_residuals_section_states_the_decoding_and_the_phase_ripple_corrected(rd):
+    """Per scanner, what the decoder wrote into each store's summary
+    (fringecal.fringe.measurement.decoding_summary), read from the stores' metadata."""
+    page = _section(write_report(rd).read_text(encoding="utf-8"), "residuals")
+    assert "the run has no decoded image stack" in re.sub(r"\s+", " ", page)
+    stacks = {"1-scanner1": (0.41, 0.040, 0.046, {"x": (1234.5, True, 0.1587), "y": (900.0, True, 0.15)}),
+              "2-scanner1": (0.43, 0.043, 0.045, {"x": (3.2, False, 0.001)}),
+              "1-scanner2": (0.40, 0.041, 0.044, {})}
+    for name, (valid, ex, ey, ripple) in stacks.items():
+        summary = {"valid_fraction": valid, "median_phase_error_x_rad": ex, "median_phase_error_y_rad": ey}
+        if ripple:
+            summary["phase_ripple"] = {o: {"z": z, "applied": a, "excess_rms_rad": r} for o, (z, a, r) in ripple.items()}
+        write_store(rd.store(name).path, xr.Dataset(attrs={"summary": summary}))
+    text = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", " ", _section(write_report(rd).read_text(encoding="utf-8"),
+                                                                    "residuals")))
+    assert "Corrected: 1-scanner1 x, 1-scanner1 y." in text
+    assert "scanner1 2 42.0 % 41.5 / 45.5 3 1234.5 2: largest 158.7 mrad RMS" in text
+    assert "scanner2 1 40.0 % 41.0 / 44.0 0 - none" in text
 
 
 def test_timing_shows_kernel_compilation_apart(rd):

@@ -8,8 +8,9 @@ everywhere) or without a single valid pixel, naming the source.
 
 from __future__ import annotations
 
+import statistics
 from pathlib import Path
-from typing import Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 import xarray as xr
@@ -21,7 +22,7 @@ from fringecal.fringe.sequence import FringeSequence
 from fringecal.store import write_store
 
 __all__ = ["NoFringesError", "check_decoded", "measurement_dataset", "decode_to_store", "decode_folder",
-           "VARIABLE_ATTRS"]
+           "decoding_summary", "VARIABLE_ATTRS"]
 
 VARIABLE_ATTRS = {
     "tau": {"units": "rad", "long_name": "temporal phase gradient = projector coordinate w of eq. 2-22 in [-pi, pi]"},
@@ -143,3 +144,36 @@ def decode_folder(folder, out_path, settings: DecodeSettings | None = None, attr
     return decode_to_store(stack.frames, stack.sequence, out_path, {**base, **dict(attrs or {})},
                            settings=settings, full_scale=stack.full_scale, store_frames=store_frames,
                            source=str(folder))
+
+
+def decoding_summary(entries: Iterable[tuple[str, str, dict]]) -> list[dict] | None:
+    """Per scanner, over decoded stacks given as ``(measurement, scanner, summary)``
+    (each store's ``summary`` attribute as this module writes it; others are skipped):
+    stacks, median valid fraction, median phase noise per orientation, and the phase
+    ripple (fits, which stacks and orientations were corrected, the largest evidence Z,
+    the largest corrected ripple). None without a decoded stack."""
+    per: dict[str, dict] = {}
+    for measurement, scanner, summary in entries:
+        if "valid_fraction" not in summary:
+            continue
+        d = per.setdefault(scanner, {"stacks": 0, "valid": [], "noise": {}, "fits": 0, "corrected": [], "z": [],
+                                     "ripple": []})
+        d["stacks"] += 1
+        d["valid"].append(summary["valid_fraction"])
+        for o in ("x", "y"):
+            if f"median_phase_error_{o}_rad" in summary:
+                d["noise"].setdefault(o, []).append(summary[f"median_phase_error_{o}_rad"])
+        for o, r in (summary.get("phase_ripple") or {}).items():
+            d["fits"] += 1
+            d["z"].append(r["z"])
+            if r["applied"]:
+                d["corrected"].append(f"{measurement} {o}")
+                d["ripple"].append(r["excess_rms_rad"])
+    if not per:
+        return None
+    return [{"scanner": scanner, "stacks": d["stacks"], "valid_fraction_median": statistics.median(d["valid"]),
+             "phase_noise_median_rad": {o: statistics.median(v) for o, v in d["noise"].items()},
+             "phase_ripple": {"fits": d["fits"], "corrected": d["corrected"],
+                              "largest_z": max(d["z"]) if d["z"] else None,
+                              "largest_corrected_rms_rad": max(d["ripple"]) if d["ripple"] else None}}
+            for scanner, d in per.items()]

@@ -11,7 +11,9 @@ run's verdict over its ball-bar verification and acceptance test
 result (``acceptance``) and the ball-bar's lengths, each with the one U of its budget
 (``verification.lengths``; the GUM U of the mean length is ``verification.mean_length``)
 and the sensor model the data chose (``sensor_model``: an outcome of the run, so in the
-summary, while the manifest holds the setting ``bundle.sensor_model`` that asked for it).
+summary, while the manifest holds the setting ``bundle.sensor_model`` that asked for it),
+and per scanner what the decoder found in its stacks (``decoding``: valid pixels, phase
+noise, the phase ripple it corrected; :func:`fringecal.fringe.measurement.decoding_summary`).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 from fringecal.acceptance.verdict import run_verdict
 from fringecal.dataset import DataSet
 from fringecal.digests import code_digest, digest_path
+from fringecal.fringe.measurement import decoding_summary
 from fringecal.rundir import RunDir, package_versions
 from fringecal.simulate.source import input_files
 from fringecal.steps import current_record, pipeline, step_key
@@ -140,6 +143,7 @@ def run_summary(rd: RunDir, cfg) -> dict:
         "bundle_compile_seconds": b.get("bundle_compile_seconds", 0.0),
         "simulation_profile": simulation_profile(cfg),
         "sensor_model": _sensor_model(b.get("sensor_model")),
+        "decoding": decoding_summary(rd.store_summaries()),
         "verification": None, "acceptance": None, "verdict": None, "truth": None,
     }
     if v is not None:

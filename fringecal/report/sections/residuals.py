@@ -5,12 +5,13 @@ image, and the sensor model the data chose with the residual-pattern statistic
 
 from __future__ import annotations
 
+from fringecal.fringe.measurement import decoding_summary
 from fringecal.report.figures import Image
 from fringecal.report.formatting import length, natural, um
 from fringecal.report.rundata import Missing, RunData, guard
 from fringecal.report.tables import table
 
-__all__ = ["build", "per_measurement", "per_sphere", "sensor_model", "sphere_scatter"]
+__all__ = ["build", "decoding", "per_measurement", "per_sphere", "sensor_model", "sphere_scatter"]
 
 SPHERE_HEADS = ["Measurement", "Scanner", "Sphere", "Points", "RMS ε1", "RMS ε2", "Mean ε2", "Max |ε2|"]
 
@@ -23,9 +24,31 @@ def build(run: RunData) -> dict:
             histograms.append({"image": Image(run.load(run.rd.histogram(term)), alt), "missing": None})
         except Missing as why:
             histograms.append({"image": None, "missing": f"Not available: {why}."})
-    return {"histograms": histograms, "sensor_model": guard(sensor_model, run),
+    return {"histograms": histograms, "decoding": guard(decoding, run), "sensor_model": guard(sensor_model, run),
             "sphere_scatter": guard(sphere_scatter, run),
             "per_measurement": guard(per_measurement, run), "per_sphere": guard(per_sphere, run)}
+
+
+def decoding(run: RunData) -> dict:
+    """Per scanner, what the decoder found in its stacks (each store's summary:
+    :func:`fringecal.fringe.measurement.decoding_summary`): valid pixels, phase noise and
+    the phase ripple it corrected."""
+    rec = decoding_summary(run.rd.store_summaries())
+    if not rec:
+        raise Missing("the run has no decoded image stack (black-box clouds only)")
+    rows = []
+    for d in rec:
+        r = d["phase_ripple"]
+        noise = d["phase_noise_median_rad"]
+        fixed = r["corrected"]
+        rows.append([d["scanner"], d["stacks"], f"{100 * d['valid_fraction_median']:.1f} %",
+                     " / ".join(f"{1000 * noise[o]:.1f}" for o in sorted(noise)), r["fits"],
+                     "-" if r["largest_z"] is None else f"{r['largest_z']:.1f}",
+                     f"{len(fixed)}: largest {1000 * r['largest_corrected_rms_rad']:.1f} mrad RMS" if fixed else "none"])
+    corrected = [c for d in rec for c in d["phase_ripple"]["corrected"]]
+    return {"table": table(["Scanner", "Stacks", "Valid pixels (median)", "Phase noise x / y (mrad, median)",
+                            "Ripple fits", "Largest Z", "Corrected"], rows, left=1),
+            "corrected": ", ".join(corrected)}
 
 
 def sensor_model(run: RunData) -> dict:
