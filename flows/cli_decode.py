@@ -128,5 +128,6 @@ def decode_command(
     for r in rows:
         errs = [r.get(f"median_phase_error_{o}_rad") for o in "xy"]
         t.add_row(r["frames"], r["store"], f"{100 * r['valid_fraction']:.1f}",
-                  " / ".join("-" if e is None else f"{1000 * e:.1f}" for e in errs), _ripple_cell(r.get("phase_ripple")))
+                  " / ".join("-" if e is None else f"{1000 * e:.1f}" for e in errs),
+                  _ripple_cell(r.get("phase_ripple")))
     console.print(t)

@@ -466,8 +466,11 @@ class RunDir:
     def store_summaries(self) -> list[tuple[str, str, dict]]:
         """``(measurement, scanner, summary)`` of every complete acquisition store of the
         acquisition table whose attributes hold a ``summary`` (the decoder's; a cloud
-        store of a black box has none), read from the stores' metadata alone."""
+        store of a black box has none), read from the stores' metadata alone; none
+        without an acquisition table."""
         out = []
+        if not self.acquisition.exists():
+            return out
         for row in self.acquisition.load().itertuples():
             try:
                 summary = self.store(row.measurement).attrs().get("summary")

@@ -221,12 +221,14 @@ def test_ingest_writes_the_acceptance_rows_and_standards_and_decode_decodes_them
     assert (doc["sphere"]["diameter_mm"], doc["dumbbell"]["length_mm"], doc["flat"]["flatness_mm"]) == (
         127.0, 500.0, 0.003)
 
-    decode = get_step("decode")
-    items = decode.items(rd, decode.view(cfg))
-    assert items == list(table["measurement"])  # every stack, acceptance ones included
+    decode, positions = get_step("decode"), get_step("decode-positions")
+    # every stack, the calibration stacks first, then the positions' (acceptance ones included)
+    items = decode.items(rd, decode.view(cfg)) + positions.items(rd, positions.view(cfg))
+    assert sorted(items) == sorted(table["measurement"])
+    assert set(decode.items(rd, decode.view(cfg))) == set(table.loc[table["kind"] == "artefact", "measurement"])
     for item, kind, pose, size in (("d1-scanner1", "dumbbell", "d1", 16), ("f1-scanner2", "flat", "f1", 8),
                                    ("s2-scanner2", None, None, 8)):
-        run_step(decode, rd, cfg, item)
+        run_step(positions, rd, cfg, item)
         maps = rd.store(item).open()
         tau_x, tau_y = true_tau(size, size)
         # frames rounded to integers with B = 1500: the decoded phase is within 1e-3 rad

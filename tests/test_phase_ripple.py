@@ -13,7 +13,7 @@ from fringecal.artefact import load_rods
 from fringecal.frames import Frame
 from fringecal.fringe.decode import DecodeSettings, decode
 from fringecal.fringe.measurement import decode_to_store
-from fringecal.fringe.ripple import Z_APPLY, ripple_frequencies, ripple_of
+from fringecal.fringe.ripple import Z_APPLY, ripple_frequencies, ripple_of, scanner_ripple
 from fringecal.fringe.sequence import FringeSequence
 from fringecal.rig import scaled_scanner
 from fringecal.simulate import Material, RenderConfig, artefact_scene, backdrop, render_measurement
@@ -98,6 +98,40 @@ def test_with_camera_noise_the_correction_leaves_tau_nearer_the_truth(scanner, s
         before = np.sqrt(np.mean(tau_error(off, m.truth, o, mask) ** 2))
         after = np.sqrt(np.mean(tau_error(auto, m.truth, o, mask) ** 2))
         assert after < 0.8 * before
+
+
+def test_a_stack_too_small_for_a_fit_takes_its_scanners_ripple(scanner, scene):
+    """A window of a few hundred valid pixels (as a ball-bar's two spheres) gets no fit of
+    its own; given the fits of the scanner's calibration stacks it is corrected with their
+    inverse-variance mean, and only where most of them were corrected."""
+    m = render(scanner, scene, EXACT, GAMMA)
+    full = decode(m.frames, SEQ3, full_scale=EXACT.max_dn)
+    records = [r.to_dict(SEQ3) for r in full.ripple.values()]
+    mask = lit(m.truth) & full.valid
+    rows, cols = np.nonzero(mask)
+    r0, c0 = int(np.median(rows)), int(np.median(cols))
+    win = (slice(r0 - 14, r0 + 14), slice(c0 - 14, c0 + 14))
+    frames = np.ascontiguousarray(m.frames[:, win[0], win[1]])
+    alone = decode(frames, SEQ3, full_scale=EXACT.max_dn)
+    assert alone.ripple == {} and 300 < alone.valid.sum() < 1600  # 40 pixels for each of 40 coefficients
+    helped = decode(frames, SEQ3, full_scale=EXACT.max_dn, scanner_fits=records + records)
+    off = decode(frames, SEQ3, DecodeSettings(phase_ripple="off"), full_scale=EXACT.max_dn, scanner_fits=records)
+    assert off.ripple == {}
+    inside = mask[win] & helped.valid & alone.valid
+    truth = m.truth.tau_x_centre[win][inside]
+    r = helped.ripple["x"]
+    assert r.source == "scanner" and r.applied and r.n_pixels == 2 * full.ripple["x"].n_pixels
+    np.testing.assert_allclose(r.coefficients, full.ripple["x"].coefficients, atol=1e-12)  # the mean of equals
+    np.testing.assert_allclose(np.diag(r.covariance), np.diag(full.ripple["x"].covariance) / 2, rtol=1e-9)
+    before = np.sqrt(np.mean((alone.tau["x"][inside] - truth) ** 2))
+    after = np.sqrt(np.mean((helped.tau["x"][inside] - truth) ** 2))
+    assert before > 3e-3 and after < 0.25 * before
+    # a scanner whose calibration stacks were mostly left alone lends nothing
+    rest = [{**rec, "applied": False} for rec in records]
+    assert scanner_ripple(records + rest + rest, SEQ3) == {}
+    assert set(scanner_ripple(records + records + rest, SEQ3)) == {"x", "y"}
+    # nor do fits of another sequence
+    assert scanner_ripple(records, FringeSequence(fringe_counts=(16, 15, 14, 12, 8), n_steps=4)) == {}
 
 
 def test_noise_alone_shows_no_ripple_and_tau_is_left_as_it_was(scanner, scene):

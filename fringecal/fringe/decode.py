@@ -29,14 +29,14 @@ space only, so memory is the frames plus the output maps.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, Sequence
 
 import numba as nb
 import numpy as np
 from pydantic import Field
 
 from fringecal.config import StrictModel
-from fringecal.fringe.ripple import PhaseRipple, correct_ripple, estimate_ripple
+from fringecal.fringe.ripple import PhaseRipple, correct_ripple, estimate_ripple, scanner_ripple
 from fringecal.fringe.sequence import FringeSequence
 
 __all__ = ["DecodeSettings", "DecodedPhase", "decode", "tau_noise_theory"]
@@ -55,8 +55,9 @@ class DecodeSettings(StrictModel):
     min_modulation: float = Field(0.02, ge=0.0, le=1.0)
     max_phase_error: float = Field(0.3, gt=0.0)
     #: ``auto``: estimate the phase ripple of every orientation and correct it where it
-    #: is significant (evidence Z above 5, RMS at least a tenth of the phase noise); ``always``: correct it whatever Z; ``off``: the decoder
-    #: without the ripple step (:mod:`fringecal.fringe.ripple`)
+    #: is significant (evidence Z above 5, RMS at least a tenth of the phase noise);
+    #: ``always``: correct it whatever Z; ``off``: the decoder without the ripple step
+    #: (:mod:`fringecal.fringe.ripple`)
     phase_ripple: Literal["auto", "always", "off"] = "auto"
 
 
@@ -122,7 +123,8 @@ def tau_noise_theory(sequence: FringeSequence, sigma_intensity: float, modulatio
 
 
 def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSettings | None = None,
-           full_scale: float | None = None, beat_estimate: bool = False) -> DecodedPhase:
+           full_scale: float | None = None, beat_estimate: bool = False,
+           scanner_fits: Sequence[dict] = ()) -> DecodedPhase:
     """Decode one measurement's frames into phase-gradient, modulation and error maps.
 
     Parameters
@@ -138,6 +140,12 @@ def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSetting
         Defaults to the dtype's maximum for integer frames and to no check for floats.
     beat_estimate : bool
         Also return ``tau_beat``, the beat-chain estimate (for noise comparisons).
+    scanner_fits : sequence of dict
+        The ripple fits of the scanner's calibration stacks (their stores'
+        ``decoder.phase_ripple_fit`` records): where this stack is too small for a fit
+        of its own, the scanner's ripple from them
+        (:func:`fringecal.fringe.ripple.scanner_ripple`) is corrected (unless
+        ``phase_ripple: off``).
 
     Examples
     --------
@@ -180,7 +188,7 @@ def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSetting
     orients = sequence.orientations
     ripple = {}
     if settings.phase_ripple != "off":
-        ripple = _ripple_step(frames, sequence, settings, min_mod, tau, mod, err, saturated, valid)
+        ripple = _ripple_step(frames, sequence, settings, min_mod, tau, mod, err, saturated, valid, scanner_fits)
     return DecodedPhase(
         sequence=sequence, full_scale=float(full_scale), settings=settings,
         tau=dict(zip(orients, tau)), modulation=dict(zip(orients, mod)), phase_error=dict(zip(orients, err)),
@@ -189,15 +197,19 @@ def decode(frames: np.ndarray, sequence: FringeSequence, settings: DecodeSetting
     )
 
 
-def _ripple_step(frames, sequence, settings, min_mod, tau, mod, err, saturated, valid) -> dict[str, PhaseRipple]:
-    """Estimate every orientation's ripple on the valid pixels and correct where asked;
-    ``tau``, ``err`` and ``valid`` are updated in place."""
+def _ripple_step(frames, sequence, settings, min_mod, tau, mod, err, saturated, valid,
+                 scanner_fits: Sequence[dict]) -> dict[str, PhaseRipple]:
+    """Estimate every orientation's ripple on the valid pixels and correct where asked
+    (the scanner's where the stack is too small for a fit); ``tau``, ``err`` and
+    ``valid`` are updated in place."""
     out = {}
     for i, o in enumerate(sequence.orientations):
         found = estimate_ripple(frames, sequence, o, tau[i], valid, err[i])
         if found is None:
-            continue
-        if settings.phase_ripple == "always" or found.significant:
+            found = scanner_ripple(scanner_fits, sequence).get(o) if scanner_fits else None
+            if found is None:
+                continue
+        if settings.phase_ripple == "always" or found.significant or found.source == "scanner":
             lit = ~saturated & (mod[i] >= min_mod)  # the pixels whose tau can become valid
             tau[i], err[i] = correct_ripple(frames, sequence, o, tau[i], err[i], found, lit)
             found = replace(found, applied=True)

@@ -121,13 +121,14 @@ def _finite_or_none(x: float):
 def decode_to_store(frames: np.ndarray, sequence: FringeSequence, out_path, attrs: Mapping | None = None,
                     extra_vars: Mapping | None = None, settings: DecodeSettings | None = None,
                     full_scale: float | None = None, store_frames: bool = False,
-                    source: str | None = None) -> DecodedPhase:
+                    source: str | None = None, scanner_fits=()) -> DecodedPhase:
     """Decode frames (n_frames, H, W) and write the measurement store at ``out_path``.
 
     ``attrs`` (JSON-native: scanner, measurement, config_digest, ...) are merged
-    into the provenance attributes; ``source`` names the frames in error messages.
+    into the provenance attributes; ``source`` names the frames in error messages;
+    ``scanner_fits``: as :func:`~fringecal.fringe.decode.decode`.
     """
-    result = decode(frames, sequence, settings, full_scale)
+    result = decode(frames, sequence, settings, full_scale, scanner_fits=scanner_fits)
     check_decoded(result, source or str(out_path))
     ds = measurement_dataset(result, attrs, frames if store_frames else None, extra_vars)
     write_store(out_path, ds)
@@ -135,15 +136,16 @@ def decode_to_store(frames: np.ndarray, sequence: FringeSequence, out_path, attr
 
 
 def decode_folder(folder, out_path, settings: DecodeSettings | None = None, attrs: Mapping | None = None,
-                  store_frames: bool = False, threads: int | None = None) -> DecodedPhase:
-    """Read a frame folder (see :mod:`fringecal.fringe.importer`) and write its store."""
+                  store_frames: bool = False, threads: int | None = None, scanner_fits=()) -> DecodedPhase:
+    """Read a frame folder (see :mod:`fringecal.fringe.importer`) and write its store
+    (``scanner_fits``: as :func:`~fringecal.fringe.decode.decode`)."""
     stack = read_frames(folder, threads=threads)
     spec = stack.spec
     base = {"source": str(Path(folder).resolve()), "frame_format": stack.format, "bit_depth": spec.bit_depth}
     base.update({k: v for k, v in (("scanner", spec.scanner), ("measurement", spec.measurement)) if v is not None})
     return decode_to_store(stack.frames, stack.sequence, out_path, {**base, **dict(attrs or {})},
                            settings=settings, full_scale=stack.full_scale, store_frames=store_frames,
-                           source=str(folder))
+                           source=str(folder), scanner_fits=scanner_fits)
 
 
 def decoding_summary(entries: Iterable[tuple[str, str, dict]]) -> list[dict] | None:

@@ -26,29 +26,29 @@ a function of ``t w`` *modulo 2 pi*, which differs from count to count, so it do
 fit a line through the origin: it stays in the slope's residuals. With ``P = I - t t^T
 / t^T t`` the projection onto those residuals and ``G_t(Phi_t)`` the ripple basis
 (``cos, sin (f Phi_t)`` for f in :func:`ripple_frequencies`, count t only), every
-decoded pixel gives ``r = P G c + noise``; the coefficients ``c`` of all counts follow by
-linear least squares over an even sample of the valid pixels (:data:`MAX_PIXELS`), beside a phase
-offset per count (drift between counts: neither evidence nor corrected), their covariance
-by the sandwich over pixels (the noise differs from pixel to pixel with the
-modulation). The evidence is ``Z = (chi^2 - dof) / sqrt(2 dof)``, ``chi^2 = c^T C^-1 c``,
-about standard normal without a ripple.
+decoded pixel gives ``r = P G c + noise``; the coefficients ``c`` of all counts follow
+by linear least squares over an even sample of the valid pixels (:data:`MAX_PIXELS`),
+beside a phase offset per count (drift between counts: neither evidence nor
+corrected); their covariance is the sandwich over pixels (the noise differs from pixel
+to pixel with the modulation). The evidence is ``Z = (chi^2 - dof) / sqrt(2 dof)``,
+``chi^2 = c^T C^-1 c``, about standard normal without a ripple.
 
 Correction (``DecodeSettings.phase_ripple``)
 --------------------------------------------
 ``auto`` (default) corrects where ``Z > Z_APPLY`` (5, as the residual-pattern flag of
 the calibration) *and* the ripple's RMS (less what the coefficients' own scatter gives
-it) is at least ``MIN_RATIO`` (a tenth) of the
-phase noise left beside it: a smaller ripple moves tau by less than a tenth of tau's own
-noise, and Z alone also grows with structure that is no ripple (a few hundred mixed
-pixels of a small stack, the renderer's sub-sampling on a flat's 20,000). The fit
-leaves out pixels whose tau-fit residual exceeds ``OUTLIER_FACTOR`` (3) times the
-median and needs ``MIN_PIXELS_PER_COEFFICIENT`` (40) pixels per coefficient.
-``always`` corrects every stack with a fit; ``off`` is the decoder without this step. Corrected,
-every count's unwrapped phase loses its fitted ripple at its own measured phase and
-``tau`` and the phase-error map are fitted again; the validity mask follows the new
-phase errors. What the ripple could not move -- its part along ``t`` itself, a bias
-of ``tau`` no residual can see -- stays; for a ripple at ``N`` or more periods per
-fringe that part averages out over a count's many fringes.
+it) is at least ``MIN_RATIO`` (a tenth) of the phase noise left beside it: a smaller
+ripple moves tau by less than a tenth of tau's own noise, and Z alone also grows with
+structure that is no ripple (mixed pixels of a small stack, the renderer's
+sub-sampling on a flat's 10,000 pixels). The fit leaves out pixels whose tau-fit
+residual exceeds ``OUTLIER_FACTOR`` (3) times the median and needs
+``MIN_PIXELS_PER_COEFFICIENT`` (40) pixels per coefficient; a smaller stack is decoded
+without a fit. ``always`` corrects every stack with a fit; ``off`` is the decoder
+without this step. Corrected, every count's unwrapped phase loses its fitted ripple at
+its own measured phase and ``tau`` and the phase-error map are fitted again; the
+validity mask follows the new phase errors. What the ripple could not move -- its part
+along ``t`` itself, a bias of ``tau`` no residual can see -- stays; for a ripple at
+``N`` or more periods per fringe that part averages out over a count's many fringes.
 """
 
 from __future__ import annotations
@@ -60,7 +60,8 @@ import numpy as np
 from fringecal.fringe.sequence import FringeSequence
 
 __all__ = ["MAX_PIXELS", "Z_APPLY", "MIN_RATIO", "MIN_PIXELS_PER_COEFFICIENT", "OUTLIER_FACTOR", "RIPPLE_MODES",
-           "PhaseRipple", "ripple_frequencies", "wrapped_phases", "unwrap_to", "estimate_ripple", "ripple_of", "correct_ripple"]
+           "PhaseRipple", "ripple_frequencies", "wrapped_phases", "unwrap_to", "estimate_ripple", "ripple_of",
+           "correct_ripple", "scanner_ripple"]
 
 #: about as many valid pixels (every s-th pixel, kept where valid) the coefficients are fitted on
 MAX_PIXELS = 10_000
@@ -122,6 +123,9 @@ class PhaseRipple:
     residual_rms_rad: float
     noise_rms_rad: float
     applied: bool = False
+    #: ``"stack"``: fitted on this stack; ``"scanner"``: the scanner's ripple from its
+    #: calibration stacks (:func:`scanner_ripple`), for a stack too small for a fit
+    source: str = "stack"
 
     @property
     def amplitude_rad(self) -> np.ndarray:
@@ -149,7 +153,8 @@ class PhaseRipple:
 
     def to_dict(self, sequence: FringeSequence) -> dict:
         u = np.sqrt(np.diag(self.covariance)).reshape(self.coefficients.shape)
-        return {"orientation": self.orientation, "applied": bool(self.applied), "z": float(self.z), "z_apply": Z_APPLY,
+        return {"orientation": self.orientation, "applied": bool(self.applied), "source": self.source,
+                "z": float(self.z), "z_apply": Z_APPLY,
                 "n_pixels": int(self.n_pixels), "rms_rad": self.rms_rad, "excess_rms_rad": self.excess_rms_rad,
                 "residual_rms_rad": float(self.residual_rms_rad), "noise_rms_rad": float(self.noise_rms_rad),
                 "min_ratio": MIN_RATIO, "significant": self.significant,
@@ -286,3 +291,40 @@ def correct_ripple(frames: np.ndarray, sequence: FringeSequence, orientation: st
     new_tau[where] = slope - 2 * np.pi * np.floor(slope / (2 * np.pi) + 0.5)
     new_err[where] = err
     return new_tau, new_err
+
+
+def scanner_ripple(fits: list[dict], sequence: FringeSequence) -> dict[str, PhaseRipple]:
+    """A scanner's ripple per orientation from the fits of its calibration stacks
+    (:meth:`PhaseRipple.to_dict` records, as the stores keep them), for its stacks too
+    small for a fit of their own (a ball-bar's two spheres span less than two fringes,
+    too few to tell a ripple from smooth errors across a sphere).
+
+    An orientation gets one where more than half of its fits were corrected: the
+    inverse-variance mean of their coefficients, with the variance of that mean, the
+    median of their phase noise and the evidence of the mean. The ripple depends a
+    little on the pattern's defocus, so stacks at other distances are corrected by an
+    average; records of another sequence are ignored.
+    """
+    freqs = ripple_frequencies(sequence.n_steps)
+    counts = [str(t) for t in sequence.fringe_counts]
+    out = {}
+    for o in sequence.orientations:
+        mine = [f for f in fits if f.get("orientation") == o and f.get("frequencies_per_fringe") == list(freqs)
+                and sorted(f.get("counts", {})) == sorted(counts) and f.get("source", "stack") == "stack"]
+        used = [f for f in mine if f["applied"]]
+        if not used or 2 * len(used) <= len(mine):
+            continue
+        c = np.array([[[[f["counts"][t][f"f{q}"][k] for k in ("cos_rad", "sin_rad")] for q in freqs] for t in counts]
+                      for f in used])
+        u = np.array([[[[f["counts"][t][f"f{q}"][k] for k in ("u_cos_rad", "u_sin_rad")] for q in freqs]
+                       for t in counts] for f in used])
+        w = 1.0 / np.maximum(u, 1e-12) ** 2
+        var = 1.0 / w.sum(axis=0)
+        mean = (w * c).sum(axis=0) * var
+        chi2 = float(np.sum(mean ** 2 / var))
+        z = (chi2 - mean.size) / np.sqrt(2.0 * mean.size)
+        out[o] = PhaseRipple(o, freqs, mean, np.diag(var.reshape(-1)), float(z),
+                             int(sum(f["n_pixels"] for f in used)),
+                             float(np.median([f["residual_rms_rad"] for f in used])),
+                             float(np.median([f["noise_rms_rad"] for f in used])), source="scanner")
+    return out

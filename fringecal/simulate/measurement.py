@@ -119,7 +119,8 @@ def render_frames(measurement: str, scanner: Scanner, scene: Scene, acquisition,
 
 
 def simulate_measurement(measurement: str, scanner: Scanner, scene: Scene, acquisition, decode_settings, out,
-                         truth_out=None, attrs: dict | None = None, errors=None) -> AcquiredMeasurement:
+                         truth_out=None, attrs: dict | None = None, errors=None,
+                         scanner_fits=()) -> AcquiredMeasurement:
     """Render, decode and write one measurement store at ``out`` (atomically), and its
     ground truth as a separate store at ``truth_out`` (if given).
 
@@ -128,7 +129,8 @@ def simulate_measurement(measurement: str, scanner: Scanner, scene: Scene, acqui
     ``source = "simulated"`` plus ``attrs``); the truth store holds the renderer's
     per-pixel truth (:data:`TRUTH_VARIABLES`; the world point as ``truth_x``,
     ``truth_y``, ``truth_z``) and, as attributes, the true sensors and the scene's
-    object names, kinds and sphere ids. ``errors``: as :func:`render_frames`.
+    object names, kinds and sphere ids. ``errors``: as :func:`render_frames`;
+    ``scanner_fits``: as :func:`fringecal.fringe.decode.decode`.
     """
     t0 = time.perf_counter()
     rendered = render_frames(measurement, scanner, scene, acquisition, errors)
@@ -140,7 +142,7 @@ def simulate_measurement(measurement: str, scanner: Scanner, scene: Scene, acqui
             "seed": {"run": acquisition.seed, "measurement": measurement}, **(attrs or {})}
     decoded = decode_to_store(rendered.frames, rendered.sequence, Path(out), base, settings=decode_settings,
                               full_scale=acquisition.render.max_dn, store_frames=acquisition.store_frames,
-                              source=f"measurement {measurement}")
+                              source=f"measurement {measurement}", scanner_fits=scanner_fits)
     if truth_out is not None:
         truth_attrs = {"measurement": measurement, "truth_sensors": {"camera": _sensor_attr(scanner.camera),
                                                                      "projector": _sensor_attr(scanner.projector)},

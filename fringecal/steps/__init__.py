@@ -23,7 +23,7 @@ from fringecal.steps.acceptance import Acceptance
 from fringecal.steps.base import Rows, Settings, Step, StepError, Value
 from fringecal.steps.bundle import Bundle
 from fringecal.steps.crossval import CrossValidate
-from fringecal.steps.decode import Decode
+from fringecal.steps.decode import Decode, DecodePositions
 from fringecal.steps.evaluate import Evaluate
 from fringecal.steps.ingest import Ingest
 from fringecal.steps.initialise import Initialise
@@ -44,7 +44,7 @@ __all__ = ["STEPS", "SIMULATED_SOURCE", "DATASET_SOURCE", "COMMON", "pipeline", 
 
 SIMULATED_SOURCE = (SimulatePrepare(), SimulateHexapod(), SimulateRender(), SimulateBallbar(), SimulateSphere(),
                     SimulateDumbbell(), SimulateFlat())
-DATASET_SOURCE = (Ingest(), Decode())
+DATASET_SOURCE = (Ingest(), Decode(), DecodePositions())
 COMMON = (SpheresFirst(), Label(), SpheresSecond(), Initialise(), Bundle(), CrossValidate(), Verify(), Acceptance())
 EVALUATION = (Evaluate(),)
 REPORT = (Report(),)

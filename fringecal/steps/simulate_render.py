@@ -28,7 +28,8 @@ from fringecal.simulate.measurement import simulate_measurement
 from fringecal.simulate.scenes import ArtefactHardware, Scene, artefact_scene
 from fringecal.simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
 from fringecal.store import store_attributes
-from fringecal.steps.base import Rows, Settings, Step, Value, store_fields, store_row, stores_of_kind
+from fringecal.steps.base import (Rows, Settings, Step, Value, scanner_ripple_fits, scanner_ripple_read, store_fields,
+                                   store_row, stores_of_kind)
 
 __all__ = ["SimulateRender", "RenderStores", "ACQUISITION_SETTINGS", "hardware_file"]
 
@@ -88,7 +89,14 @@ class RenderStores(Step):
     def reads(self, rd: RunDir, cfg: Settings, item: str):
         prism = [sensors_file(cfg)] if cfg.simulate.errors.thin_prism_corner_px else []
         return [store_row(rd, item), self._placement(rd, item), rd.truth.sensors, *self.objects(rd),
-                hardware_file(cfg), *prism]
+                hardware_file(cfg), *prism, *self._scanner_ripple(rd, cfg, item)]
+
+    def _scanner_ripple(self, rd: RunDir, cfg: Settings, item: str) -> list:
+        """The scanner's phase ripple from its calibration stores, which corrects a stack
+        too small for a fit of its own (none for the calibration stores themselves)."""
+        if self.kind == "artefact":
+            return []
+        return [scanner_ripple_read(rd, store_fields(rd, item)["scanner"], cfg.simulate.acquisition.sequence.build())]
 
     def errors(self, cfg: Settings, scanner, T, scene: Scene):
         """The unmodelled errors of one store (None: the ideal renderer)."""
@@ -104,9 +112,10 @@ class RenderStores(Step):
         T = frames_from_rows(self._placement(rd, item).load())[row["pose"]]
         scene = self.scene(rd, T, ArtefactHardware.from_materials(hardware_file(cfg)))
         scanner, acquisition = self.recording(rd, cfg, row["scanner"], row["pose"])
+        fits = scanner_ripple_fits(rd, row["scanner"]) if self.kind != "artefact" else []
         s = simulate_measurement(item, scanner, scene, acquisition, cfg.decode, rd.store(item).path,
                                  rd.truth.store(item).path, {"pose": row["pose"], "kind": self.kind},
-                                 self.errors(cfg, scanner, T, scene)).summary
+                                 self.errors(cfg, scanner, T, scene), scanner_fits=fits).summary
         log.info("%s: render %.1f s, decode + store %.1f s, %.1f %% valid", item, s["render_s"], s["decode_store_s"],
                  100 * s["valid_fraction"])
         if cfg.simulate.outputs.get(row["scanner"]) == "cloud":

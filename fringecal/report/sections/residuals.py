@@ -44,7 +44,8 @@ def decoding(run: RunData) -> dict:
         rows.append([d["scanner"], d["stacks"], f"{100 * d['valid_fraction_median']:.1f} %",
                      " / ".join(f"{1000 * noise[o]:.1f}" for o in sorted(noise)), r["fits"],
                      "-" if r["largest_z"] is None else f"{r['largest_z']:.1f}",
-                     f"{len(fixed)}: largest {1000 * r['largest_corrected_rms_rad']:.1f} mrad RMS" if fixed else "none"])
+                     f"{len(fixed)}: largest {1000 * r['largest_corrected_rms_rad']:.1f} mrad RMS"
+                     if fixed else "none"])
     corrected = [c for d in rec for c in d["phase_ripple"]["corrected"]]
     return {"table": table(["Scanner", "Stacks", "Valid pixels (median)", "Phase noise x / y (mrad, median)",
                             "Ripple fits", "Largest Z", "Corrected"], rows, left=1),
