@@ -480,6 +480,24 @@ class RunDir:
                 out.append((row.measurement, row.scanner, summary))
         return out
 
+    def phase_ripple_fits(self, scanner: str) -> list[dict]:
+        """The phase-ripple fits of ``scanner``'s calibration (``artefact``) stores, their
+        decoders' ``phase_ripple_fit`` records: what its stacks too small for a fit of
+        their own are corrected with (:func:`fringecal.fringe.ripple.scanner_ripple`);
+        none without an acquisition table."""
+        fits = []
+        if not self.acquisition.exists():
+            return fits
+        for row in self.acquisition.load().itertuples():
+            if row.kind != "artefact" or row.scanner != scanner:
+                continue
+            try:
+                decoder = self.store(row.measurement).attrs().get("decoder") or {}
+            except (OSError, ValueError):  # StoreError (a ValueError): a store not written
+                continue
+            fits += list((decoder.get("phase_ripple_fit") or {}).values())
+        return fits
+
     # -- spheres, labels, control points -------------------------------------------------
     def maps(self, measurement: str) -> StoreFile:
         """Point maps x, y, z, eps1 (scanner frame) and candidate regions of a measurement."""

@@ -134,6 +134,26 @@ def test_a_stack_too_small_for_a_fit_takes_its_scanners_ripple(scanner, scene):
     assert scanner_ripple(records, FringeSequence(fringe_counts=(16, 15, 14, 12, 8), n_steps=4)) == {}
 
 
+def test_measure_decodes_raw_frames_with_the_scanners_ripple(scanner, scene, tmp_path):
+    """fringecal measure's frame folders: a small stack takes the ripple of the
+    calibration stacks of the run directory the calibration file lies in."""
+    from fringecal.fringe.importer import write_frames
+    from fringecal.measure.sources import open_entry
+
+    m = render(scanner, scene, EXACT, GAMMA)
+    records = [r.to_dict(SEQ3) for r in decode(m.frames, SEQ3, full_scale=EXACT.max_dn).ripple.values()]
+    rows, cols = np.nonzero(lit(m.truth))
+    r0, c0 = int(np.median(rows)), int(np.median(cols))
+    small = m.frames[:, r0 - 14:r0 + 14, c0 - 14:c0 + 14]
+    write_frames(tmp_path / "scanner1", small, SEQ3, 16, fmt="npy", scanner="scanner1")
+    alone = open_entry(tmp_path / "scanner1", "frames")
+    assert alone.attrs["decoder"]["phase_ripple_fit"] == {}
+    helped = open_entry(tmp_path / "scanner1", "frames", None, records)
+    fit = helped.attrs["decoder"]["phase_ripple_fit"]
+    assert {o: (r["source"], r["applied"]) for o, r in fit.items()} == {"x": ("scanner", True), "y": ("scanner", True)}
+    assert not np.array_equal(helped["tau_x"].values, alone["tau_x"].values)
+
+
 def test_noise_alone_shows_no_ripple_and_tau_is_left_as_it_was(scanner, scene):
     m = render(scanner, scene, NOISY, 1.0, seed=5)
     off = decode(m.frames, SEQ3, DecodeSettings(phase_ripple="off"), full_scale=NOISY.max_dn)
@@ -216,3 +236,7 @@ def test_the_run_summary_states_per_scanner_what_was_corrected(scanner, scene, t
     assert r["fits"] == 4 and r["corrected"] == ["1-s1 x", "1-s1 y"] and r["largest_z"] > 100
     assert 0.12 < r["largest_corrected_rms_rad"] < 0.2  # the 3-step gamma-2.2 ripple, 0.16 rad RMS
     assert 0.05 < d["phase_noise_median_rad"]["x"] < 0.3 and 0 < d["valid_fraction_median"] < 1
+    # what the run's small stacks (and fringecal measure -r RUN on raw frames) are corrected with
+    fits = rd.phase_ripple_fits("s1")
+    assert [(f["orientation"], f["applied"]) for f in fits] == [("x", True), ("y", True), ("x", False), ("y", False)]
+    assert rd.phase_ripple_fits("s2") == []

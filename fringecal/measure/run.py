@@ -14,6 +14,7 @@ from fringecal.measure.cloud import POINT_DTYPE, Cloud, MeasureSettings, measure
 from fringecal.measure.files import CLOUD_SUFFIXES, write_cloud
 from fringecal.measure.overlap import overlap_report
 from fringecal.measure.sources import MeasurementSourceError, measurement_entries, open_entry
+from fringecal.rundir import RunDir
 from fringecal.scancloud import load_points
 from fringecal.measure.spheres import measure_spheres, read_nominal_spheres, sphere_distances
 
@@ -70,6 +71,11 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
     exterior orientation as given), which is the frame to compare with coordinates
     known in it (a simulation's truth).
 
+    Frames are decoded as a run decodes them; a stack too small for a phase-ripple fit of
+    its own takes its scanner's ripple from the calibration stacks of the run directory
+    ``calibration`` lies in (:meth:`~fringecal.rundir.RunDir.phase_ripple_fits`; a
+    calibration file outside a run directory carries none).
+
     ``spheres``: a CSV file of nominal spheres (:func:`~fringecal.measure.spheres.read_nominal_spheres`)
     to fit in every measurement (:func:`~fringecal.measure.spheres.measure_spheres`):
     each centre with the u of its position (in the frame of ``datum``), every distance
@@ -96,6 +102,8 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
             raise MeasurementSourceError(str(err)) from None
     boxes = scanners_from_document(cal.black_boxes) if cal.black_boxes else {}
     entries = [measurement_entries(f, cal.rig, kind, tuple(boxes)) for f in folders]
+    run = RunDir(Path(calibration).parent)  # the run directory the calibration file lies in, if any
+    ripple_fits = {s.name: run.phase_ripple_fits(s.name) for s in cal.rig.scanners} if kind == "frames" else {}
     cov = None
     if settings.uncertainty and cal.covariances is not None:
         cov = cal.covariances.total
@@ -107,7 +115,8 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
     parts, fitted, distances = [], [], []
     for g, group in enumerate(entries):   # one measurement in memory at a time
         t = time.perf_counter()
-        stores = {name: open_entry(path, kind, decode_settings) for name, path in group.items() if name not in boxes}
+        stores = {name: open_entry(path, kind, decode_settings, ripple_fits.get(name, ()))
+                  for name, path in group.items() if name not in boxes}
         t_read += time.perf_counter() - t
         t = time.perf_counter()
         try:

@@ -96,12 +96,13 @@ def _check_entry(entry: Path, camera, kind: str) -> None:
                                      f"{fmt.width_px}x{fmt.height_px} px (not the same sensor, nor binned)")
 
 
-def open_entry(entry: Path, kind: str, decode_settings=None):
-    """The maps of one entry (an opened store, or the frames decoded in memory)."""
+def open_entry(entry: Path, kind: str, decode_settings=None, scanner_fits=()):
+    """The maps of one entry (an opened store, or the frames decoded in memory;
+    ``scanner_fits``: as :func:`~fringecal.fringe.decode.decode`)."""
     if kind == "stores":
         return open_store(entry)
 
     stack = read_frames(entry)
-    result = decode(stack.frames, stack.sequence, decode_settings, stack.full_scale)
+    result = decode(stack.frames, stack.sequence, decode_settings, stack.full_scale, scanner_fits=scanner_fits)
     check_decoded(result, str(entry))
     return measurement_dataset(result, {"source": str(entry)})

@@ -29,11 +29,12 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, ClassVar, Union
 
+from fringecal.fringe.ripple import scanner_ripple
 from fringecal.rundir import RunDir, RunFile, TableFile
 from fringecal.schemas import read_csv_text
 
 __all__ = ["Step", "Rows", "Value", "Settings", "StepError", "DataProblem", "Read", "store_row", "store_fields",
-           "black_boxes_only", "calibration_stores", "scanner_ripple_fits", "scanner_ripple_read",
+           "black_boxes_only", "scanner_ripple_read",
            "stores_of_kind", "save_or_remove", "black_box_scanners", "stores_of"]
 
 
@@ -200,35 +201,14 @@ def stores_of_kind(rd: RunDir, kind: str) -> list[str]:
     return list(table.loc[table["kind"] == kind, "measurement"])
 
 
-def calibration_stores(rd: RunDir, scanner: str) -> list[str]:
-    """Ids of the calibration (``artefact``) stores of ``scanner``, in table order."""
-    table = _raw_table(rd.acquisition.path)
-    return list(table.loc[(table["kind"] == "artefact") & (table["scanner"] == scanner), "measurement"])
-
-
 def scanner_ripple_read(rd: RunDir, scanner: str, sequence) -> "Value":
     """What a stack of ``scanner`` decoded after its calibration stacks reads of them:
-    the scanner's phase ripple (:func:`fringecal.fringe.ripple.scanner_ripple`), keyed by
-    value, so that calibration stacks rendered or decoded again change its key only if
-    that ripple changes (on a cell without one: never)."""
-    from fringecal.fringe.ripple import scanner_ripple  # lazy: numpy only for the decoding steps
-
-    ripple = scanner_ripple(scanner_ripple_fits(rd, scanner), sequence)
+    the scanner's phase ripple (:func:`fringecal.fringe.ripple.scanner_ripple` of
+    :meth:`RunDir.phase_ripple_fits`), keyed by value, so that calibration stacks rendered
+    or decoded again change its key only if that ripple changes (on a cell without one:
+    never)."""
+    ripple = scanner_ripple(rd.phase_ripple_fits(scanner), sequence)
     return Value(f"phase ripple of {scanner}", {o: r.to_dict(sequence) for o, r in sorted(ripple.items())})
-
-
-def scanner_ripple_fits(rd: RunDir, scanner: str) -> list[dict]:
-    """The phase-ripple fits of ``scanner``'s calibration stores (their decoders'
-    ``phase_ripple_fit`` records): what its stacks too small for a fit are corrected
-    with (:func:`fringecal.fringe.ripple.scanner_ripple`), decoded after them."""
-    fits = []
-    for m in calibration_stores(rd, scanner):
-        try:
-            decoder = rd.store(m).attrs().get("decoder") or {}
-        except (OSError, ValueError):  # StoreError (a ValueError): a store not written
-            continue
-        fits += list((decoder.get("phase_ripple_fit") or {}).values())
-    return fits
 
 
 def black_box_scanners(rd: RunDir) -> list[str]:

@@ -22,7 +22,7 @@ from fringecal.fringe.measurement import decode_folder
 from fringecal.rundir import RunDir
 from fringecal.scancloud import CLOUD_SUFFIXES, cloud_store_from_file
 from fringecal.fringe.importer import read_stack_spec
-from fringecal.steps.base import (Settings, Step, scanner_ripple_fits, scanner_ripple_read, store_fields, store_row,
+from fringecal.steps.base import (Settings, Step, scanner_ripple_read, store_fields, store_row,
                                    stores_of_kind)
 from fringecal.store import copy_store
 
@@ -79,7 +79,7 @@ class Decode(Step):
             return
         attrs = {"measurement": item, "pose": row["pose"], "scanner": row["scanner"], "kind": row["kind"],
                  "source": row["source"]}
-        fits = scanner_ripple_fits(rd, row["scanner"]) if isinstance(self, DecodePositions) else []
+        fits = rd.phase_ripple_fits(row["scanner"]) if isinstance(self, DecodePositions) else []
         result = decode_folder(source, rd.store(item).path, cfg.decode, attrs=attrs, scanner_fits=fits)
         log.info("%s -> %s: %.1f %% valid", source, item, 100 * float(result.valid.mean()))
         for o, r in result.ripple.items():

@@ -28,7 +28,7 @@ from fringecal.simulate.measurement import simulate_measurement
 from fringecal.simulate.scenes import ArtefactHardware, Scene, artefact_scene
 from fringecal.simulate.world import drifted_scanner, native_formats, render_errors, session_displacement
 from fringecal.store import store_attributes
-from fringecal.steps.base import (Rows, Settings, Step, Value, scanner_ripple_fits, scanner_ripple_read, store_fields,
+from fringecal.steps.base import (Rows, Settings, Step, Value, scanner_ripple_read, store_fields,
                                    store_row, stores_of_kind)
 
 __all__ = ["SimulateRender", "RenderStores", "ACQUISITION_SETTINGS", "hardware_file"]
@@ -112,7 +112,7 @@ class RenderStores(Step):
         T = frames_from_rows(self._placement(rd, item).load())[row["pose"]]
         scene = self.scene(rd, T, ArtefactHardware.from_materials(hardware_file(cfg)))
         scanner, acquisition = self.recording(rd, cfg, row["scanner"], row["pose"])
-        fits = scanner_ripple_fits(rd, row["scanner"]) if self.kind != "artefact" else []
+        fits = rd.phase_ripple_fits(row["scanner"]) if self.kind != "artefact" else []
         s = simulate_measurement(item, scanner, scene, acquisition, cfg.decode, rd.store(item).path,
                                  rd.truth.store(item).path, {"pose": row["pose"], "kind": self.kind},
                                  self.errors(cfg, scanner, T, scene), scanner_fits=fits).summary
