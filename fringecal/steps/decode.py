@@ -1,8 +1,10 @@
-"""Recorded data set, step 2: decode every image stack into its measurement store.
+"""Recorded data set, steps 2 and 3: decode every image stack into its measurement store.
 
-Every stack of the acquisition table is decoded alike, whatever its kind: calibration
-measurements, ball-bar positions and the acceptance test's positions (sphere,
-dumbbell, flat).
+Every stack of the acquisition table is decoded alike, whatever its kind: first the
+calibration measurements (``decode``), then the ball-bar positions and the acceptance
+test's positions, sphere, dumbbell, flat (``decode-positions``), since a stack too small
+for a phase-ripple fit of its own is corrected with its scanner's ripple from the
+calibration stacks (:func:`fringecal.fringe.ripple.scanner_ripple`).
 
 A frame folder (``sequence.yaml`` + frames) is read and decoded
 (:func:`fringecal.fringe.measurement.decode_folder`); a stack the data set already
@@ -18,12 +20,11 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from fringecal.fringe.importer import read_stack_spec
 from fringecal.fringe.measurement import decode_folder
 from fringecal.rundir import RunDir
 from fringecal.scancloud import CLOUD_SUFFIXES, cloud_store_from_file
-from fringecal.fringe.importer import read_stack_spec
-from fringecal.steps.base import (Settings, Step, scanner_ripple_read, store_fields, store_row,
-                                   stores_of_kind)
+from fringecal.steps.base import Settings, Step, scanner_ripple_read, store_fields, store_row, stores_of_kind
 from fringecal.store import copy_store
 
 __all__ = ["Decode", "DecodePositions"]
@@ -47,6 +48,8 @@ class Decode(Step):
     locations = ("dataset",)
     modules = ("fringecal.fringe.measurement",)
     kinds = KINDS[:1]
+    #: whether a stack too small for a phase-ripple fit takes its scanner's
+    takes_scanner_ripple = False
 
     def items(self, rd: RunDir, cfg: Settings) -> list[str]:
         return [m for kind in self.kinds for m in stores_of_kind(rd, kind)]
@@ -79,7 +82,7 @@ class Decode(Step):
             return
         attrs = {"measurement": item, "pose": row["pose"], "scanner": row["scanner"], "kind": row["kind"],
                  "source": row["source"]}
-        fits = rd.phase_ripple_fits(row["scanner"]) if isinstance(self, DecodePositions) else []
+        fits = rd.phase_ripple_fits(row["scanner"]) if self.takes_scanner_ripple else []
         result = decode_folder(source, rd.store(item).path, cfg.decode, attrs=attrs, scanner_fits=fits)
         log.info("%s -> %s: %.1f %% valid", source, item, 100 * float(result.valid.mean()))
         for o, r in result.ripple.items():
@@ -92,11 +95,13 @@ class Decode(Step):
 class DecodePositions(Decode):
     """The ball-bar's and the acceptance test's stacks, after the calibration stacks: a
     stack too small for a phase-ripple fit of its own (a ball-bar's two spheres) is
-    corrected with its scanner's ripple from those (:func:`fringecal.fringe.ripple.scanner_ripple`)."""
+    corrected with its scanner's ripple from those
+    (:func:`fringecal.fringe.ripple.scanner_ripple`)."""
 
     name = "decode-positions"
     title = "decode positions"
     kinds = KINDS[1:]
+    takes_scanner_ripple = True
 
     def _scanner_ripple(self, rd: RunDir, cfg: Settings, item: str) -> list:
         source = self._source(rd, cfg, item)
