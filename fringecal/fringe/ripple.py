@@ -59,9 +59,9 @@ import numpy as np
 
 from fringecal.fringe.sequence import FringeSequence
 
-__all__ = ["MAX_PIXELS", "Z_APPLY", "MIN_RATIO", "MIN_PIXELS_PER_COEFFICIENT", "OUTLIER_FACTOR", "RIPPLE_MODES",
-           "PhaseRipple", "ripple_frequencies", "wrapped_phases", "unwrap_to", "estimate_ripple", "ripple_of",
-           "correct_ripple", "scanner_ripple"]
+__all__ = ["MAX_PIXELS", "Z_APPLY", "MIN_RATIO", "MIN_PIXELS_PER_COEFFICIENT", "OUTLIER_FACTOR", "PhaseRipple",
+           "ripple_frequencies", "wrapped_phases", "unwrap_to", "estimate_ripple", "ripple_of", "correct_ripple",
+           "scanner_ripple"]
 
 #: about as many valid pixels (every s-th pixel, kept where valid) the coefficients are fitted on
 MAX_PIXELS = 10_000
@@ -70,13 +70,13 @@ Z_APPLY = 5.0
 #: ... and only a ripple at least this fraction of the phase noise it was fitted under:
 #: a smaller one moves tau by less than a tenth of tau's own noise
 MIN_RATIO = 0.1
-#: fewest pixels per coefficient for a fit (fewer: no estimate, the stack is decoded as is)
+#: fewest pixels per coefficient for a fit (fewer: no fit of the stack's own; its
+#: scanner's ripple where one is given, :func:`scanner_ripple`)
 MIN_PIXELS_PER_COEFFICIENT = 40
 #: pixels whose tau-fit residual exceeds this many times the median are left out of the
 #: fit (mixed pixels at edges, wrong fringe orders): the ripple is a property of the
 #: sequence and the sensors, seen best where the phases are clean
 OUTLIER_FACTOR = 3.0
-RIPPLE_MODES = ("auto", "always", "off")
 
 
 def ripple_frequencies(n_steps: int) -> tuple[int, ...]:
@@ -231,7 +231,7 @@ def estimate_ripple(frames: np.ndarray, sequence: FringeSequence, orientation: s
 
     ``frames`` (n_frames, H, W) as decoded, ``tau`` (H, W) the decoder's, ``valid``
     (H, W) the pixels to fit on; with the decoder's ``phase_error`` (H, W), those of the
-    grid whose error exceeds :data:`OUTLIER_FACTOR` times the grid's median are left out.
+    sample whose error exceeds :data:`OUTLIER_FACTOR` times the sample's median are left out.
     """
     freqs = ripple_frequencies(sequence.n_steps)
     counts = np.asarray(sequence.fringe_counts, float)
@@ -247,13 +247,13 @@ def estimate_ripple(frames: np.ndarray, sequence: FringeSequence, orientation: s
     phi = unwrap_to(wrapped_phases(frames[:, rows, cols], sequence, orientation), counts, tau[rows, cols])
     slope = counts @ phi / (counts @ counts)
     resid = phi - counts[:, None] * slope  # (K, n), already in the range of P
-    # design A = P G, G block-diagonal (count j's 2F coefficients act on count j's phase):
-    # A^T A = G^T P G and A^T r = G^T r, since P r = r and P is a symmetric projection
     # every count's phase offset (drift between counts) is fitted beside its ripple, so
     # that it does not leak into it; it is neither evidence nor corrected (its part
     # orthogonal to t cannot move tau, its part along t no residual shows)
     g = np.concatenate([_basis(phi, freqs).reshape(k, -1, 2 * n_f), np.ones((k, rows.size, 1))], axis=2)
     width = 2 * n_f + 1
+    # design A = P G, G block-diagonal (count j's columns act on count j's phase):
+    # A^T A = G^T P G and A^T r = G^T r, since P r = r and P is a symmetric projection
     proj = np.eye(k) - np.outer(counts, counts) / (counts @ counts)
     normal = np.zeros((k, width, k, width))
     for j in range(k):  # count by count: no (K, n, K, width) intermediate
