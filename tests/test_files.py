@@ -35,6 +35,50 @@ def test_xml_and_json_round_trip_bit_for_bit(tmp_path, thesis_rig, rng):
     assert not list(tmp_path.glob(".*tmp"))
 
 
+def test_phase_ripple_travels_in_the_calibration_and_bad_entries_are_named(tmp_path, thesis_rig):
+    """A scanner's phase ripple (what its decoder corrects small stacks with) travels in
+    calibration.json for `fringecal measure` away from the run; a wrong scanner,
+    orientation or value stops with the file, the block and the entry."""
+    import json
+
+    from fringecal.calibration.file import read_calibration, rig_to_dict
+    from fringecal.fringe.ripple import PhaseRipple, ripple_document, scanner_ripple
+    from fringecal.fringe.sequence import FringeSequence
+
+    seq = FringeSequence(n_steps=3)
+    k, n_f = len(seq.fringe_counts), 4
+    coef = np.linspace(-0.1, 0.2, k * n_f * 2).reshape(k, n_f, 2)
+    fit = PhaseRipple("x", (2, 3, 6, 9), coef, np.diag(np.full(coef.size, 1e-6)), 1e4, 5000, 0.2, 0.1,
+                      applied=True).to_dict(seq)
+    block = {"scanner1": ripple_document([fit, fit])}
+    assert block["scanner1"]["x"]["applied"] and block["scanner1"]["x"]["source"] == "scanner"
+    p = tmp_path / "cal.json"
+    p.write_text(json.dumps(rig_to_dict(thesis_rig, phase_ripple=block)))
+    back = read_calibration(p).phase_ripple
+    assert back == block
+    # read back, it corrects as the run's own fits did: their mean, with its u
+    again = scanner_ripple(list(back["scanner1"].values()), seq)["x"]
+    np.testing.assert_allclose(again.coefficients, coef, rtol=1e-12)
+    np.testing.assert_allclose(np.diag(again.covariance), 5e-7, rtol=1e-9)
+    # what fringecal measure corrects a scanner's small stacks with, the file read away from its run
+    from fringecal.measure.run import _ripple_fits
+
+    assert _ripple_fits(read_calibration(p), p) == {"scanner1": [block["scanner1"]["x"]], "scanner2": []}
+    write_calibration_json(thesis_rig, tmp_path / "plain.json")
+    assert read_calibration(tmp_path / "plain.json").phase_ripple == {}
+    for change, message in (
+            (lambda d: d.update(scanner9=d.pop("scanner1")), r"cal.json: phase_ripple: unknown scanner 'scanner9'"),
+            (lambda d: d["scanner1"].update(z=d["scanner1"].pop("x")), r"phase_ripple scanner1 z: unknown orientation"),
+            (lambda d: d["scanner1"]["x"]["counts"]["48"]["f6"].update(u_sin_rad="n/a"),
+             r"phase_ripple scanner1 x: count 48, f6 u_sin_rad: not a finite number"),
+            (lambda d: d["scanner1"]["x"].pop("counts"), r"phase_ripple scanner1 x: expected frequencies_per_fringe")):
+        bad = json.loads(json.dumps(block))
+        change(bad)
+        p.write_text(json.dumps(rig_to_dict(thesis_rig, phase_ripple=bad)))
+        with pytest.raises(CalibrationFileError, match=message):
+            read_calibration(p)
+
+
 def test_replicas_round_trip_bit_for_bit_and_bad_ones_are_named(tmp_path, thesis_rig, rng):
     """The calibration's bootstrap and jackknife replicas travel in calibration.json (what
     `fringecal measure` states distances with) and come back as (n, n_sensors, 14), bit

@@ -45,6 +45,10 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
   statistic; :mod:`fringecal.calibration.models`). Sensors with thin-prism terms carry
   them as ``thin_prism`` (s1..s4 with unit, free flag and u) beside ``parameters``;
   without them the document is the 14-parameter one.
+* ``phase_ripple`` -- per scanner and orientation, the phase ripple its decoder
+  corrected in its calibration stacks (only where it did): the mean of their fits,
+  :func:`fringecal.fringe.ripple.ripple_document`. ``fringecal measure`` corrects a
+  small object's stack with it when the calibration is read outside its run directory.
 * ``provenance`` -- the digests of the adjustment's input files, its settings and their
   digest, the package versions. The run's whole configuration is in its
   ``manifest.json``; a calibration depends only on the settings listed here and on its
@@ -142,12 +146,15 @@ def _parameter_entries(names, values, free, uncertainty, k: int) -> dict:
 
 
 def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None,
-                sensor_model: dict | None = None, replicas: dict | None = None) -> dict:
+                sensor_model: dict | None = None, replicas: dict | None = None,
+                phase_ripple: dict | None = None) -> dict:
     """The JSON document of ``rig``; ``covariances``
     (:class:`~fringecal.calibration.propagation.ParameterCovariances`), ``provenance``,
     ``sensor_model`` (the model's choice and its evidence,
-    :func:`fringecal.calibration.models.choose_sensor_model`) and ``replicas`` (a
-    :func:`replicas_document`) are added when given (see the module notes)."""
+    :func:`fringecal.calibration.models.choose_sensor_model`), ``replicas`` (a
+    :func:`replicas_document`) and ``phase_ripple`` (scanner -> orientation -> its
+    ripple, :func:`fringecal.fringe.ripple.ripple_document`) are added when given (see
+    the module notes)."""
 
     out = {"software": "fringecal", "version": __version__, "reference_scanner": rig.reference,
            "scanners": [], "metadata": dict(metadata or {})}
@@ -159,6 +166,8 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
         out["provenance"] = dict(provenance)
     if replicas:
         out["replicas"] = replicas
+    if phase_ripple:
+        out["phase_ripple"] = phase_ripple
     k = 0
     for scanner in rig.scanners:
         entry = {"name": scanner.name, "sensors": []}
@@ -263,6 +272,9 @@ class Calibration:
     # kind -> re-adjusted sensor parameters: bootstrap, jackknife (n, n_sensors, 14); jackknife_noise
     # (draws, n, n_sensors, 14)
     replicas: dict = field(default_factory=dict)
+    # scanner -> orientation -> the phase ripple its decoder corrects small stacks with
+    # (fringecal.fringe.ripple.ripple_document records)
+    phase_ripple: dict = field(default_factory=dict)
 
 
 def _rows(rows, names: list[str], where: str, key: str = "params") -> np.ndarray:
@@ -360,6 +372,41 @@ def _check_covariance(c: np.ndarray, names: list[str], key: str, source: str) ->
                                    "not a covariance matrix")
 
 
+_RIPPLE_TERMS = ("cos_rad", "sin_rad", "u_cos_rad", "u_sin_rad")
+
+
+def _phase_ripple(doc, rig: Rig, source: str) -> dict:
+    """The ``phase_ripple`` block (scanner -> orientation -> ripple record), checked:
+    scanners of the calibration, orientations x and y, every coefficient and its u a
+    finite number; errors name the scanner, orientation, count and term."""
+    where = f"{source}: phase_ripple"
+    names = [s.name for s in rig.scanners]
+    if not isinstance(doc, dict):
+        raise CalibrationFileError(f"{where}: expected an object keyed by scanner")
+    for scanner, per in doc.items():
+        if scanner not in names:
+            raise CalibrationFileError(f"{where}: unknown scanner {scanner!r}; the calibration has {', '.join(names)}")
+        if not isinstance(per, dict):
+            raise CalibrationFileError(f"{where} {scanner}: expected an object keyed by orientation (x, y)")
+        for o, rec in per.items():
+            at = f"{where} {scanner} {o}"
+            if o not in ("x", "y"):
+                raise CalibrationFileError(f"{at}: unknown orientation; expected x or y")
+            freqs = rec.get("frequencies_per_fringe") if isinstance(rec, dict) else None
+            counts = rec.get("counts") if isinstance(rec, dict) else None
+            if not isinstance(freqs, list) or len(freqs) < 2 or not isinstance(counts, dict) or not counts:
+                raise CalibrationFileError(f"{at}: expected frequencies_per_fringe and counts")
+            for t, terms in counts.items():
+                for f in freqs:
+                    entry = terms.get(f"f{f}") if isinstance(terms, dict) else None
+                    for key in _RIPPLE_TERMS:
+                        v = entry.get(key) if isinstance(entry, dict) else None
+                        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                            raise CalibrationFileError(f"{at}: count {t}, f{f} {key}: not a finite number")
+            rec.setdefault("orientation", o)
+    return doc
+
+
 def read_calibration(path) -> Calibration:
     """A calibration file (``.json`` with covariance and provenance, or the ``.xml``)."""
     path = Path(path)
@@ -371,8 +418,9 @@ def read_calibration(path) -> Calibration:
     rig = rig_from_dict(d, str(path))
     cov = _covariances(d["covariance"], rig, str(path)) if "covariance" in d else None
     replicas = _replicas(d["replicas"], rig, str(path)) if "replicas" in d else {}
+    ripple = _phase_ripple(d["phase_ripple"], rig, str(path)) if "phase_ripple" in d else {}
     return Calibration(rig, cov, dict(d.get("provenance") or {}), dict(d.get("metadata") or {}), d.get("black_boxes"),
-                       replicas)
+                       replicas, ripple)
 
 
 def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:

@@ -53,7 +53,7 @@ along ``t`` itself, a bias of ``tau`` no residual can see -- stays; for a ripple
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -61,7 +61,7 @@ from fringecal.fringe.sequence import FringeSequence
 
 __all__ = ["MAX_PIXELS", "Z_APPLY", "MIN_RATIO", "MIN_PIXELS_PER_COEFFICIENT", "OUTLIER_FACTOR", "PhaseRipple",
            "ripple_frequencies", "wrapped_phases", "unwrap_to", "estimate_ripple", "ripple_of", "correct_ripple",
-           "scanner_ripple"]
+           "scanner_ripple", "ripple_document"]
 
 #: about as many valid pixels (every s-th pixel, kept where valid) the coefficients are fitted on
 MAX_PIXELS = 10_000
@@ -303,14 +303,16 @@ def scanner_ripple(fits: list[dict], sequence: FringeSequence) -> dict[str, Phas
     inverse-variance mean of their coefficients, with the variance of that mean, the
     median of their phase noise and the evidence of the mean. The ripple depends a
     little on the pattern's defocus, so stacks at other distances are corrected by an
-    average; records of another sequence are ignored.
+    average; records of another sequence are ignored. A record may itself be such a mean
+    (``source`` ``"scanner"``, as ``calibration.json`` carries it): it counts as one fit
+    with its own u.
     """
     freqs = ripple_frequencies(sequence.n_steps)
     counts = [str(t) for t in sequence.fringe_counts]
     out = {}
     for o in sequence.orientations:
         mine = [f for f in fits if f.get("orientation") == o and f.get("frequencies_per_fringe") == list(freqs)
-                and sorted(f.get("counts", {})) == sorted(counts) and f.get("source", "stack") == "stack"]
+                and sorted(f.get("counts", {})) == sorted(counts)]
         used = [f for f in mine if f["applied"]]
         if not used or 2 * len(used) <= len(mine):
             continue
@@ -328,3 +330,17 @@ def scanner_ripple(fits: list[dict], sequence: FringeSequence) -> dict[str, Phas
                              float(np.median([f["residual_rms_rad"] for f in used])),
                              float(np.median([f["noise_rms_rad"] for f in used])), source="scanner")
     return out
+
+
+def ripple_document(fits: list[dict]) -> dict:
+    """orientation -> :meth:`PhaseRipple.to_dict` record of the scanner's ripple
+    (:func:`scanner_ripple`) from its calibration stacks' fits, the sequence read off the
+    fits themselves (their fringe counts and their second frequency, N); empty where
+    there is none. What ``calibration.json`` carries for stacks decoded without the run."""
+    if not fits:
+        return {}
+    first = fits[0]
+    sequence = FringeSequence(tuple(sorted((int(t) for t in first["counts"]), reverse=True)),
+                              int(first["frequencies_per_fringe"][1]))
+    # applied: what the decoder corrects the scanner's small stacks with
+    return {o: replace(r, applied=True).to_dict(sequence) for o, r in sorted(scanner_ripple(fits, sequence).items())}

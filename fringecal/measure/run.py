@@ -59,6 +59,17 @@ def black_box_points(box, path, index: int, measurement: int, settings: MeasureS
     return pts
 
 
+def _ripple_fits(cal, path) -> dict[str, list[dict]]:
+    """Per scanner, what its small stacks are corrected with: the fits of the calibration
+    stacks of the run directory the calibration file lies in, else the ripple the file
+    carries (``phase_ripple``; none in an XML file or on a cell without one)."""
+    run = RunDir(Path(path).parent)
+    out = {}
+    for s in cal.rig.scanners:
+        out[s.name] = run.phase_ripple_fits(s.name) or list((cal.phase_ripple.get(s.name) or {}).values())
+    return out
+
+
 def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettings = MeasureSettings(),
                    decode_settings=None, datum: str = "rig", spheres=None) -> dict:
     """Measure ``folders`` (a measurement folder or a list of them; one entry per
@@ -73,8 +84,8 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
 
     Frames are decoded as a run decodes them; a stack too small for a phase-ripple fit of
     its own takes its scanner's ripple from the calibration stacks of the run directory
-    ``calibration`` lies in (:meth:`~fringecal.rundir.RunDir.phase_ripple_fits`; a
-    calibration file outside a run directory carries none).
+    ``calibration`` lies in (:meth:`~fringecal.rundir.RunDir.phase_ripple_fits`), or
+    else from the calibration file's ``phase_ripple``.
 
     ``spheres``: a CSV file of nominal spheres (:func:`~fringecal.measure.spheres.read_nominal_spheres`)
     to fit in every measurement (:func:`~fringecal.measure.spheres.measure_spheres`):
@@ -102,8 +113,7 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
             raise MeasurementSourceError(str(err)) from None
     boxes = scanners_from_document(cal.black_boxes) if cal.black_boxes else {}
     entries = [measurement_entries(f, cal.rig, kind, tuple(boxes)) for f in folders]
-    run = RunDir(Path(calibration).parent)  # the run directory the calibration file lies in, if any
-    ripple_fits = {s.name: run.phase_ripple_fits(s.name) for s in cal.rig.scanners} if kind == "frames" else {}
+    ripple_fits = _ripple_fits(cal, calibration) if kind == "frames" else {}
     cov = None
     if settings.uncertainty and cal.covariances is not None:
         cov = cal.covariances.total

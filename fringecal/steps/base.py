@@ -29,12 +29,12 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, ClassVar, Union
 
-from fringecal.fringe.ripple import scanner_ripple
+from fringecal.fringe.ripple import ripple_document, scanner_ripple
 from fringecal.rundir import RunDir, RunFile, TableFile
 from fringecal.schemas import read_csv_text
 
 __all__ = ["Step", "Rows", "Value", "Settings", "StepError", "DataProblem", "Read", "store_row", "store_fields",
-           "black_boxes_only", "scanner_ripple_read",
+           "black_boxes_only", "scanner_ripple_read", "phase_ripple_document",
            "stores_of_kind", "save_or_remove", "black_box_scanners", "stores_of"]
 
 
@@ -209,6 +209,18 @@ def scanner_ripple_read(rd: RunDir, scanner: str, sequence) -> "Value":
     never)."""
     ripple = scanner_ripple(rd.phase_ripple_fits(scanner), sequence)
     return Value(f"phase ripple of {scanner}", {o: r.to_dict(sequence) for o, r in sorted(ripple.items())})
+
+
+def phase_ripple_document(rd: RunDir) -> dict:
+    """scanner -> orientation -> the phase ripple of every scanner whose calibration stacks
+    were corrected (:func:`fringecal.fringe.ripple.ripple_document`): what
+    ``calibration.json`` carries; empty on a cell without one."""
+    if not rd.acquisition.exists():
+        return {}
+    table = _raw_table(rd.acquisition.path)
+    scanners = dict.fromkeys(table.loc[table["kind"] == "artefact", "scanner"])
+    out = {s: ripple_document(rd.phase_ripple_fits(s)) for s in scanners}
+    return {s: doc for s, doc in out.items() if doc}
 
 
 def black_box_scanners(rd: RunDir) -> list[str]:

@@ -34,7 +34,8 @@ from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
 from fringecal.spheres.dispersion import sighting_dispersion
-from fringecal.steps.base import DataProblem, Settings, Step, black_box_scanners, black_boxes_only, stores_of
+from fringecal.steps.base import (DataProblem, Settings, Step, Value, black_box_scanners, black_boxes_only,
+                                   phase_ripple_document, stores_of)
 
 __all__ = ["Bundle", "load_problem"]
 
@@ -74,7 +75,9 @@ class Bundle(Step):
                 [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)]
         boxes = [rd.scanner_links, rd.label_outcomes, rd.acquisition] + \
             [rd.fits_final(m) for m in stores_of(rd, "artefact", black_box=True)] if black_box_scanners(rd) else []
-        return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes
+        ripple = phase_ripple_document(rd)  # keyed by value: a cell without one never changes it
+        return [rd.artefact, rd.sensors_initial, rd.control_points, rd.poses_initial] + boxes + \
+            ([Value("phase ripple of the scanners", ripple)] if ripple else [])
 
     def writes(self, rd: RunDir, cfg: Settings, item: str):
         if black_boxes_only(rd):
@@ -135,7 +138,7 @@ class Bundle(Step):
                                   "modelled_shift_max_sigma": boxes.joint["max_shift_sigma"]}
             result = with_black_box_update(result, boxes)
         write_outputs(rd, result, doc, arrays, covariances, self.provenance(rd, cfg, item),
-                      None if boxes is None else boxes.to_dict())
+                      None if boxes is None else boxes.to_dict(), phase_ripple_document(rd))
         if boxes is None:
             rd.black_boxes.remove()
             rd.black_boxes_export.remove()
@@ -170,7 +173,7 @@ class Bundle(Step):
         """What the calibration was computed from: its input files' digests, its
         settings (and their digest), the package versions."""
         settings = cfg.keyed()
-        return {"inputs": {f.rel: digest_path(f.path) for f in self.reads(rd, cfg, item)},
+        return {"inputs": {f.rel: digest_path(f.path) for f in self.reads(rd, cfg, item) if not isinstance(f, Value)},
                 "settings": settings, "settings_digest": digest_value(settings), "versions": package_versions()}
 
 
@@ -248,7 +251,7 @@ def joint_covariance(result, boxes) -> dict:
 
 
 def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, provenance: dict,
-                  black_boxes: dict | None = None) -> list:
+                  black_boxes: dict | None = None, phase_ripple: dict | None = None) -> list:
     """Write the calibration of ``result`` (a :class:`~fringecal.calibration.bundle.BundleResult`)
     into ``rd``, all or nothing: ``calibration.json`` (with ``covariances``, the
     :class:`~fringecal.calibration.propagation.ParameterCovariances`, and ``provenance``)
@@ -274,7 +277,7 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
         tmp = dict(zip([f.rel for f in files], tmps))
         replicas = {kind: arrays[f"{kind}_params"] for kind in REPLICA_KINDS if f"{kind}_params" in arrays}
         calibration = rig_to_dict(result.rig, meta, covariances, provenance, model,
-                                  replicas_document(replicas, arrays.get("jackknife_left_out")))
+                                  replicas_document(replicas, arrays.get("jackknife_left_out")), phase_ripple)
         if black_boxes is not None:
             calibration["black_boxes"] = black_boxes
         tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")
