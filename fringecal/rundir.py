@@ -463,40 +463,36 @@ class RunDir:
         """The acquisition store of ``measurement`` (a ``<group>-<scanner>`` id)."""
         return self._at(StoreFile, f"measurements/{measurement}.zarr")
 
-    def store_summaries(self) -> list[tuple[str, str, dict]]:
-        """``(measurement, scanner, summary)`` of every complete acquisition store of the
-        acquisition table whose attributes hold a ``summary`` (the decoder's; a cloud
-        store of a black box has none), read from the stores' metadata alone; none
-        without an acquisition table."""
-        out = []
+    def _store_attributes(self, kind: str | None = None, scanner: str | None = None) -> Iterator[tuple[str, str, dict]]:
+        """``(measurement, scanner, attributes)`` of the complete acquisition stores of the
+        acquisition table (of ``kind`` and ``scanner`` where given), read from the stores'
+        metadata alone; none without an acquisition table. The table is read as text
+        (validated when it was written): this runs for every step key that reads it."""
+        from fringecal.schemas import read_csv_text  # lazy: pandera loads when a table is read
+        from fringecal.store import StoreError, store_attributes  # lazy: as above
+
         if not self.acquisition.exists():
-            return out
-        for row in self.acquisition.load().itertuples():
-            try:
-                summary = self.store(row.measurement).attrs().get("summary")
-            except (OSError, ValueError):  # StoreError (a ValueError): missing or incomplete
-                continue
-            if summary:
-                out.append((row.measurement, row.scanner, summary))
-        return out
+            return
+        table = read_csv_text(self.acquisition.path)
+        for m, k, s in zip(table["measurement"], table["kind"], table["scanner"]):
+            if (kind is None or k == kind) and (scanner is None or s == scanner):
+                try:
+                    yield m, s, store_attributes(self.store(m).path)
+                except (OSError, StoreError):  # missing or incomplete
+                    continue
+
+    def store_summaries(self) -> list[tuple[str, str, dict]]:
+        """``(measurement, scanner, summary)`` of every complete acquisition store whose
+        attributes hold a ``summary`` (the decoder's; a cloud store of a black box has
+        none)."""
+        return [(m, s, a["summary"]) for m, s, a in self._store_attributes() if a.get("summary")]
 
     def phase_ripple_fits(self, scanner: str) -> list[dict]:
         """The phase-ripple fits of ``scanner``'s calibration (``artefact``) stores, their
         decoders' ``phase_ripple_fit`` records: what its stacks too small for a fit of
-        their own are corrected with (:func:`fringecal.fringe.ripple.scanner_ripple`);
-        none without an acquisition table."""
-        fits = []
-        if not self.acquisition.exists():
-            return fits
-        for row in self.acquisition.load().itertuples():
-            if row.kind != "artefact" or row.scanner != scanner:
-                continue
-            try:
-                decoder = self.store(row.measurement).attrs().get("decoder") or {}
-            except (OSError, ValueError):  # StoreError (a ValueError): a store not written
-                continue
-            fits += list((decoder.get("phase_ripple_fit") or {}).values())
-        return fits
+        their own are corrected with (:func:`fringecal.fringe.ripple.scanner_ripple`)."""
+        return [fit for _, _, a in self._store_attributes("artefact", scanner)
+                for fit in ((a.get("decoder") or {}).get("phase_ripple_fit") or {}).values()]
 
     # -- spheres, labels, control points -------------------------------------------------
     def maps(self, measurement: str) -> StoreFile:

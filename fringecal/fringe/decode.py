@@ -203,10 +203,13 @@ def _ripple_step(frames, sequence, settings, min_mod, tau, mod, err, saturated, 
     (the scanner's where the stack is too small for a fit); ``tau``, ``err`` and
     ``valid`` are updated in place."""
     out = {}
+    scanner = None  # the scanner's ripple, computed when an orientation first needs it
     for i, o in enumerate(sequence.orientations):
         found = estimate_ripple(frames, sequence, o, tau[i], valid, err[i])
         if found is None:
-            found = scanner_ripple(scanner_fits, sequence).get(o) if scanner_fits else None
+            if scanner is None:
+                scanner = scanner_ripple(scanner_fits, sequence) if scanner_fits else {}
+            found = scanner.get(o)
             if found is None:
                 continue
         if settings.phase_ripple == "always" or found.significant or found.source == "scanner":
