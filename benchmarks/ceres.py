@@ -54,6 +54,7 @@ def _group_cost(ev, start: int, stop: int, chunk: int = 2048):
     one = np.zeros(1, np.int64)
     sphere_idx = np.ascontiguousarray(pr.sphere_idx[start:stop])
     cam, prj = np.ascontiguousarray(pr.cam_mm[start:stop]), np.ascontiguousarray(pr.prj_mm[start:stop])
+    no_prism, no_field = np.zeros((2, 4)), np.zeros((stop - start, 0, 2))
     res, ok, J = np.empty((n, 2)), np.empty(n, np.bool_), np.empty((n, 2, kernels.N_LOCAL))
     w = np.sqrt([pr.gamma1, pr.gamma2])
 
@@ -70,9 +71,9 @@ def _group_cost(ev, start: int, stop: int, chunk: int = 2048):
             sdR = np.ascontiguousarray(np.moveaxis(rotation_derivatives(sp[:, 3], sp[:, 4], sp[:, 5]), 0, 1))
             pR = rotation_matrix(pose[3:4], pose[4:5], pose[5:6])
             pdR = np.ascontiguousarray(np.moveaxis(rotation_derivatives(pose[3:4], pose[4:5], pose[5:6]), 0, 1))
-            kernels.residual_rows(c_start, c_stop, c_group, one, one + 1, one, sp, sR, sdR,
+            kernels.residual_rows(c_start, c_stop, c_group, one, one + 1, one, sp, no_prism, sR, sdR,
                                   np.ascontiguousarray(pose[None, :3]), pR, pdR, sphere_idx, a["centres"],
-                                  a["radii"], cam, prj, res, ok, J)
+                                  a["radii"], cam, prj, no_field, no_field, res, ok, J)
             if not ok.all():
                 return False
             residuals[:] = (res * w).ravel()

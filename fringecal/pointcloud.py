@@ -27,7 +27,8 @@ The fused kernel (numba, parallel over rows, compiled once and cached on disk)
 reads tau_x, tau_y and the valid mask and writes the four outputs in one pass; its
 pixel loop is branch-free so LLVM vectorises it (it is compute-bound: ~10x the time
 of streaming the same bytes, and ~60x faster than the numpy reference).
-Sensors with thin-prism terms (:mod:`fringecal.sensor`) go through the same kernels:
+Sensors with thin-prism terms or a correction field (:mod:`fringecal.sensor`) go
+through the same kernels:
 their image points are first replaced by the points the sensor without the terms maps
 to the same rays (:meth:`fringecal.sensor.Sensor.brown_image_mm`, numpy, once per
 camera and per projector block; the 14-parameter path is untouched).
@@ -246,8 +247,8 @@ class CameraRayCache:
         f = camera.format
         ideal = np.empty((2, f.height_px, f.width_px))
         k, p = camera.k, camera.p
-        if camera.has_prism:
-            # thin-prism terms: the pixel grid through the 14-parameter model's equivalent
+        if camera.beyond_brown:
+            # thin-prism terms or a correction field: the pixel grid through the 14-parameter model's equivalent
             # image points (Sensor.brown_image_mm), then the same compiled Newton
             v, u = np.mgrid[0:f.height_px, 0:f.width_px]
             grid = camera.brown_image_mm(camera.format.pixel_to_mm(np.stack([u, v], axis=-1)))
@@ -273,7 +274,11 @@ def _interior_key(camera: Sensor) -> bytes:
     # principal point and distortion; not c, which only enters the kernel's (-x, -y, c)
     p = np.asarray(camera.params, float)
     key = head.tobytes() + np.r_[p[6:8], p[9:14]].tobytes()
-    return key + camera.prism.tobytes() if camera.has_prism else key
+    if camera.has_prism:
+        key += camera.prism.tobytes()
+    if camera.has_field:
+        key += np.r_[camera.field.degree, camera.field.coefficients].tobytes()
+    return key
 
 
 _CACHE: "OrderedDict[bytes, CameraRayCache]" = OrderedDict()
@@ -386,7 +391,7 @@ def triangulate_rows(camera: Sensor, projector: Sensor, tau_x, tau_y, valid, row
         out = PointMaps(*(np.empty((rows, cols), dtype) for _ in range(4)), np.empty((rows, cols), np.uint8))
     f = projector.format
     phase_scale = np.array([f.width_mm, f.height_mm]) / (2 * np.pi)
-    if projector.has_prism:  # the phases the projector without its thin-prism terms would give
+    if projector.beyond_brown:  # the phases the projector without its extra terms would give
         tau = f.mm_to_phase(projector.brown_image_mm(f.phase_to_mm(np.stack([tau_x, tau_y], axis=-1))))
         tau_x, tau_y = tau[..., 0].astype(tau_x.dtype), tau[..., 1].astype(tau_x.dtype)
     # Each argument must be C-contiguous: a strided view compiles to a kernel that

@@ -3,8 +3,9 @@
 A :class:`Rig` holds the sensors with their parameters and, per parameter, whether
 the bundle adjustment may change it (``free``, shape (n_sensors, 14)), and whether it
 adjusts each sensor's thin-prism terms (``prism_free``, (n_sensors, 4), all False unless
-the run's sensor model frees them). It converts to and from the sensor-parameter table
-(docs/contracts.md).
+the run's sensor model frees them), and whether it adjusts each sensor's correction field
+(``field_free``, (n_sensors,), :mod:`fringecal.imagefield`). It converts to and from the
+sensor-parameter table (docs/contracts.md).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from fringecal.imagefield import FIELD_DEGREE, CorrectionField, field_names, field_terms
 from fringecal.names import check_name
 from fringecal.schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
 from fringecal.sensor import PARAM_COLUMNS, PRISM_COLUMNS, Sensor, SensorFormat, scaled_format, sensor_in_frame
@@ -49,6 +51,8 @@ class Rig:
     uncertainty: np.ndarray | None = field(default=None, repr=False)
     prism_free: np.ndarray | None = field(default=None, repr=False)
     prism_uncertainty: np.ndarray | None = field(default=None, repr=False)
+    field_free: np.ndarray | None = field(default=None, repr=False)
+    field_uncertainty: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         for s in self.scanners:  # names become file names (an export's <scanner>.yml, a run's stores)
@@ -70,6 +74,12 @@ class Rig:
         object.__setattr__(self, "free", free)
         pf = np.zeros((len(self.sensors), 4), bool) if self.prism_free is None else self.prism_free
         object.__setattr__(self, "prism_free", np.asarray(pf, bool).reshape(len(self.sensors), 4))
+        ff = np.zeros(len(self.sensors), bool) if self.field_free is None else self.field_free
+        object.__setattr__(self, "field_free", np.asarray(ff, bool).reshape(len(self.sensors)))
+        for free, sensor in zip(self.field_free, self.sensors):
+            if free and (sensor.field is None or sensor.field.degree != FIELD_DEGREE):
+                raise ValueError(f"sensor {sensor.name!r}: a free correction field needs a degree-{FIELD_DEGREE} "
+                                 "field (Rig.with_field_free gives one)")
 
     @staticmethod
     def default_free(scanners, reference) -> np.ndarray:
@@ -106,16 +116,46 @@ class Rig:
         """Whether any sensor has thin-prism terms or may have them adjusted."""
         return bool(self.prism_free.any() or np.any(self.prism != 0.0))
 
-    def with_params(self, params, uncertainty=None, prism=None) -> "Rig":
-        """The rig with other parameters (n_sensors, 14) and, if given, thin-prism terms (n_sensors, 4)."""
+    @property
+    def has_field(self) -> bool:
+        """Whether any sensor has a correction field or may have one adjusted."""
+        return bool(self.field_free.any() or any(s.has_field for s in self.sensors))
+
+    @property
+    def fields(self) -> np.ndarray:
+        """Coefficients (n_sensors, K) of every sensor's degree-``FIELD_DEGREE`` correction
+        field (zero for a sensor without one)."""
+        out = np.zeros((len(self.sensors), field_terms(FIELD_DEGREE)))
+        for i, s in enumerate(self.sensors):
+            if s.field is not None and s.field.degree == FIELD_DEGREE:
+                out[i] = s.field.coefficients
+        return out
+
+    def with_params(self, params, uncertainty=None, prism=None, fields=None) -> "Rig":
+        """The rig with other parameters (n_sensors, 14) and, if given, thin-prism terms
+        (n_sensors, 4) and correction-field coefficients (n_sensors, K; rows of sensors
+        without a field and all zero leave them without one)."""
         params = np.asarray(params, float).reshape(len(self.sensors), 14)
         pr = self.prism if prism is None else np.asarray(prism, float).reshape(len(self.sensors), 4)
-        scanners = tuple(
-            Scanner(s.name, s.camera.with_params(params[2 * i], pr[2 * i]),
-                    s.projector.with_params(params[2 * i + 1], pr[2 * i + 1]))
-            for i, s in enumerate(self.scanners)
-        )
-        return replace(self, scanners=scanners, uncertainty=uncertainty, prism_uncertainty=None)
+        sensors = [s.with_params(params[i], pr[i]) for i, s in enumerate(self.sensors)]
+        if fields is not None:
+            fields = np.asarray(fields, float).reshape(len(self.sensors), -1)
+            for i, s in enumerate(sensors):
+                if s.field is not None or np.any(fields[i] != 0.0):
+                    base = s.field if s.field is not None else _zero_field(s)
+                    sensors[i] = s.with_field(base.with_coefficients(fields[i]))
+        scanners = tuple(Scanner(s.name, sensors[2 * i], sensors[2 * i + 1]) for i, s in enumerate(self.scanners))
+        return replace(self, scanners=scanners, uncertainty=uncertainty, prism_uncertainty=None,
+                       field_uncertainty=None)
+
+    def with_field_free(self, field_free) -> "Rig":
+        """The rig with other correction-field free flags ((n_sensors,) or one bool for all);
+        a sensor whose field becomes free and has none gets a zero one."""
+        ff = np.broadcast_to(np.asarray(field_free, bool), (len(self.sensors),)).copy()
+        sensors = [s.with_field(_zero_field(s)) if f and (s.field is None or s.field.degree != FIELD_DEGREE) else s
+                   for f, s in zip(ff, self.sensors)]
+        scanners = tuple(Scanner(s.name, sensors[2 * i], sensors[2 * i + 1]) for i, s in enumerate(self.scanners))
+        return replace(self, scanners=scanners, field_free=ff)
 
     def with_prism_free(self, prism_free) -> "Rig":
         """The rig with other thin-prism free flags ((n_sensors, 4) or one bool for all)."""
@@ -133,6 +173,8 @@ class Rig:
             row.update(dict(zip(FREE_COLUMNS, map(bool, self.free[si]))))
             if self.has_prism:  # optional columns: a 14-parameter rig's table is unchanged
                 row.update(dict(zip(PRISM_COLUMNS, map(float, sensor.prism))))
+            if self.has_field:
+                row.update(_field_columns(sensor))
             f = sensor.format
             row.update(width_px=f.width_px, height_px=f.height_px, width_mm=f.width_mm, height_mm=f.height_mm)
             if self.uncertainty is not None:
@@ -178,7 +220,13 @@ class Rig:
                         continue
                     fmt = SensorFormat(int(r["width_px"]), int(r["height_px"]), float(r["width_mm"]), float(r["height_mm"]))
                 prism = [0.0 if c not in prism_cols or pd.isna(r[c]) else float(r[c]) for c in PRISM_COLUMNS]
-                pair[r["role"]] = (Sensor(r["sensor"], r["role"], fmt, r[list(PARAM_COLUMNS)].to_numpy(float), prism),
+                sensor = Sensor(r["sensor"], r["role"], fmt, r[list(PARAM_COLUMNS)].to_numpy(float), prism)
+                try:
+                    sensor = sensor.with_field(_field_of_row(r, fmt))
+                except ValueError as err:
+                    problems.append((int(i) + 2, "field_degree", str(err)))
+                    continue
+                pair[r["role"]] = (sensor,
                                    r[list(FREE_COLUMNS)].to_numpy(bool),
                                    r[[f"u_{c}" for c in PARAM_COLUMNS]].to_numpy(float) if has_u else None)
             if len(pair) == 2:
@@ -192,6 +240,36 @@ class Rig:
                              scanners[0].name)
         unc = np.stack(unc_rows) if has_u else None
         return cls(tuple(scanners), reference, np.stack(free_rows), unc)
+
+
+def _field_columns(sensor: Sensor) -> dict:
+    """Optional table columns of a sensor's correction field: its degree and coefficients
+    (``field_f01_mm`` ...; empty for a sensor without one)."""
+    if sensor.field is None:
+        return {"field_degree": np.nan}
+    names = field_names(sensor.field.degree)
+    return {"field_degree": float(sensor.field.degree),
+            **{f"field_{n}_mm": float(a) for n, a in zip(names, sensor.field.coefficients)}}
+
+
+def _field_of_row(r, fmt: SensorFormat) -> CorrectionField | None:
+    """The correction field of a table row (None without ``field_degree``)."""
+    degree = r.get("field_degree", np.nan)
+    if degree is None or pd.isna(degree):
+        return None
+    if float(degree) != int(degree) or not 2 <= int(degree) <= 8:
+        raise ValueError(f"field_degree {degree!r} must be a whole number from 2 to 8")
+    names = [f"field_{n}_mm" for n in field_names(int(degree))]
+    missing = [c for c in names if c not in r.index or pd.isna(r[c])]
+    if missing:
+        raise ValueError(f"a degree-{int(degree)} correction field needs columns {names[0]}..{names[-1]}; "
+                         f"{missing[0]} is missing or empty")
+    return CorrectionField(fmt.width_mm, fmt.height_mm, int(degree), r[names].to_numpy(float))
+
+
+def _zero_field(sensor: Sensor) -> CorrectionField:
+    f = sensor.format
+    return CorrectionField.zero(f.width_mm, f.height_mm, FIELD_DEGREE)
 
 
 def load_rig(path, reference: str | None = None) -> Rig:

@@ -24,6 +24,10 @@ add to the same distortion of the ideal coordinates::
 
     dx += s1 r^2 + s2 r^4,   dy += s3 r^2 + s4 r^4
 
+Optional correction field (``Sensor.field``, :mod:`fringecal.imagefield`; None unless the
+model chosen for a run has it): a smooth field ``f`` over the *measured* image plane, so
+that a measured point ``m`` stands for the point ``m - f(m)`` of the model above.
+
 Decision (the thesis leaves it open: eq. 2-2 evaluates the distortion at the measured
 coordinate, which then appears on both sides of eq. 2-4): distortion is a function of
 the *ideal* coordinates, as in Brown's model and OpenCV, so projecting a world point
@@ -44,6 +48,7 @@ from typing import Literal
 import numpy as np
 
 from fringecal.frames import Frame
+from fringecal.imagefield import CorrectionField, field_names
 from fringecal.rotation import angles_from_matrix, rotation_matrix
 
 __all__ = [
@@ -277,6 +282,7 @@ class Sensor:
     format: SensorFormat
     params: np.ndarray = field(repr=False)
     prism: np.ndarray = field(default=NO_PRISM, repr=False)
+    field: CorrectionField | None = field(default=None, repr=False)
 
     def __post_init__(self):
         p = np.asarray(self.params, float).reshape(14)
@@ -329,26 +335,46 @@ class Sensor:
             return replace(self, params=np.asarray(params, float))
         return replace(self, params=np.asarray(params, float), prism=np.asarray(prism, float))
 
+    def with_field(self, correction: CorrectionField | None) -> "Sensor":
+        """The sensor with another correction field (None: without one)."""
+        return replace(self, field=correction)
+
     @property
     def has_prism(self) -> bool:
         return bool(np.any(self.prism != 0.0))
 
+    @property
+    def has_field(self) -> bool:
+        return self.field is not None and not self.field.is_zero
+
+    @property
+    def beyond_brown(self) -> bool:
+        """Whether the sensor has terms the compiled 14-parameter kernels do not evaluate
+        (thin-prism terms or a correction field): then :meth:`brown_image_mm` maps its
+        observations first."""
+        return self.has_prism or self.has_field
+
     def as_dict(self) -> dict[str, float]:
-        """Parameter name -> value; the thin-prism terms only where they are not zero."""
+        """Parameter name -> value; the thin-prism terms and the correction field's
+        coefficients (``field.f01``, ...) only where they are not zero."""
         out = dict(zip(PARAM_NAMES, map(float, self.params)))
         if self.has_prism:
             out.update(zip(PRISM_NAMES, map(float, self.prism)))
+        if self.has_field:
+            out.update((f"field.{n}", float(a)) for n, a in zip(field_names(self.field.degree), self.field.coefficients))
         return out
 
     def brown_image_mm(self, image_mm) -> np.ndarray:
         """Image-plane mm (..., 2) -> the image point that the same sensor *without* its
-        thin-prism terms maps to the same ray.
+        correction field and thin-prism terms maps to the same ray.
 
-        The compiled 14-parameter kernels (point clouds) then serve a sensor with
-        thin-prism terms unchanged: they invert ``u + d_brown(u) = m'`` and get the
-        ``u`` that solves ``u + d_brown(u) + d_prism(u) = m``. Identity without prism.
+        The compiled 14-parameter kernels (point clouds) then serve such a sensor
+        unchanged: they invert ``u + d_brown(u) = m'`` and get the ``u`` that solves
+        ``u + d_brown(u) + d_prism(u) = m - f(m)``. Identity for a 14-parameter sensor.
         """
         m = np.asarray(image_mm, float)
+        if self.has_field:
+            m = self.field.corrected(m)
         if not self.has_prism:
             return m
         h = self.principal_point
@@ -371,7 +397,11 @@ class Sensor:
         with np.errstate(divide="ignore", invalid="ignore"):
             ideal = -self.c * xs[..., :2] / z[..., None]
         ideal = np.where((z > 0)[..., None], ideal, np.nan)
-        return distort(ideal, self.k, self.p, self.prism) + self.principal_point
+        return self._measured(distort(ideal, self.k, self.p, self.prism) + self.principal_point)
+
+    def _measured(self, model_mm) -> np.ndarray:
+        """The measured point whose correction is ``model_mm`` (identity without a field)."""
+        return self.field.measured(model_mm) if self.has_field else model_mm
 
     def in_view(self, points_world, margin_mm=0.0) -> np.ndarray:
         """Whether each point (..., 3) is imaged inside the format, ``margin_mm`` (scalar
@@ -384,7 +414,7 @@ class Sensor:
         front = z > 0
         with np.errstate(divide="ignore", invalid="ignore"):
             ideal = -self.c * xs[..., :2] / np.where(front, z, 1.0)[..., None]
-        image = distort(ideal, self.k, self.p, self.prism) + self.principal_point
+        image = self._measured(distort(ideal, self.k, self.p, self.prism) + self.principal_point)
         half = np.array([self.format.width_mm, self.format.height_mm]) / 2 - np.asarray(margin_mm, float)[..., None]
         inside = np.all(np.abs(image) <= half, axis=-1) & np.all(np.abs(ideal + self.principal_point) <= 1.1 * half,
                                                                   axis=-1)
@@ -392,7 +422,10 @@ class Sensor:
 
     def directions_local(self, image_mm) -> np.ndarray:
         """Image-plane mm (..., 2) -> unnormalised ray directions (-x, -y, c) in the sensor frame."""
-        ideal = undistort(np.asarray(image_mm, float) - self.principal_point, self.k, self.p, prism=self.prism)
+        m = np.asarray(image_mm, float)
+        if self.has_field:
+            m = self.field.corrected(m)
+        ideal = undistort(m - self.principal_point, self.k, self.p, prism=self.prism)
         d = np.empty(ideal.shape[:-1] + (3,))
         d[..., :2] = -ideal
         d[..., 2] = self.c

@@ -331,7 +331,9 @@ class SensorParametersTable(_Base):
     present, hold standard uncertainties. Optional thin-prism columns ``s1_per_mm``,
     ``s2_per_mm3``, ``s3_per_mm``, ``s4_per_mm3`` (OpenCV's s1..s4; empty or absent: 0)
     give start values of terms outside the 14 parameters (whether they are adjusted is
-    the run's model choice, ``bundle.sensor_model``).
+    the run's model choice, ``bundle.sensor_model``). Optional ``field_degree`` with
+    ``field_f01_mm`` ... (``fringecal.imagefield``; empty: no field) give a sensor's
+    correction field.
     """
 
     sensor: Series[str] = pa.Field(unique=True)
@@ -369,6 +371,8 @@ class SensorParametersTable(_Base):
     s2_per_mm3: Optional[Series[float]] = pa.Field(nullable=True)
     s3_per_mm: Optional[Series[float]] = pa.Field(nullable=True)
     s4_per_mm3: Optional[Series[float]] = pa.Field(nullable=True)
+    field_degree: Optional[Series[float]] = pa.Field(nullable=True, ge=2, le=8)
+    field_coefficients: Optional[Series[float]] = pa.Field(nullable=True, alias=r"field_f\d+_mm", regex=True)
     width_px: Optional[Series[int]] = pa.Field(gt=1)
     height_px: Optional[Series[int]] = pa.Field(gt=1)
     width_mm: Optional[Series[float]] = pa.Field(gt=0)

@@ -78,9 +78,10 @@ class BundleOptions(StrictModel):
     ``black_box_scale``: adjust a scale factor of every black-box scanner
     (:mod:`.blackbox`) besides its exterior.
     ``sensor_model``: the sensors' model (:mod:`.models`: ``brown14`` the thesis's 14
-    parameters, ``thin_prism`` / ``thin_prism4`` with OpenCV's thin-prism terms, ``auto``
-    chosen by held-out measurements; :func:`bundle_adjust` itself adjusts the terms the
-    problem's rig frees, ``prism_free``); ``model_selection``: ``screened`` cross-validates
+    parameters, ``thin_prism`` / ``thin_prism4`` with OpenCV's thin-prism terms, ``field``
+    with a correction field over each image plane, ``auto`` chosen by held-out
+    measurements; :func:`bundle_adjust` itself adjusts the terms the problem's rig frees,
+    ``prism_free``, ``field_free``); ``model_selection``: ``screened`` cross-validates
     only when the 14-parameter residuals keep a pattern over the images, ``always`` every run.
     ``covariance``: ``sandwich`` (each point's own residuals, heteroscedasticity-consistent)
     or ``per-term`` (one variance factor per residual term; :mod:`.uncertainty`).
@@ -103,7 +104,7 @@ class BundleOptions(StrictModel):
     chunk_size: int = Field(2048, ge=1)
     coarse_points: int = Field(150_000, ge=0)
     black_box_scale: bool = False
-    sensor_model: Literal["auto", "brown14", "thin_prism", "thin_prism4"] = "auto"
+    sensor_model: Literal["auto", "brown14", "thin_prism", "thin_prism4", "field"] = "auto"
     model_selection: Literal["screened", "always"] = "screened"
     covariance: Literal["sandwich", "per-term"] = "sandwich"
 
@@ -375,7 +376,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions = BundleOptions
         best.extra["failed_starts"] = dict(failed)
     if label != "given":
         ev = Evaluator(problem, chunk_size=options.chunk_size)
-        res0 = ev.evaluate(ev.layout.pack(problem.rig.params, problem.poses, problem.rig.prism), False).res
+        res0 = ev.evaluate(ev.layout.pack_rig(problem.rig, problem.poses), False).res
         best = _replace_start(best, problem, res0)
     diags = list(best.diagnostics) + _convergence_diagnoses(conv, best)
     from dataclasses import replace as _dc_replace
@@ -459,7 +460,7 @@ def _replace_start(result: "BundleResult", problem: BundleProblem, res0: np.ndar
     from dataclasses import replace as _dc_replace
 
     layout = result.layout
-    return _dc_replace(result, x_start=layout.pack(problem.rig.params, problem.poses, problem.rig.prism),
+    return _dc_replace(result, x_start=layout.pack_rig(problem.rig, problem.poses),
                        residuals_start=res0,
                        before=ResidualStatistics.of(res0, (problem.gamma1, problem.gamma2)))
 
@@ -531,7 +532,7 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     gamma = (problem.gamma1, problem.gamma2)
     ev = Evaluator(problem, chunk_size=options.chunk_size)
     layout = ev.layout
-    x0 = layout.pack(problem.rig.params, problem.poses, problem.rig.prism)
+    x0 = layout.pack_rig(problem.rig, problem.poses)
     e0 = ev.evaluate(x0, True)
     _check_start(problem, e0)
     rank = check_rank(e0.normal(*gamma), layout, problem, "start values")
@@ -557,14 +558,20 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
     m = layout.pose_index >= 0
     std_p[m] = unc.std[layout.pose_index[m]]
     prism = ev.prism(x)
-    rig = problem.rig.with_params(sp, uncertainty=std_s, prism=prism)
+    fields = ev.fields(x) if problem.rig.has_field else None
+    rig = problem.rig.with_params(sp, uncertainty=std_s, prism=prism, fields=fields)
     std_prism = np.zeros_like(prism)
     m = layout.prism_index >= 0
     std_prism[m] = unc.std[layout.prism_index[m]]
-    if layout.prism_free:
-        from dataclasses import replace as _dc_replace
+    from dataclasses import replace as _dc_replace
 
+    if layout.prism_free:
         rig = _dc_replace(rig, prism_uncertainty=std_prism)
+    if layout.field_free:
+        std_field = np.zeros(layout.field_index.shape)
+        m = layout.field_index >= 0
+        std_field[m] = unc.std[layout.field_index[m]]
+        rig = _dc_replace(rig, field_uncertainty=std_field)
     rank_end = check_rank(e1.normal(*gamma), layout, problem, "solution", unc)
     diags = _post_diagnostics(problem, layout, unc, rig, found) + rank_end
     return BundleResult(problem, options, layout, x0, x, rig, po, std_p, e0.res, plain.res,

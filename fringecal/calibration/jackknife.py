@@ -132,7 +132,7 @@ def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
     if any(d.severity == "error" for d in found):
         raise DegenerateCalibrationError(found)
     ev = Evaluator(problem, chunk_size=options.chunk_size)
-    x0 = ev.layout.pack(problem.rig.params, problem.poses, problem.rig.prism)
+    x0 = ev.layout.pack_rig(problem.rig, problem.poses)
     e0 = ev.evaluate(x0, True)
     if not (e0.ok.all() and np.isfinite(e0.cost)):
         raise StartValueError(f"the start values cannot form rays at {int(np.sum(~e0.ok))} control points")

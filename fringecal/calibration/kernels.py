@@ -12,8 +12,14 @@ Each depends on at most 34 parameters: the 14 of the camera, the 14 of the proje
 (local slots 0..13 and 14..27) and the 6 of the pose (slots 28..33); alpha1 does not
 depend on the pose. With free thin-prism terms (s1..s4 of camera and projector,
 :mod:`fringecal.sensor`) there are 42: camera prism 34..37 and projector prism 38..41
-after the 34 (:func:`local_slots`); the kernels read which from their output shapes,
-and run the 34 slots' loops with constant bounds and the same arithmetic either way. The analytic derivatives:
+after the 34 (:func:`local_slots`). With free correction fields
+(:mod:`fringecal.imagefield`, K coefficients per sensor) 2 K more follow: camera field,
+then projector field. A field corrects the observation, ``m - f(m)``, and depends on the
+observation alone, so a coefficient's derivative is the principal point's weighted by its
+basis function there: ``d/d a_j = phi_j,x(m) d/d xi_h + phi_j,y(m) d/d eta_h``; the
+kernels take the observations already corrected and the basis at each one. The kernels
+read the slot counts from their output shapes and basis arrays, and run the 34 slots'
+loops with constant bounds and the same arithmetic either way. The analytic derivatives:
 
 * ray of a sensor: direction D = R^T (-x, -y, c) (unnormalised; the midpoint and alpha1
   do not depend on the length of D), (x, y) the ideal image coordinates solving
@@ -49,9 +55,24 @@ N_LOCAL = 34
 N_PRISM = 4
 
 
-def local_slots(prism_free: bool) -> int:
-    """Local parameter slots per control point: 34, or 42 with free thin-prism terms."""
-    return N_LOCAL + 2 * N_PRISM if prism_free else N_LOCAL
+def local_slots(prism_free: bool, n_field: int = 0) -> int:
+    """Local parameter slots per control point: 34, plus 8 with free thin-prism terms,
+    plus 2 ``n_field`` with free correction fields of ``n_field`` coefficients."""
+    return N_LOCAL + (2 * N_PRISM if prism_free else 0) + 2 * n_field
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _field_slots(k, f0, nf, phi_c, phi_p, j1, j2):
+    """Correction-field slots f0.. of control point k from its principal-point slots."""
+    for f in range(nf):
+        cx = phi_c[k, f, 0]
+        cy = phi_c[k, f, 1]
+        px = phi_p[k, f, 0]
+        py = phi_p[k, f, 1]
+        j1[f0 + f] = cx * j1[6] + cy * j1[7]
+        j2[f0 + f] = cx * j2[6] + cy * j2[7]
+        j1[f0 + nf + f] = px * j1[20] + py * j1[21]
+        j2[f0 + nf + f] = px * j2[20] + py * j2[21]
 
 
 LOSS_CODES = {"none": 0, "linear": 0, "huber": 1, "cauchy": 2}
@@ -431,7 +452,7 @@ def _accumulate_prism(ch, nl, f1, f2, w1, w2, j1, j2, A1, A2, bvec):
 @njit(cache=True, parallel=True)
 def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_meas,
              sens_p, sens_s, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
-             cam_mm, prj_mm, gamma1, gamma2, loss, scale1, scale2, want_jac,
+             cam_mm, prj_mm, phi_c, phi_p, gamma1, gamma2, loss, scale1, scale2, want_jac,
              res, ok, chunk_cost, A1, A2, bvec):
     """Residuals of every control point and, with ``want_jac``, per-chunk normal blocks.
 
@@ -439,20 +460,24 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
     sens_s (n_sensors, 4) thin-prism terms,
     sens_R (n_sensors, 3, 3), sens_dR (n_sensors, 3, 3, 3), pose_t (n_meas, 3),
     pose_R / pose_dR like sensors, sphere_idx (n,), centres (n_spheres, 3), radii
-    (n_spheres,), cam_mm / prj_mm (n, 2) image-plane mm.
+    (n_spheres,), cam_mm / prj_mm (n, 2) image-plane mm (corrected by any correction
+    field), phi_c / phi_p (n, nf, 2) the correction-field basis at each observation
+    (nf = 0 without free fields).
 
     Outputs: res (n, 2) alpha1, alpha2; ok (n,) bool; chunk_cost (n_chunks,) the chunk's
     part of F = gamma1 sum rho(alpha1) + gamma2 sum rho(alpha2) (inf if a control point
     fails); A1 (n_chunks, n1, n1) = sum w1 j1 j1^T and A2 (n_chunks, nl, nl) = sum w2 j2 j2^T
     (upper triangles); bvec (n_chunks, nl) = sum gamma1 w1 alpha1 j1 + gamma2 w2 alpha2 j2.
-    ``nl`` = bvec.shape[1] = 34 (``N_LOCAL``) or 42 with free thin-prism terms
-    (:func:`local_slots`), n1 = A1.shape[1] = 28 or 42 (A1's pose rows and columns then
-    stay zero); A1, A2 and bvec need only one chunk without ``want_jac``.
+    ``nl`` = bvec.shape[1] = 34 (``N_LOCAL``) or more with free thin-prism terms or
+    fields (:func:`local_slots`), n1 = A1.shape[1] = 28 or nl (A1's pose rows and columns
+    then stay zero); A1, A2 and bvec need only one chunk without ``want_jac``.
     """
     n_chunks = chunk_start.shape[0]
-    nl = bvec.shape[1]  # 34, or 42 with free thin-prism terms
-    npr = (nl - N_LOCAL) // 2
-    n1 = A1.shape[1]  # 28, or 42
+    nl = bvec.shape[1]
+    nf = phi_c.shape[1]
+    npr = (nl - N_LOCAL - 2 * nf) // 2
+    f0 = N_LOCAL + 2 * npr
+    n1 = A1.shape[1]  # 28, or nl
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
@@ -489,6 +514,8 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
                 res[k, 1] = np.nan
                 cost = np.inf
                 continue
+            if want_jac and nf > 0:
+                _field_slots(k, f0, nf, phi_c, phi_p, j1, j2)
             a1 = out[0]
             a2 = out[1]
             res[k, 0] = a1
@@ -500,7 +527,7 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
                 f1 = gamma1 * w1 * a1
                 f2 = gamma2 * w2 * a2
                 # the 34 slots of the thesis's model with constant bounds (vectorised as before
-                # the thin-prism terms existed), then the prism slots 34.. if free
+                # the thin-prism terms existed), then the prism and field slots 34.. if free
                 for i in range(28):
                     bvec[ch, i] += f1 * j1[i] + f2 * j2[i]
                     u1 = w1 * j1[i]
@@ -514,7 +541,7 @@ def assemble(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_m
                     u2 = w2 * j2[i]
                     for j in range(i, 34):
                         A2[ch, i, j] += u2 * j2[j]
-                if npr > 0:
+                if nl > N_LOCAL:
                     _accumulate_prism(ch, nl, f1, f2, w1, w2, j1, j2, A1, A2, bvec)
         chunk_cost[ch] = cost
 
@@ -554,13 +581,15 @@ def scatter(chunk_group, gmap, A1, A2, bvec, N1, N2, b):
 @njit(cache=True, parallel=True)
 def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_meas,
                   sens_p, sens_s, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
-                  cam_mm, prj_mm, res, ok, J):
-    """Residuals (n, 2) and full local Jacobian rows J (n, 2, nl), nl = 34 or 42 (alpha1 row has zeros
-    in the pose slots). For tests, finite-difference checks and scipy comparisons."""
+                  cam_mm, prj_mm, phi_c, phi_p, res, ok, J):
+    """Residuals (n, 2) and full local Jacobian rows J (n, 2, nl), nl = 34 or more (:func:`local_slots`;
+    the alpha1 row has zeros in the pose slots). For tests, finite-difference checks and scipy comparisons."""
     n_chunks = chunk_start.shape[0]
     nl = J.shape[2]
-    npr = (nl - N_LOCAL) // 2
-    n1 = 28 if npr == 0 else nl
+    nf = phi_c.shape[1]
+    npr = (nl - N_LOCAL - 2 * nf) // 2
+    f0 = N_LOCAL + 2 * npr
+    n1 = 28 if nl == N_LOCAL else nl
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
@@ -583,6 +612,8 @@ def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, gr
                                   cam_mm[k, 0], cam_mm[k, 1], prj_mm[k, 0], prj_mm[k, 1], True, npr,
                                   Dc, dDc, Dp, dDp, j1, j2, out)
             ok[k] = good
+            if good and nf > 0:
+                _field_slots(k, f0, nf, phi_c, phi_p, j1, j2)
             res[k, 0] = out[0] if good else np.nan
             res[k, 1] = out[1] if good else np.nan
             for i in range(nl):
@@ -593,7 +624,7 @@ def residual_rows(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, gr
 @njit(cache=True, parallel=True)
 def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj, group_meas,
                       sens_p, sens_s, sens_R, sens_dR, pose_t, pose_R, pose_dR, sphere_idx, centres, radii,
-                      cam_mm, prj_a, prj_b, flip, gamma1, gamma2, ok, dcost, dgrad):
+                      cam_mm, prj_a, prj_b, phi_c, phi_p, flip, gamma1, gamma2, ok, dcost, dgrad):
     """Cost and gradient of many data replicas at one parameter vector, from two
     observation sets: replica r observes ``prj_b[k]`` where ``flip[r, k]``, else ``prj_a[k]``.
 
@@ -605,8 +636,10 @@ def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj
     n_chunks = chunk_start.shape[0]
     R = flip.shape[0]
     nl = dgrad.shape[2]
-    npr = (nl - N_LOCAL) // 2
-    n1 = 28 if npr == 0 else nl
+    nf = phi_c.shape[1]
+    npr = (nl - N_LOCAL - 2 * nf) // 2
+    f0 = N_LOCAL + 2 * npr
+    n1 = 28 if nl == N_LOCAL else nl
     for ch in prange(n_chunks):
         g = chunk_group[ch]
         ic = group_cam[g]
@@ -644,6 +677,9 @@ def replica_gradients(chunk_start, chunk_stop, chunk_group, group_cam, group_prj
                     if flip[r, k]:
                         dcost[ch, r] = np.inf
                 continue
+            if nf > 0:
+                _field_slots(k, f0, nf, phi_c, phi_p, ja1, ja2)
+                _field_slots(k, f0, nf, phi_c, phi_p, jb1, jb2)
             fa1 = gamma1 * out_a[0]
             fa2 = gamma2 * out_a[1]
             fb1 = gamma1 * out_b[0]

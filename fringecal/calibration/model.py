@@ -20,6 +20,7 @@ import pandas as pd
 
 from fringecal.artefact import Artefact
 from fringecal.calibration import kernels
+from fringecal.imagefield import FIELD_DEGREE, field_names, field_terms
 from fringecal.rig import Rig
 from fringecal.rotation import rotation_derivatives, rotation_matrix
 from fringecal.schemas import ControlPointsTable, PosePlanTable, TableError, validate_table
@@ -222,9 +223,11 @@ class ParameterLayout:
 
     ``sensor_index[i, j]`` is the position of parameter ``PARAM_NAMES[j]`` of sensor i in
     x, or -1 if fixed; ``prism_index[i, j]`` likewise for thin-prism term
-    ``PRISM_NAMES[j]``; ``pose_index[m, k]`` for pose parameter ``POSE_NAMES[k]``.
-    The 14 sensor parameters come first (in rig order), then the free thin-prism terms
-    (none for the thesis's model), then poses.
+    ``PRISM_NAMES[j]``; ``field_index[i, j]`` for coefficient j of sensor i's correction
+    field (:mod:`fringecal.imagefield`); ``pose_index[m, k]`` for pose parameter
+    ``POSE_NAMES[k]``. The 14 sensor parameters come first (in rig order), then the free
+    thin-prism terms, then the free field coefficients (neither for the thesis's model),
+    then poses.
     """
 
     sensor_index: np.ndarray
@@ -233,10 +236,13 @@ class ParameterLayout:
     sensor_names: tuple
     measurements: tuple
     prism_index: np.ndarray = None
+    field_index: np.ndarray = None
 
     def __post_init__(self):
         if self.prism_index is None:
             object.__setattr__(self, "prism_index", np.full((self.sensor_index.shape[0], 4), -1, np.int64))
+        if self.field_index is None:
+            object.__setattr__(self, "field_index", np.full((self.sensor_index.shape[0], 0), -1, np.int64))
 
     @classmethod
     def of(cls, problem: BundleProblem) -> "ParameterLayout":
@@ -246,18 +252,52 @@ class ParameterLayout:
         prf = problem.rig.prism_free
         spi = np.full(prf.shape, -1, np.int64)
         spi[prf] = int(free.sum()) + np.arange(int(prf.sum()))
+        ff = problem.rig.field_free
+        n_terms = field_terms(FIELD_DEGREE) if ff.any() else 0
+        ffk = np.repeat(ff[:, None], n_terms, axis=1)
+        sfi = np.full(ffk.shape, -1, np.int64)
+        n_before = int(free.sum()) + int(prf.sum())
+        sfi[ffk] = n_before + np.arange(int(ffk.sum()))
         pf = problem.pose_free
         pi = np.full(pf.shape, -1, np.int64)
-        pi[pf] = int(free.sum()) + int(prf.sum()) + np.arange(int(pf.sum()))
+        pi[pf] = n_before + int(ffk.sum()) + np.arange(int(pf.sum()))
         sensors = tuple(s.name for s in problem.rig.sensors)
         names = [f"{sensors[i]}.{PARAM_NAMES[j]}" for i, j in zip(*np.nonzero(free))]
         names += [f"{sensors[i]}.{PRISM_NAMES[j]}" for i, j in zip(*np.nonzero(prf))]
+        fnames = field_names(FIELD_DEGREE)
+        names += [f"{sensors[i]}.field.{fnames[j]}" for i, j in zip(*np.nonzero(ffk))]
         names += [f"pose[{problem.measurements[m]}].{POSE_NAMES[k]}" for m, k in zip(*np.nonzero(pf))]
-        return cls(si, pi, tuple(names), sensors, problem.measurements, spi)
+        return cls(si, pi, tuple(names), sensors, problem.measurements, spi, sfi)
+
+    @property
+    def field_free(self) -> bool:
+        """Whether any correction-field coefficient is adjusted (the kernels then have
+        ``2 K`` more local slots, K = ``field_index.shape[1]``)."""
+        return bool(np.any(self.field_index >= 0))
+
+    @property
+    def n_field_terms(self) -> int:
+        return int(self.field_index.shape[1]) if self.field_free else 0
+
+    def unpack_fields(self, x: np.ndarray, fields: np.ndarray) -> np.ndarray:
+        """Correction-field coefficients (n_sensors, K) with the free entries taken from x."""
+        out = np.array(fields, float, copy=True)
+        if self.field_free:
+            m = self.field_index >= 0
+            out[m] = np.asarray(x, float)[self.field_index[m]]
+        return out
+
+    def pack_rig(self, rig: Rig, poses: np.ndarray) -> np.ndarray:
+        """x of ``rig``'s parameters (14, thin-prism, correction field) and ``poses``."""
+        x = self.pack(rig.params, poses, rig.prism)
+        if self.field_free:
+            m = self.field_index >= 0
+            x[self.field_index[m]] = rig.fields[m]
+        return x
 
     @property
     def prism_free(self) -> bool:
-        """Whether any thin-prism term is adjusted (the kernels then use 42 local slots)."""
+        """Whether any thin-prism term is adjusted (the kernels then have 8 more local slots)."""
         return bool(np.any(self.prism_index >= 0))
 
     def unpack_prism(self, x: np.ndarray, prism: np.ndarray) -> np.ndarray:
@@ -350,8 +390,11 @@ class Evaluator:
             c_stop += list(np.minimum(edges + self.chunk_size, b))
             c_group += [g] * len(edges)
         lay = self.layout
-        nl = kernels.local_slots(lay.prism_free)
+        nf = lay.n_field_terms
+        npr = kernels.N_PRISM if lay.prism_free else 0
+        nl = kernels.local_slots(lay.prism_free, nf)
         gmap = np.full((len(start), nl), -1, np.int64)
+        f0 = kernels.N_LOCAL + 2 * npr
         for g, (s, m) in enumerate(zip(g_scan, g_meas)):
             gmap[g, :14] = lay.sensor_index[2 * s]
             gmap[g, 14:28] = lay.sensor_index[2 * s + 1]
@@ -359,12 +402,60 @@ class Evaluator:
             if lay.prism_free:
                 gmap[g, 34:38] = lay.prism_index[2 * s]
                 gmap[g, 38:42] = lay.prism_index[2 * s + 1]
+            if nf:
+                gmap[g, f0:f0 + nf] = lay.field_index[2 * s]
+                gmap[g, f0 + nf:f0 + 2 * nf] = lay.field_index[2 * s + 1]
         self._arrays = dict(
             chunk_start=np.asarray(c_start, np.int64), chunk_stop=np.asarray(c_stop, np.int64),
             chunk_group=np.asarray(c_group, np.int64), group_cam=(2 * g_scan).astype(np.int64),
             group_prj=(2 * g_scan + 1).astype(np.int64), group_meas=g_meas.astype(np.int64), gmap=gmap,
             centres=np.ascontiguousarray(pr.artefact.centres), radii=np.ascontiguousarray(pr.artefact.radii),
         )
+        phi_cam, phi_prj = self._field_bases()
+        self._arrays.update(phi_cam=phi_cam, phi_prj=phi_prj,
+                            kernel_phi_cam=np.ascontiguousarray(phi_cam[:, :nf]),
+                            kernel_phi_prj=np.ascontiguousarray(phi_prj[:, :nf]))
+
+    def _field_bases(self) -> tuple[np.ndarray, np.ndarray]:
+        """Correction-field basis at every observation, (n, K, 2) for camera and projector
+        (K = 0 without a field). The basis is evaluated at the observations once: they do
+        not change with the parameters (a bootstrap replica's move them by micrometres,
+        which changes the basis by the field's slope, below 1e-5 of its value)."""
+        pr = self.problem
+        if not pr.rig.has_field:
+            empty = np.zeros((pr.n_points, 0, 2))
+            return empty, empty
+        K = field_terms(FIELD_DEGREE)
+        phi = [np.zeros((pr.n_points, K, 2)), np.zeros((pr.n_points, K, 2))]
+        for si, sc in enumerate(pr.rig.scanners):
+            sel = pr.scanner_idx == si
+            for k, (sensor, obs) in enumerate(((sc.camera, pr.cam_mm), (sc.projector, pr.prj_mm))):
+                if sensor.field is not None and sensor.field.degree == FIELD_DEGREE:
+                    phi[k][sel] = np.swapaxes(sensor.field.basis(obs[sel]), 1, 2)
+        return np.ascontiguousarray(phi[0]), np.ascontiguousarray(phi[1])
+
+    def fields(self, x) -> np.ndarray:
+        """Correction-field coefficients (n_sensors, K) at x."""
+        return self.layout.unpack_fields(np.asarray(x, float), self.problem.rig.fields)
+
+    def observations(self, x, prj_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Camera and projector observations (n, 2) as the 14-parameter model sees them at x:
+        ``m - f(m)`` with each sensor's correction field (the problem's own without one)."""
+        pr, a = self.problem, self._arrays
+        cam, prj = pr.cam_mm, pr.prj_mm if prj_mm is None else prj_mm
+        rig = pr.rig
+        if not rig.has_field:
+            return cam, np.ascontiguousarray(prj, float)
+        coef = self.fields(x)
+        cam = cam - np.einsum("nkd,nk->nd", a["phi_cam"], coef[2 * pr.scanner_idx])
+        prj = prj - np.einsum("nkd,nk->nd", a["phi_prj"], coef[2 * pr.scanner_idx + 1])
+        for si, sc in enumerate(rig.scanners):  # fields of another degree, held fixed
+            sel = pr.scanner_idx == si
+            if sc.camera.has_field and sc.camera.field.degree != FIELD_DEGREE:
+                cam[sel] = sc.camera.field.corrected(pr.cam_mm[sel])
+            if sc.projector.has_field and sc.projector.field.degree != FIELD_DEGREE:
+                prj[sel] = sc.projector.field.corrected(np.asarray(prj_mm if prj_mm is not None else pr.prj_mm)[sel])
+        return np.ascontiguousarray(cam), np.ascontiguousarray(prj)
 
     @property
     def n_chunks(self) -> int:
@@ -372,7 +463,7 @@ class Evaluator:
 
     @property
     def n_local(self) -> int:
-        """Local parameter slots per control point (34, or 42 with free thin-prism terms)."""
+        """Local parameter slots per control point (34, more with free thin-prism terms or fields)."""
         return self._arrays["gmap"].shape[1]
 
     def prism(self, x) -> np.ndarray:
@@ -404,14 +495,15 @@ class Evaluator:
         cost = np.empty(nc)
         nl = self.n_local
         nb = nc if want_jac else 1
-        n1 = 28 if nl == kernels.N_LOCAL else nl  # alpha1's slots (with the prism's: zero pose slots)
+        n1 = 28 if nl == kernels.N_LOCAL else nl  # alpha1's slots (with more: zero pose slots)
         A1 = np.empty((nb, n1, n1))
         A2 = np.empty((nb, nl, nl))
         bv = np.empty((nb, nl))
         sp, ss, sR, sdR, pt, pR, pdR = self._geometry(x)
+        cam, prj = self.observations(x)
         kernels.assemble(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"], a["group_prj"],
                          a["group_meas"], sp, ss, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
-                         pr.cam_mm, pr.prj_mm, pr.gamma1, pr.gamma2, kernels.LOSS_CODES[self.loss],
+                         cam, prj, a["kernel_phi_cam"], a["kernel_phi_prj"], pr.gamma1, pr.gamma2, kernels.LOSS_CODES[self.loss],
                          float(self.scales[0]), float(self.scales[1]), want_jac, res, ok, cost, A1, A2, bv)
         ev = Evaluation(float(cost.sum()), res, ok)
         if want_jac:
@@ -438,12 +530,13 @@ class Evaluator:
         ok = np.empty(pr.n_points, np.bool_)
         dcost = np.empty((nc, R))
         dgrad = np.empty((nc, R, self.n_local))
+        cam, prj_a = self.observations(x, prj_a)
+        _, prj_b = self.observations(x, prj_b)
         with _threads_for(pr.n_points):
             kernels.replica_gradients(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"],
                                       a["group_prj"], a["group_meas"], *self._geometry(x), pr.sphere_idx,
-                                      a["centres"], a["radii"], pr.cam_mm, np.ascontiguousarray(prj_a, float),
-                                      np.ascontiguousarray(prj_b, float), flip, pr.gamma1, pr.gamma2, ok, dcost,
-                                      dgrad)
+                                      a["centres"], a["radii"], cam, prj_a, prj_b, a["kernel_phi_cam"],
+                                      a["kernel_phi_prj"], flip, pr.gamma1, pr.gamma2, ok, dcost, dgrad)
         grad = np.zeros((R, self.layout.n))
         for ch, g in enumerate(a["chunk_group"]):
             cols = a["gmap"][g]
@@ -460,9 +553,10 @@ class Evaluator:
         ok = np.empty(n, np.bool_)
         J = np.empty((n, 2, self.n_local))
         sp, ss, sR, sdR, pt, pR, pdR = self._geometry(x)
+        cam, prj = self.observations(x)
         kernels.residual_rows(a["chunk_start"], a["chunk_stop"], a["chunk_group"], a["group_cam"], a["group_prj"],
                               a["group_meas"], sp, ss, sR, sdR, pt, pR, pdR, pr.sphere_idx, a["centres"], a["radii"],
-                              pr.cam_mm, pr.prj_mm, res, ok, J)
+                              cam, prj, a["kernel_phi_cam"], a["kernel_phi_prj"], res, ok, J)
         return res, J, ok
 
     def robust(self, loss: str, scales: tuple) -> "Evaluator":

@@ -9,6 +9,13 @@ Candidates (``SENSOR_MODELS``; ``bundle.sensor_model`` of a run)
     ``dy += s3 r^2``, of every camera and projector (OpenCV's s1, s3; Weng et al. 1992).
 ``thin_prism4``
     Plus OpenCV's fourth-order thin-prism terms s2, s4 as well (``+ s2 r^4``, ``+ s4 r^4``).
+``field``
+    The 14 parameters plus a smooth correction field over each camera's and projector's
+    image plane (:mod:`fringecal.imagefield`: 19 orthonormal vector polynomials of degree
+    2..4 per sensor, orthogonal to what the 14 parameters absorb; they span the thin-prism
+    terms too, so this model does not free those). Its regularisation is its basis: a
+    fixed low degree instead of a penalty whose weight would have to be chosen, and the
+    held-out error below decides whether the data carry it at all.
 ``auto`` (default)
     The candidate held-out measurements choose (below).
 
@@ -82,8 +89,9 @@ __all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "SCREEN_Z", "pris
            "choose_sensor_model", "fit_model"]
 
 #: the candidates in order of size, with the thin-prism terms each frees (s1, s2, s3, s4)
-CANDIDATES = {"brown14": (False, False, False, False), "thin_prism": (True, False, True, False),
-              "thin_prism4": (True, True, True, True)}
+#: and whether it frees a correction field
+CANDIDATES = {"brown14": ((False, False, False, False), False), "thin_prism": ((True, False, True, False), False),
+              "thin_prism4": ((True, True, True, True), False), "field": ((False, False, False, False), True)}
 SENSOR_MODELS = ("auto", *CANDIDATES)
 #: smallest relative drop of the held-out sum of squares that chooses a richer model
 MIN_GAIN = 0.005
@@ -98,11 +106,12 @@ def prism_free_of(model: str, n_sensors: int) -> np.ndarray:
     """Thin-prism free flags (n_sensors, 4) of a candidate model."""
     if model not in CANDIDATES:
         raise ValueError(f"unknown sensor model {model!r}; choose one of {', '.join(SENSOR_MODELS)}")
-    return np.tile(np.array(CANDIDATES[model], bool), (n_sensors, 1))
+    return np.tile(np.array(CANDIDATES[model][0], bool), (n_sensors, 1))
 
 
 def _with_model(problem: BundleProblem, model: str) -> BundleProblem:
     rig = problem.rig.with_prism_free(prism_free_of(model, len(problem.rig.sensors)))
+    rig = rig.with_field_free(CANDIDATES[model][1])
     return problem.with_start(rig=rig)
 
 
@@ -114,10 +123,11 @@ def fit_model(problem: BundleProblem, options: BundleOptions, model: str) -> Bun
 def _predict(fit: BundleResult, problem: BundleProblem, options: BundleOptions) -> np.ndarray:
     """Residuals (n, 2) of ``problem`` (other measurements) predicted by the sensors of
     ``fit``: only the poses adjusted, from ``problem``'s start values."""
-    rig = replace(fit.rig, free=np.zeros_like(fit.rig.free), prism_free=np.zeros_like(fit.rig.prism_free))
+    rig = replace(fit.rig, free=np.zeros_like(fit.rig.free), prism_free=np.zeros_like(fit.rig.prism_free),
+                  field_free=np.zeros_like(fit.rig.field_free))
     test = problem.with_start(rig=rig)
     ev = Evaluator(test, chunk_size=options.chunk_size)
-    x0 = ev.layout.pack(rig.params, test.poses, rig.prism)
+    x0 = ev.layout.pack_rig(rig, test.poses)
     e0 = ev.evaluate(x0, True)
     plain = options.model_copy(update={"robust_loss": "none", "coarse_points": 0})
     report, _, _ = minimise(ev, x0, e0, plain)
