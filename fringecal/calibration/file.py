@@ -11,6 +11,7 @@ Layout::
           <internal>   xi_h eta_h c </internal>
           <distortion> k1 k2 k3 p1 p2 </distortion>
           <thin_prism> s1 s2 s3 s4 </thin_prism>   (only a model with thin-prism terms)
+          <correction_field degree="4"> f01 .. f19 </correction_field>   (only a model with a field)
         </sensor>
         ...
       </scanner>
@@ -43,8 +44,12 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
 * ``sensor_model`` -- the sensor model the run used and why (configured, or chosen by
   held-out measurements with every candidate's held-out error and the residual-pattern
   statistic; :mod:`fringecal.calibration.models`). Sensors with thin-prism terms carry
-  them as ``thin_prism`` (s1..s4 with unit, free flag and u) beside ``parameters``;
-  without them the document is the 14-parameter one.
+  them as ``thin_prism`` (s1..s4 with unit, free flag and u) beside ``parameters``,
+  sensors with a correction field (:mod:`fringecal.imagefield`) as ``correction_field``
+  (its ``degree``, the ``basis`` it is expressed in, and its ``coefficients`` f01.. in mm
+  with free flag and u); without them the document is the 14-parameter one. The
+  ``covariance`` block holds the 14 parameters' covariance (with a field: marginal over
+  the field's coefficients, whose own u are in ``correction_field``).
 * ``phase_ripple`` -- per scanner and orientation, the phase ripple its decoder
   corrected in its calibration stacks (only where it did): the mean of their fits,
   :func:`fringecal.fringe.ripple.ripple_document`. ``fringecal measure`` corrects a
@@ -67,6 +72,7 @@ import numpy as np
 from fringecal import __version__
 from fringecal.atomic import write_text
 from fringecal.calibration.propagation import ParameterCovariances
+from fringecal.imagefield import CorrectionField, field_names
 from fringecal.names import UnsafeNameError, check_name
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES, Sensor, SensorFormat
@@ -183,9 +189,49 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
             if rig.has_prism:  # only then: a 14-parameter calibration's document is unchanged
                 entry["sensors"][-1]["thin_prism"] = _parameter_entries(PRISM_NAMES, sensor.prism, rig.prism_free[k],
                                                                         rig.prism_uncertainty, k)
+            if sensor.field is not None:
+                entry["sensors"][-1]["correction_field"] = _field_entry(sensor.field, rig.field_free[k],
+                                                                        rig.field_uncertainty, k)
             k += 1
         out["scanners"].append(entry)
     return out
+
+
+_FIELD_BASIS = ("fringecal.imagefield: vector polynomials of total degree 2..degree in m / R (m measured "
+                "image-plane mm from the format's centre, R half its diagonal), orthonormal over the format and "
+                "orthogonal to the fields the 14 parameters absorb; a measured point m stands for m - f(m)")
+
+
+def _field_entry(f: CorrectionField, free: bool, uncertainty, k: int) -> dict:
+    terms = {}
+    for j, name in enumerate(field_names(f.degree)):
+        terms[name] = {"value": float(f.coefficients[j]), "unit": "mm", "free": bool(free)}
+        if uncertainty is not None and j < uncertainty.shape[1]:
+            terms[name]["u"] = float(uncertainty[k, j])
+    return {"degree": int(f.degree), "basis": _FIELD_BASIS, "coefficients": terms}
+
+
+def _field_of(entry: dict, fmt: SensorFormat, where: str) -> tuple[CorrectionField, bool, list]:
+    """The correction field of a sensor's ``correction_field`` entry, its free flag and u."""
+    degree = entry.get("degree")
+    if not isinstance(degree, int) or not 2 <= degree <= 8:
+        raise CalibrationFileError(f"{where}: correction_field degree {degree!r} must be a whole number from 2 to 8")
+    names = field_names(degree)
+    terms = entry.get("coefficients", {})
+    missing = [n for n in names if n not in terms]
+    if missing or len(terms) != len(names):
+        raise CalibrationFileError(f"{where}: a degree-{degree} correction_field has coefficients "
+                                   f"{names[0]}..{names[-1]}; missing {missing[:3]}" if missing else
+                                   f"{where}: a degree-{degree} correction_field has {len(names)} coefficients, "
+                                   f"found {len(terms)}")
+    values = [float(terms[n]["value"]) for n in names]
+    u = [float(terms[n]["u"]) if "u" in terms[n] else np.nan for n in names]
+    for n, v, un in zip(names, values, u):
+        if not np.isfinite(v) or ("u" in terms[n] and not un >= 0):
+            raise CalibrationFileError(f"{where}: correction_field coefficient {n!r} = {v} (u {un}); each must be "
+                                       "a finite number, its u finite and >= 0")
+    free = any(bool(terms[n].get("free", False)) for n in names)
+    return CorrectionField(fmt.width_mm, fmt.height_mm, degree, values), free, u
 
 
 def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
@@ -193,7 +239,7 @@ def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
     and every parameter, format and uncertainty a finite number (a NaN parameter would
     drop its scanner's points from a cloud without a word)."""
     try:
-        scanners, free, unc, prism_free, prism_u = [], [], [], [], []
+        scanners, free, unc, prism_free, prism_u, field_free, field_u = [], [], [], [], [], [], []
         for i, sc in enumerate(d["scanners"]):
             check_name(sc["name"], f"scanners[{i}] name", source)
             pair = {}
@@ -220,6 +266,11 @@ def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
                 if not np.all(np.isfinite(prism)):
                     raise CalibrationFileError(f"{source}: {where}: thin_prism {prism} must be finite numbers")
                 pair[se["role"]] = Sensor(se["name"], se["role"], fmt, vals, prism)
+                field_free.append(False)
+                field_u.append(None)
+                if "correction_field" in se:
+                    f, field_free[-1], field_u[-1] = _field_of(se["correction_field"], fmt, f"{source}: {where}")
+                    pair[se["role"]] = pair[se["role"]].with_field(f)
                 free.append([bool(p[n]["free"]) for n in PARAM_NAMES])
                 prism_free.append([bool(tp[n].get("free", False)) if n in tp else False for n in PRISM_NAMES])
                 prism_u.append([float(tp[n]["u"]) if n in tp and "u" in tp[n] else np.nan for n in PRISM_NAMES])
@@ -227,9 +278,13 @@ def rig_from_dict(d: dict, source: str = "<calibration>") -> Rig:
             scanners.append(Scanner(sc["name"], pair["camera"], pair["projector"]))
         u = np.array(unc)
         pu = np.array(prism_u)
+        fu = None
+        if any(x is not None and not np.isnan(x).all() for x in field_u):
+            n = max(len(x) for x in field_u if x is not None)
+            fu = np.array([x if x is not None and len(x) == n else np.full(n, np.nan) for x in field_u])
         return Rig(tuple(scanners), d["reference_scanner"], np.array(free),
                    None if np.isnan(u).all() else u, np.array(prism_free, bool).reshape(-1, 4),
-                   None if np.isnan(pu).all() else pu)
+                   None if np.isnan(pu).all() else pu, np.array(field_free, bool), fu)
     except UnsafeNameError as err:
         raise CalibrationFileError(str(err)) from None
     except (KeyError, TypeError, ValueError) as err:
@@ -446,9 +501,15 @@ def xml_text(rig: Rig, metadata: dict | None = None) -> str:
                     if "u" in p:
                         attrs["u"] = repr(p["u"])
                     ET.SubElement(e_g, n, attrs).text = repr(p["value"])
-            if "thin_prism" in se:  # beyond the thesis's layout, only where the model has the terms
-                e_g = ET.SubElement(e_se, "thin_prism")
-                for n, p in se["thin_prism"].items():
+            extra = [("thin_prism", se.get("thin_prism"), {})]
+            if "correction_field" in se:
+                cf = se["correction_field"]
+                extra.append(("correction_field", cf["coefficients"], {"degree": str(cf["degree"])}))
+            for tag, entries, head in extra:  # beyond the thesis's layout, only where the model has them
+                if entries is None:
+                    continue
+                e_g = ET.SubElement(e_se, tag, head)
+                for n, p in entries.items():
                     attrs = {"unit": p["unit"], "free": "true" if p["free"] else "false"}
                     if "u" in p:
                         attrs["u"] = repr(p["u"])
@@ -505,6 +566,22 @@ def read_calibration_xml(path) -> Rig:
                         raise CalibrationFileError(f"{path}: {where} <thin_prism><{e_p.tag}>: not a number: "
                                                    f"{e_p.text!r}") from None
                 entry["thin_prism"] = prism
+            e_cf = e_se.find("correction_field")
+            if e_cf is not None:
+                terms = {}
+                for e_p in e_cf:
+                    try:
+                        terms[e_p.tag] = {"value": float(e_p.text), "free": e_p.get("free", "false") == "true",
+                                          **({"u": float(e_p.get("u"))} if e_p.get("u") is not None else {})}
+                    except (TypeError, ValueError):
+                        raise CalibrationFileError(f"{path}: {where} <correction_field><{e_p.tag}>: not a number: "
+                                                   f"{e_p.text!r}") from None
+                try:
+                    degree = int(e_cf.get("degree", ""))
+                except ValueError:
+                    raise CalibrationFileError(f"{path}: {where} <correction_field degree={e_cf.get('degree')!r}>: "
+                                               "not a whole number") from None
+                entry["correction_field"] = {"degree": degree, "coefficients": terms}
             sc["sensors"].append(entry)
         d["scanners"].append(sc)
     return rig_from_dict(d, str(path))

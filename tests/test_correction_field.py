@@ -1,0 +1,149 @@
+"""The smooth correction field over each image plane (fringecal/imagefield.py) and the
+sensor model ``field`` that adjusts it (calibration/models.py).
+
+One simulated thesis rig (control points every 40 px at 2048 px, the thesis's noise;
+about 800 points) whose truth sensors carry a degree-4 field of 2 um per term (about
+9 um RMS over the image, 1.2 camera pixels), and the same rig without.
+"""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fringecal.calibration.bundle import BundleOptions
+from fringecal.calibration.file import CalibrationFileError, read_calibration_xml, rig_from_dict, rig_to_dict, xml_text
+from fringecal.calibration.model import BundleProblem, Evaluator
+from fringecal.calibration.models import choose_sensor_model, fit_model
+from fringecal.imagefield import CorrectionField, _absorbed, _grid, _monomials, field_terms
+from fringecal.pointcloud import triangulate_image_points
+from fringecal.rig import Rig, Scanner
+from fringecal.simulate.control_points import simulate_control_points, thesis_truth
+from fringecal.triangulation import closest_approach
+
+TERM_MM = 2e-3
+OPTIONS = BundleOptions(bootstrap_draws=0, start="given")
+
+
+def _with_fields(rig, degree, scale, seed=3):
+    rng = np.random.default_rng(seed)
+    sensors = [s.with_field(CorrectionField.zero(s.format.width_mm, s.format.height_mm, degree)
+                            .with_coefficients(rng.normal(size=field_terms(degree)) * scale)) for s in rig.sensors]
+    return replace(rig, scanners=tuple(Scanner(sc.name, sensors[2 * i], sensors[2 * i + 1])
+                                       for i, sc in enumerate(rig.scanners)))
+
+
+def _problem(scale):
+    rig, art, poses = thesis_truth()
+    truth = _with_fields(rig, 4, scale)
+    sim = simulate_control_points(truth, art, poses, spacing_px=40, rng=1)
+    return BundleProblem.from_tables(rig, art, sim.control_points, poses), truth
+
+
+@pytest.fixture(scope="module")
+def field_fits():
+    problem, truth = _problem(TERM_MM)
+    first = fit_model(problem, OPTIONS, "brown14")
+    richer = fit_model(problem.with_start(first.rig, first.poses), OPTIONS, "field")
+    return problem, truth, first, richer
+
+
+def test_basis_is_orthonormal_over_the_format_and_free_of_what_the_14_parameters_absorb():
+    for w, h in ((15.1, 15.1), (19.0, 14.3)):
+        f = CorrectionField.zero(w, h, 4)
+        grid = _grid(w, h)
+        phi = f.basis(grid).reshape(-1, f.n_terms) / np.sqrt(len(grid))
+        assert f.n_terms == 19
+        np.testing.assert_allclose(phi.T @ phi, np.eye(19), atol=1e-12)
+        absorbed = _monomials(grid / f.radius_mm, 4).reshape(-1, 30) @ _absorbed(4) / np.sqrt(len(grid))
+        assert np.abs(absorbed.T @ phi).max() < 1e-10
+        six = CorrectionField.zero(w, h, 6)
+        assert six.n_terms == 45
+        np.testing.assert_allclose(six.basis(grid)[..., :19], f.basis(grid), atol=1e-12)
+
+
+def test_sensor_with_a_field_projects_and_back_projects_consistently():
+    rig, _, _ = thesis_truth()
+    cam = _with_fields(rig, 6, 5e-3).sensors[0]  # 34 um RMS: large, to test the inverse
+    X = np.random.default_rng(1).normal(size=(200, 3)) * 150
+    m = cam.project(X)
+    o, d = cam.rays(m)
+    assert np.abs(np.cross(X - o, d)).max() < 1e-9
+    moved = np.linalg.norm(m - cam.with_field(None).project(X), axis=1)
+    assert moved.max() > 0.02  # the field moved the image by tens of micrometres
+    np.testing.assert_allclose(cam.field.corrected(cam.field.measured(m)), m, atol=1e-12)
+    # the compiled 14-parameter kernels see the same rays through brown_image_mm
+    sc = _with_fields(rig, 4, 5e-3).scanners[0]
+    S = np.random.default_rng(2).normal(size=(50, 3)) * 100
+    cam_mm, prj_mm = sc.camera.project(S), sc.projector.project(S)
+    np.testing.assert_allclose(triangulate_image_points(sc.camera, sc.projector, cam_mm, prj_mm), S, atol=1e-8)
+    o1, d1 = sc.camera.rays(cam_mm)
+    o2, d2 = sc.projector.rays(prj_mm)
+    np.testing.assert_allclose(closest_approach(o1, d1, o2, d2)[0], S, atol=1e-8)
+
+
+def test_field_slots_of_the_kernels_match_finite_differences(field_fits):
+    problem, truth, _, richer = field_fits
+    pr = replace(problem.thinned(7), rig=richer.rig)
+    ev = Evaluator(pr, chunk_size=5)
+    x = ev.layout.pack_rig(pr.rig, richer.poses)
+    res, J, ok = ev.jacobian_rows(x)
+    cols = ev.global_columns()
+    worst = 0.0
+    for i in np.flatnonzero([".field." in n for n in ev.layout.names])[::7]:
+        h = 1e-6
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        fd = (ev.evaluate(xp, False).res - ev.evaluate(xm, False).res) / (2 * h)
+        an = np.zeros_like(fd)
+        for s in range(cols.shape[1]):
+            sel = cols[:, s] == i
+            an[sel] += J[sel, :, s]
+        err = np.abs(fd - an).max() / np.abs(fd).max()
+        worst = max(worst, err)
+        assert err < 1e-6, f"{ev.layout.names[i]}: relative difference {err:.2e}"
+    assert worst > 0
+
+
+def test_field_model_recovers_the_truth_within_its_stated_u(field_fits):
+    _, truth, first, richer = field_fits
+    assert richer.rig.field_free.all() and richer.layout.n_field_terms == 19
+    z = (richer.rig.fields - truth.fields) / richer.rig.field_uncertainty
+    # 76 coefficients: RMS of z near 1, none beyond 4.5 (a 1-in-10,000 event for 76 normals)
+    assert 0.7 < np.sqrt(np.mean(z ** 2)) < 1.5, z
+    assert np.abs(z).max() < 4.5, z
+    # the field takes most of the residual the 14 parameters leave
+    assert richer.after.rms_f_mm < 0.5 * first.after.rms_f_mm, (first.after.rms_f_mm, richer.after.rms_f_mm)
+
+
+def test_held_out_measurements_choose_the_field_only_where_the_images_have_one(field_fits):
+    problem, _, first, _ = field_fits
+    opts = BundleOptions(bootstrap_draws=0, model_selection="always")
+    _, record = choose_sensor_model(problem, opts, candidates=("brown14", "field"), first=first)
+    assert record["model"] == "field", record["comparisons"]
+    (cmp,) = record["comparisons"]
+    assert cmp["gain"] > 0.5 and cmp["t"] > 3, cmp
+    plain, _ = _problem(0.0)
+    _, record = choose_sensor_model(plain, opts, candidates=("brown14", "field"))
+    assert record["model"] == "brown14", record["comparisons"]
+    assert record["comparisons"][0]["gain"] < 0, record["comparisons"]
+
+
+def test_calibration_files_carry_the_field(field_fits, tmp_path):
+    rig = field_fits[3].rig
+    doc = json.loads(json.dumps(rig_to_dict(rig)))
+    entry = doc["scanners"][0]["sensors"][0]["correction_field"]
+    assert entry["degree"] == 4 and len(entry["coefficients"]) == 19 and "u" in entry["coefficients"]["f01"]
+    back = rig_from_dict(doc)
+    np.testing.assert_array_equal(back.fields, rig.fields)
+    np.testing.assert_array_equal(back.field_uncertainty, rig.field_uncertainty)
+    (tmp_path / "c.xml").write_text(xml_text(rig))
+    np.testing.assert_array_equal(read_calibration_xml(tmp_path / "c.xml").fields, rig.fields)
+    np.testing.assert_array_equal(Rig.from_frame(rig.to_frame()).fields, rig.fields)
+    plain = thesis_truth()[0]
+    assert "correction_field" not in json.dumps(rig_to_dict(plain)) and "field_degree" not in plain.to_frame()
+    del doc["scanners"][1]["sensors"][1]["correction_field"]["coefficients"]["f07"]
+    with pytest.raises(CalibrationFileError, match=r"scanner 'scanner2'.*P2.*f07"):
+        rig_from_dict(doc, "cal.json")
