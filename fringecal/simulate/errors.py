@@ -40,6 +40,11 @@ session_drift_mm / _mrad   0.003 / 0.001     assumed per pose; thesis 4.5.2 size
 thin_prism_corner_px       0.2               assumed within the 0.1-0.3 px of systematic
                                              residual parametric models leave (mrcal docs;
                                              Schoeps et al., CVPR 2020)
+lens_field_rms_um          0 (off)           lens manufacturing errors beyond Brown's
+                                             radial/tangential terms (decentred or tilted
+                                             elements, aspheric form errors), which mrcal's
+                                             splined models exist to describe; no source
+                                             sizes them for the thesis's optics
 =========================  ================  ==============================================
 
 Which step reads which switch (its cache key) is fixed by :data:`ARTEFACT_SWITCHES`,
@@ -81,6 +86,7 @@ REALISTIC: dict = {
     "session_drift_mm": 0.003,
     "session_drift_mrad": 0.001,
     "thin_prism_corner_px": 0.2,
+    "lens_field_rms_um": 0.0,  # off: the preset's lens error is the thin prism (figures in docs)
 }
 
 #: Switches that decide the artefact and ball-bar as built (step ``simulate-prepare``).
@@ -88,7 +94,8 @@ ARTEFACT_SWITCHES = ("seed", "cmm_deviation", "cmm_u_scale", "sphere_diameter_sd
                      "artefact_cte_per_c", "artefact_use_gravity", "artefact_use_supports", "ballbar_deviation")
 #: Switches of the renderer (every rendered store).
 RENDER_SWITCHES = ("seed", "sphere_form_rms_mm", "projector_gamma", "camera_linearity_error",
-                   "phase_field_rms_rad", "phase_field_modes", "scan_drift_rad", "thin_prism_corner_px")
+                   "phase_field_rms_rad", "phase_field_modes", "scan_drift_rad", "thin_prism_corner_px",
+                   "lens_field_rms_um")
 #: Switches of the scanners' drift over the calibration session (artefact stores only).
 SESSION_SWITCHES = ("seed", "session_drift_mm", "session_drift_mrad")
 
@@ -137,6 +144,13 @@ class SimulationErrors(StrictModel):
     thin_prism_corner_px : float
         Thin-prism lens term of every camera and projector, sized by its image
         displacement at the corner in pixels of the sensor file's native format.
+    lens_field_rms_um : float
+        A smooth degree-6 correction field (:mod:`fringecal.imagefield`) of every true
+        camera and projector, 45 coefficients drawn with equal variance per sensor,
+        scaled to this RMS displacement (micrometres on the image plane) over the
+        format: what a real lens adds beyond Brown's radial and tangential terms
+        (manufacturing errors; cf. mrcal's splined models). About 19/45 of it is what
+        the calibration's degree-4 ``field`` model can absorb.
     """
 
     profile: Literal["ideal", "realistic"] = "ideal"
@@ -158,6 +172,7 @@ class SimulationErrors(StrictModel):
     session_drift_mm: float = Field(0.0, ge=0)
     session_drift_mrad: float = Field(0.0, ge=0)
     thin_prism_corner_px: float = Field(0.0, ge=0)
+    lens_field_rms_um: float = Field(0.0, ge=0)
 
     @model_validator(mode="before")
     @classmethod
@@ -178,7 +193,7 @@ class SimulationErrors(StrictModel):
                     or self.artefact_use_gravity is not None or self.artefact_use_supports is not None
                     or self.projector_gamma != 1.0 or self.camera_linearity_error or self.phase_field_rms_rad
                     or self.scan_drift_rad or self.session_drift_mm or self.session_drift_mrad
-                    or self.thin_prism_corner_px)
+                    or self.thin_prism_corner_px or self.lens_field_rms_um)
 
     @property
     def profile_name(self) -> str:

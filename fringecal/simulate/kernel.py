@@ -13,7 +13,9 @@ compiles a new specialisation: sphere form errors (``form``, empty when off), a
 projector intensity non-linearity as harmonics h = 1..H of every fringe count
 (phasors of the counts h t; H = 1 when off) with the per-frame weights ``fcos``,
 ``fsin`` that also carry a pattern drift during the sequence, a per-pixel phase
-field (``field``, empty when off) and the camera response (``noise[5]``).
+field (``field``, empty when off) and the camera response (``noise[5]``). A sensor's
+correction field (a lens field) lengthens its sensor pack instead, which
+:mod:`.geometry` reads (:func:`~.geometry.sensor_pack`).
 
 Primitives (spheres, cylinders, boxes, planes, free-form panels) are intersected by
 :mod:`.geometry`. numba's on-disk cache (``cache=True``) is keyed on this file's bytes

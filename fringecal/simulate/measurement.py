@@ -144,8 +144,9 @@ def simulate_measurement(measurement: str, scanner: Scanner, scene: Scene, acqui
                               full_scale=acquisition.render.max_dn, store_frames=acquisition.store_frames,
                               source=f"measurement {measurement}", scanner_fits=scanner_fits)
     if truth_out is not None:
-        truth_attrs = {"measurement": measurement, "truth_sensors": {"camera": _sensor_attr(scanner.camera),
-                                                                     "projector": _sensor_attr(scanner.projector)},
+        cam, prj = errors.sensors(scanner) if errors is not None else scanner.sensors  # with any lens field
+        truth_attrs = {"measurement": measurement, "truth_sensors": {"camera": _sensor_attr(cam),
+                                                                     "projector": _sensor_attr(prj)},
                        "object_names": list(truth.object_names), "object_kinds": list(truth.object_kinds),
                        "sphere_ids": list(truth.sphere_ids), "render": acquisition.render.model_dump(mode="json")}
         ds = xr.Dataset({k: (("v", "u"), v) for k, v in truth_variables(truth).items()}, attrs=truth_attrs)

@@ -14,8 +14,12 @@ Candidate primitives are culled per image tile with bounding cones. The whole
 pipeline, noise included, is one parallel numba kernel over tiles
 (:mod:`fringecal.simulate.kernel`). Errors outside the calibration model (sphere form,
 projector gamma, camera response, a phase field, drift during the scan, a thin-prism
-lens term) come in as :class:`~fringecal.simulate.unmodelled.RenderErrors`; without
-them the frames are bit for bit those of the ideal renderer.
+lens term, a lens correction field) come in as
+:class:`~fringecal.simulate.unmodelled.RenderErrors`; without them the frames are bit
+for bit those of the ideal renderer. A sensor's own correction field
+(:attr:`fringecal.sensor.Sensor.field`) is honoured too: camera pixels are corrected to
+``m - f(m)`` before their rays are cast, and projector coordinates are the measured
+ones (:mod:`.geometry`).
 """
 
 from __future__ import annotations
@@ -180,13 +184,13 @@ def render_measurement(scanner: Scanner, scene: Scene, config: RenderConfig, rng
     if missing:
         raise ValueError(f"scene materials {missing} are not in the render configuration "
                          f"(have {sorted(config.materials)})")
-    cam, prj = scanner.camera, scanner.projector
+    err = errors or RenderErrors()
+    cam, prj = err.sensors(scanner)
     H, W = cam.format.shape
     prims, kinds, owner = scene.packed()
     mats = np.array([[config.materials[o.material].albedo, config.materials[o.material].specular,
                       config.materials[o.material].shininess] for o in scene.objects], float).reshape(-1, 3)
     obj_sphere = scene.object_sphere_index()
-    err = errors or RenderErrors()
     orient = np.array([0 if o == "x" else 1 for o in seq.orientations], np.int64)
     counts, fcos, fsin = frame_weights(seq, emitted_harmonics(config.offset, config.amplitude, err.projector_gamma),
                                        err.scan_drift_rad)

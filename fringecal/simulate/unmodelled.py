@@ -23,6 +23,11 @@ a ripple of 7 periods per fringe.
 Drift during a scan shifts the pattern by ``psi_f = scan_drift f / (n_frames - 1)``
 (rad of tau) at frame f of the sequence (both orientations), i.e. the phase
 ``t psi_f`` is added to every harmonic's step phase: :func:`frame_weights`.
+
+A lens field (:func:`lens_field`) is a degree-6 :class:`~fringecal.imagefield.CorrectionField`
+of a true camera or projector: :meth:`RenderErrors.sensors` attaches it to the scanner's
+sensors, and the kernel honours any sensor's field through its pack
+(:func:`fringecal.simulate.geometry.sensor_pack`).
 """
 
 from __future__ import annotations
@@ -32,11 +37,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.sensor import SensorFormat
+from fringecal.imagefield import CorrectionField, field_terms
+from fringecal.sensor import Sensor, SensorFormat
 from fringecal.simulate import geometry as g
 
-__all__ = ["HARMONIC_TAIL", "MAX_HARMONICS", "NO_FIELD", "RenderErrors", "emitted_harmonics", "form_array",
-           "frame_weights", "phase_field", "thin_prism"]
+__all__ = ["HARMONIC_TAIL", "LENS_FIELD_DEGREE", "MAX_HARMONICS", "NO_FIELD", "RenderErrors", "emitted_harmonics",
+           "form_array", "frame_weights", "lens_field", "phase_field", "thin_prism"]
 
 #: Largest neglected tail sum |b_h| of the emitted pattern (fraction of full scale).
 HARMONIC_TAIL = 1e-6
@@ -44,6 +50,9 @@ HARMONIC_TAIL = 1e-6
 MAX_HARMONICS = 32
 #: The kernel's "no phase field" (empty; no allocation per pixel).
 NO_FIELD = np.zeros((2, 0, 0))
+#: Degree of a true lens field: its first 19 terms are the calibration's degree-4 field,
+#: the other 26 what that model cannot describe.
+LENS_FIELD_DEGREE = 6
 
 
 @dataclass(frozen=True)
@@ -64,6 +73,8 @@ class RenderErrors:
         Zonal form terms (ux, uy, uz, amplitude mm, degree) in the world frame.
     camera_prism, projector_prism : (s1, s2)
         Thin-prism coefficients (mm^-1) of the true camera and projector.
+    camera_field, projector_field : CorrectionField or None
+        Lens fields of the true camera and projector (:func:`lens_field`).
     """
 
     projector_gamma: float = 1.0
@@ -74,6 +85,17 @@ class RenderErrors:
     sphere_form: dict = field(default_factory=dict)
     camera_prism: tuple = (0.0, 0.0)
     projector_prism: tuple = (0.0, 0.0)
+    camera_field: CorrectionField | None = None
+    projector_field: CorrectionField | None = None
+
+    def sensors(self, scanner) -> tuple[Sensor, Sensor]:
+        """(camera, projector) of ``scanner`` with the lens fields attached (where given)."""
+        cam, prj = scanner.camera, scanner.projector
+        if self.camera_field is not None:
+            cam = cam.with_field(self.camera_field)
+        if self.projector_field is not None:
+            prj = prj.with_field(self.projector_field)
+        return cam, prj
 
 
 def emitted_harmonics(offset: float, amplitude: float, gamma: float) -> np.ndarray:
@@ -174,3 +196,19 @@ def thin_prism(native: SensorFormat, corner_px: float, angle_rad: float) -> tupl
     r2 = (native.width_mm ** 2 + native.height_mm ** 2) / 4
     size = corner_px * pitch / r2
     return float(size * np.cos(angle_rad)), float(size * np.sin(angle_rad))
+
+
+def lens_field(fmt: SensorFormat, rms_um: float, rng: np.random.Generator) -> CorrectionField:
+    """A degree-:data:`LENS_FIELD_DEGREE` correction field over ``fmt`` whose displacement
+    has RMS ``rms_um`` micrometres over the format: all 45 coefficients drawn N(0, 1),
+    then scaled (the basis fields have RMS length 1, so the RMS is their norm in mm).
+    About 19/45 of its energy lies in the calibration's degree-4 ``field`` model.
+
+    >>> from fringecal.imagefield import _grid
+    >>> f = lens_field(SensorFormat(2048, 2048, 15.1, 15.1), 3.0, np.random.default_rng(1))
+    >>> f.degree, f.n_terms, round(float(np.sqrt(np.mean(np.sum(f.value(_grid(15.1, 15.1)) ** 2, -1)))) * 1e3, 9)
+    (6, 45, 3.0)
+    """
+    z = rng.standard_normal(field_terms(LENS_FIELD_DEGREE))
+    a = z * (rms_um * 1e-3 / np.linalg.norm(z))
+    return CorrectionField(float(fmt.width_mm), float(fmt.height_mm), LENS_FIELD_DEGREE, a)

@@ -24,6 +24,11 @@ is configured with); only the renderer sees what this module builds.
   the midpoint of its two pinholes, by a random walk over the poses in acquisition
   order (zero at the first pose; per pose N(0, session_drift_mm^2) per axis and
   N(0, session_drift_mrad^2) per rotation axis).
+* Lens field: every true camera and projector gets a degree-6 correction field of RMS
+  ``lens_field_rms_um`` over its format (:func:`~fringecal.simulate.unmodelled.lens_field`),
+  drawn from the seed and the sensor's name; the renderer gets it through
+  :func:`render_errors`, the control-point simulator through :func:`with_lens_fields`.
+  The run's rig never holds it.
 """
 
 from __future__ import annotations
@@ -37,13 +42,13 @@ from numpy.polynomial import legendre
 from fringecal.artefact import Artefact, load_artefact
 from fringecal.config import ConfigError
 from fringecal.engineering.corrections import ArtefactCorrections, SagSettings, ThermalSettings, apply_corrections
-from fringecal.rig import Scanner, load_rig
+from fringecal.rig import Rig, Scanner, load_rig
 from fringecal.rotation import angles_from_matrix
 from fringecal.simulate.errors import SimulationErrors, error_rng
-from fringecal.simulate.unmodelled import RenderErrors, thin_prism
+from fringecal.simulate.unmodelled import RenderErrors, lens_field, thin_prism
 
 __all__ = ["FORM_DEGREES", "as_built_artefact", "as_built_ballbar", "drifted_scanner", "form_rms", "native_formats",
-           "render_errors", "session_displacement", "sphere_form_terms"]
+           "render_errors", "sensor_lens_field", "session_displacement", "sphere_form_terms", "with_lens_fields"]
 
 #: Degrees of the zonal form terms of each sphere.
 FORM_DEGREES = (2, 2, 3, 3)
@@ -174,6 +179,27 @@ def native_formats(sensors_path) -> dict:
     return {s.name: s.format for s in load_rig(Path(sensors_path)).sensors}
 
 
+def sensor_lens_field(errors: SimulationErrors, sensor):
+    """The true lens field of ``sensor`` (None when ``lens_field_rms_um`` is off): the
+    same for a sensor of any pixel count (the field lives on the format's mm)."""
+    if not errors.lens_field_rms_um:
+        return None
+    return lens_field(sensor.format, errors.lens_field_rms_um, error_rng(errors.seed, "lens-field", sensor.name))
+
+
+def with_lens_fields(rig: Rig, errors: SimulationErrors) -> Rig:
+    """``rig`` (a truth rig) with every sensor's true lens field attached, for simulators
+    that observe through :class:`~fringecal.sensor.Sensor` (e.g. the control points)."""
+    if not errors.lens_field_rms_um:
+        return rig
+
+    def attach(s):
+        return s.with_field(sensor_lens_field(errors, s))
+
+    return replace(rig, scanners=tuple(replace(sc, camera=attach(sc.camera), projector=attach(sc.projector))
+                                       for sc in rig.scanners))
+
+
 def render_errors(errors: SimulationErrors, scanner: Scanner, T_world_object=None, label: str = "artefact",
                   sphere_ids=(), native: dict | None = None) -> RenderErrors | None:
     """The :class:`RenderErrors` of one measurement of ``scanner``; None when no
@@ -185,7 +211,8 @@ def render_errors(errors: SimulationErrors, scanner: Scanner, T_world_object=Non
     sensors' own).
     """
     if not (errors.sphere_form_rms_mm or errors.projector_gamma != 1.0 or errors.camera_linearity_error
-            or errors.phase_field_rms_rad or errors.scan_drift_rad or errors.thin_prism_corner_px):
+            or errors.phase_field_rms_rad or errors.scan_drift_rad or errors.thin_prism_corner_px
+            or errors.lens_field_rms_um):
         return None
     form = {}
     if errors.sphere_form_rms_mm and T_world_object is not None:
@@ -203,4 +230,5 @@ def render_errors(errors: SimulationErrors, scanner: Scanner, T_world_object=Non
     return RenderErrors(projector_gamma=errors.projector_gamma, camera_linearity_error=errors.camera_linearity_error,
                         scan_drift_rad=errors.scan_drift_rad, phase_field_rms_rad=errors.phase_field_rms_rad,
                         phase_field_modes=errors.phase_field_modes, sphere_form=form, camera_prism=prisms[0],
-                        projector_prism=prisms[1])
+                        projector_prism=prisms[1], camera_field=sensor_lens_field(errors, scanner.camera),
+                        projector_field=sensor_lens_field(errors, scanner.projector))
