@@ -83,12 +83,15 @@ def export_opencv(
 ):
     """One OpenCV FileStorage YAML per scanner (cv2.stereoCalibrate layout: cameraMatrix1/2,
     distCoeffs1/2, R, T, plus each sensor's world pose); prints each sensor's model
-    difference to fringecal's projection in pixels."""
+    difference to fringecal's projection in pixels. A sensor with a correction field gets
+    OpenCV's 14-coefficient model fitted by least squares, and the worst difference says
+    whether it fits (at most 0.01 px) or approximates."""
     guarded(_export, extra=_opencv_errors())(run, calibration, out, as_json)
 
 
 def _export(run: Optional[Path], calibration: Optional[Path], out: Path, as_json: bool) -> None:
     from fringecal.flows.validate import output_folder
+    from fringecal.interop.opencv import FIT_TOLERANCE_PX
     from fringecal.interop.opencv_storage import write_rig
 
     if (run is None) == (calibration is None):
@@ -100,11 +103,18 @@ def _export(run: Optional[Path], calibration: Optional[Path], out: Path, as_json
         written = write_rig(rig, out)
     except ValueError as err:  # a lens model that folds over inside the format
         raise UserInputError(f"{calibration}: {err}") from None
+    models = [(name, path, m) for name, (path, cam, prj) in written.items() for m in (cam, prj)]
+    fitted = [m for _, _, m in models if m.fitted]  # sensors with a correction field: OpenCV's model is fitted
     rows = [{"scanner": name, "sensor": m.name, "role": m.role, "image_px": f"{m.image_size[0]}x{m.image_size[1]}",
-             "worst_px": m.worst_px, "rms_px": m.rms_px, "file": str(path)}
-            for name, (path, cam, prj) in written.items() for m in (cam, prj)]
-    _print(rows, "OpenCV model vs fringecal's projection (pixels), written to:", as_json,
-           {"calibration": str(calibration), "out": str(out)})
+             "worst_px": m.worst_px, "rms_px": m.rms_px, **({"model": m.verdict} if fitted else {}), "file": str(path)}
+            for name, path, m in models]
+    extra = {"calibration": str(calibration), "out": str(out)}
+    if fitted:
+        extra.update(fit_tolerance_px=FIT_TOLERANCE_PX, notes=[m.statement for m in fitted])
+    _print(rows, "OpenCV model vs fringecal's projection (pixels), written to:", as_json, extra)
+    if fitted and not as_json:
+        for m in fitted:
+            console.print(m.statement, highlight=False, soft_wrap=True)
 
 
 @import_app.command("opencv", epilog=example(IMPORT_EXAMPLE))

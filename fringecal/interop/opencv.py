@@ -27,7 +27,28 @@ over the whole format at several depths by projecting the same world points with
 ``cv2.projectPoints`` and :meth:`fringecal.sensor.Sensor.project`. OpenCV models with
 terms fringecal lacks (rational k4..k6, tilt) are imported by a
 least-squares fit of k1, k2, k3, p1, p2 over the image, and the remaining difference is
-measured the same way. Only the pixel -> mm scale is not in OpenCV's model: the
+measured the same way.
+
+**A sensor with a correction field** (:mod:`fringecal.imagefield`) has no exact OpenCV
+model: of the field's 19 degree-2..4 directions, OpenCV's terms hold about two (s2, s4)
+to first order. :func:`to_opencv` then fits OpenCV's 14-coefficient model (rational,
+thin prism, tilt) and the camera matrix to the sensor's whole mapping by least squares
+(:func:`_fit_field_model`): for every point m of a :data:`FIT_GRID` x :data:`FIT_GRID`
+grid over the format, edges included, the direction of :meth:`Sensor.rays` (m) in the
+sensor frame must project to m's pixel through ``cv2.projectPoints``. Fitted: fx, fy,
+cx, cy, k1, k2, k3, p1, p2, s1..s4, tauX, tauY, from the exact model of the sensor
+without its field. Held: the rotation and translation (the sensor's exterior is
+exported exactly, so a stereo file's R, T are fringecal's), and k4..k6 at zero -- to
+first order the rational denominator's terms are -k1..-k3's, so fitting them only
+trades k1 against k4 (measured on the thesis camera C1 with a field of 8.7 um RMS: k1 =
+k4 = -112, worst difference 2.662 px against 2.672 px without them). The difference is
+then measured as for any sensor (:func:`model_difference`, through
+:meth:`Sensor.project`, on other points than the fit's and on the rays of a finer
+lattice that reaches the format's edges and corners, where a fitted model differs
+most) and stated: the model *fits* where the worst
+difference is at most :data:`FIT_TOLERANCE_PX`, else it *approximates* with that worst
+difference (:attr:`OpenCVCamera.verdict`). A sensor without a field is exported
+exactly as before. Only the pixel -> mm scale is not in OpenCV's model: the
 format's width in mm is an argument of :func:`from_opencv` (any value gives the same
 projection; ``c`` and the distortion coefficients scale with it).
 """
@@ -38,12 +59,23 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 from fringecal.rotation import angles_from_matrix
-from fringecal.sensor import Role, Sensor, SensorFormat
+from fringecal.sensor import Role, Sensor, SensorFormat, UndistortError, distort
 
-__all__ = ["OpenCVCamera", "ImportedSensor", "to_opencv", "from_opencv", "model_difference", "pixel_map",
-           "GRID", "DEPTHS_MM"]
+__all__ = [
+    "DEPTHS_MM",
+    "FIT_GRID",
+    "FIT_TOLERANCE_PX",
+    "GRID",
+    "ImportedSensor",
+    "OpenCVCamera",
+    "from_opencv",
+    "model_difference",
+    "pixel_map",
+    "to_opencv",
+]
 
 #: sensor frame -> OpenCV camera frame (a half turn about the optical axis)
 F = np.diag([-1.0, -1.0, 1.0])
@@ -52,6 +84,13 @@ GRID = 81
 #: depths z' (mm, along the optical axis) at which the verification grid is placed
 DEPTHS_MM = (300.0, 1000.0, 3000.0, 10000.0)
 _DIST_LENGTHS = (4, 5, 8, 12, 14)
+#: grid points per image axis of the least-squares fit of a sensor with a correction field
+FIT_GRID = 49
+#: worst difference (px) up to which a fitted OpenCV model is said to fit the sensor
+FIT_TOLERANCE_PX = 0.01
+#: OpenCV's coefficients (indices of the 14) fitted for a sensor with a correction field:
+#: k1, k2, p1, p2, k3, s1..s4, tauX, tauY (k4..k6 held at zero, module notes)
+_FIELD_FITTED = (0, 1, 2, 3, 4, 8, 9, 10, 11, 12, 13)
 
 
 @dataclass(frozen=True)
@@ -78,6 +117,10 @@ class OpenCVCamera:
         Largest and RMS distance (pixels) between ``cv2.projectPoints`` with this model and
         fringecal's projection over the whole image at each of :data:`DEPTHS_MM`
         (:func:`model_difference`).
+    fitted : bool
+        Whether ``K`` and ``dist`` (then OpenCV's 14 coefficients) were fitted by least
+        squares because the sensor has a correction field (module notes); False: the
+        exact conversion.
     """
 
     name: str
@@ -90,6 +133,29 @@ class OpenCVCamera:
     size_mm: tuple[float, float]
     worst_px: float
     rms_px: float
+    fitted: bool = False
+
+    @property
+    def verdict(self) -> str:
+        """``"exact"`` (not fitted), ``"fits"`` (fitted, worst difference at most
+        :data:`FIT_TOLERANCE_PX`) or ``"approximates"``."""
+        if not self.fitted:
+            return "exact"
+        return "fits" if self.worst_px <= FIT_TOLERANCE_PX else "approximates"
+
+    @property
+    def statement(self) -> str:
+        """One line on how the exported model stands for the sensor, with its worst and
+        RMS difference in pixels over the format."""
+        diff = f"worst {self.worst_px:.3g} px, RMS {self.rms_px:.3g} px over the format"
+        if not self.fitted:
+            return f"{self.name}: exact conversion ({diff})"
+        if self.verdict == "fits":
+            how = f"fits it ({diff}; tolerance {FIT_TOLERANCE_PX:g} px)"
+        else:
+            how = f"approximates it with {diff} (it would fit below {FIT_TOLERANCE_PX:g} px)"
+        return (f"{self.name} has a correction field, which OpenCV's model cannot hold exactly: OpenCV's "
+                f"14-coefficient model (k4..k6 zero), fitted by least squares over the format, {how}")
 
     @property
     def rvec(self) -> np.ndarray:
@@ -128,7 +194,8 @@ def pixel_map(role: Role, fmt: SensorFormat) -> tuple[np.ndarray, np.ndarray]:
 
 
 def to_opencv(sensor: Sensor, grid: int = GRID, depths=DEPTHS_MM) -> OpenCVCamera:
-    """OpenCV's model of ``sensor`` (exact), with the measured model difference.
+    """OpenCV's model of ``sensor`` (exact; fitted for a sensor with a correction
+    field, module notes), with the measured model difference.
 
     Parameters
     ----------
@@ -152,10 +219,69 @@ def to_opencv(sensor: Sensor, grid: int = GRID, depths=DEPTHS_MM) -> OpenCVCamer
         dist = np.concatenate([dist, [0.0, 0.0, 0.0, s1 * c, s2 * c**3, s3 * c, s4 * c**3]])
     R = F @ sensor.R
     t = -R @ sensor.pinhole
-    worst, rms = model_difference(sensor, K, dist, R, t, grid, depths)
+    if sensor.has_field:  # no exact model: OpenCV's 14 coefficients fitted, from the exact one without the field
+        K, dist = _fit_field_model(sensor, K, dist)
+    worst, rms = model_difference(sensor, K, dist, R, t, grid, depths, edges=sensor.has_field)
     f = sensor.format
     return OpenCVCamera(sensor.name, sensor.role, (f.width_px, f.height_px), K, dist, R, t,
-                        (f.width_mm, f.height_mm), worst, rms)
+                        (f.width_mm, f.height_mm), worst, rms, sensor.has_field)
+
+
+def _fit_points(sensor: Sensor, grid: int) -> tuple[np.ndarray, np.ndarray]:
+    """Measured image points (n, 2) mm over the whole format and OpenCV's normalised
+    point (n, 2) of each one's ray: a ``grid`` x ``grid`` lattice, edges included,
+    through :meth:`Sensor.directions_local` (OpenCV's camera frame is the sensor frame
+    turned by pi about the axis, so the normalised point is ``-d[:2] / d[2]``). Where the
+    lens model folds over inside the format and refuses back-projection, the lattice is
+    one of ideal points instead (over the format + 10 %), kept where their measured
+    image lies on the format."""
+    f = sensor.format
+    g = np.linspace(-0.5, 0.5, grid)
+    m = np.stack(np.meshgrid(g * f.width_mm, g * f.height_mm), axis=-1).reshape(-1, 2)
+    try:
+        d = sensor.directions_local(m)
+        return m, -d[:, :2] / d[:, 2:]
+    except UndistortError:
+        pass
+    g = np.linspace(-0.55, 0.55, grid)
+    ideal = np.stack(np.meshgrid(g * f.width_mm, g * f.height_mm), axis=-1).reshape(-1, 2) - sensor.principal_point
+    m = sensor.field.measured(distort(ideal, sensor.k, sensor.p, sensor.prism) + sensor.principal_point)
+    keep = f.contains_mm(m)
+    return m[keep], ideal[keep] / sensor.c
+
+
+def _fit_field_model(sensor: Sensor, K0: np.ndarray, dist0: np.ndarray,
+                     grid: int = FIT_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's camera matrix and 14 coefficients closest in pixels to ``sensor``'s
+    whole mapping, a sensor with a correction field (module notes).
+
+    Levenberg-Marquardt over fx, fy, cx, cy and :data:`_FIELD_FITTED` from the exact
+    model ``K0``, ``dist0`` of the sensor without its field; residuals are pixels
+    (``cv2.projectPoints`` of each fit point's normalised ray against the pixel of the
+    measured point, :func:`pixel_map`), derivatives ``cv2.projectPoints``'.
+    """
+    a, b = pixel_map(sensor.role, sensor.format)
+    m, xn = _fit_points(sensor, grid)
+    pts = np.concatenate([xn, np.ones((len(xn), 1))], axis=1).reshape(-1, 1, 3)
+    target = (m * a + b).ravel()
+    start = np.concatenate([[K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]], dist0, np.zeros(14 - dist0.size)])
+    free = np.array([0, 1, 2, 3, *(4 + j for j in _FIELD_FITTED)])
+    zero = np.zeros(3)
+
+    def model(p):
+        x = start.copy()
+        x[free] = p
+        return np.array([[x[0], 0.0, x[2]], [0.0, x[1], x[3]], [0.0, 0.0, 1.0]]), x[4:]
+
+    def residuals(p):
+        return cv2.projectPoints(pts, zero, zero, *model(p))[0].ravel() - target
+
+    def jacobian(p):  # columns: rvec 3, tvec 3, fx fy, cx cy, the 14 coefficients
+        return cv2.projectPoints(pts, zero, zero, *model(p))[1][:, 6:][:, free]
+
+    fit = least_squares(residuals, start[free], jac=jacobian, method="lm", x_scale="jac",
+                        xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    return model(fit.x)
 
 
 def from_opencv(K, dist, R, t, image_size, *, name: str, role: Role, width_mm: float | None = None,
@@ -226,7 +352,8 @@ def from_opencv(K, dist, R, t, image_size, *, name: str, role: Role, width_mm: f
     return ImportedSensor(sensor, worst, rms, fitted)
 
 
-def model_difference(sensor: Sensor, K, dist, R, t, grid: int = GRID, depths=DEPTHS_MM) -> tuple[float, float]:
+def model_difference(sensor: Sensor, K, dist, R, t, grid: int = GRID, depths=DEPTHS_MM,
+                     edges: bool = False) -> tuple[float, float]:
     """Worst and RMS pixel distance between fringecal's and OpenCV's projection.
 
     World points: a ``grid`` x ``grid`` lattice of ideal image points over the format
@@ -236,6 +363,11 @@ def model_difference(sensor: Sensor, K, dist, R, t, grid: int = GRID, depths=DEP
     fold over beyond the measured field, where back-projection is refused).
     fringecal's image (:meth:`Sensor.project`, mm) goes to pixels by :func:`pixel_map`;
     OpenCV's by ``cv2.projectPoints(X, rvec(R), t, K, dist)``.
+
+    With ``edges`` (a fitted model, whose difference is largest in the corners): also the
+    rays of a ``grid`` x ``grid`` lattice of measured points over the format, its edges
+    and corners exactly (which the kept ideal points approach only to a grid step), at
+    every depth, where back-projection does not refuse them.
 
     Returns
     -------
@@ -251,10 +383,21 @@ def model_difference(sensor: Sensor, K, dist, R, t, grid: int = GRID, depths=DEP
     keep = f.contains_mm(image)
     if not keep.any():
         raise ValueError(f"sensor {sensor.name!r}: no point of the verification grid is imaged on the format")
+    world, image = world[keep], image[keep]
+    if edges:
+        g = np.linspace(-0.5, 0.5, grid)
+        m = np.stack(np.meshgrid(g * f.width_mm, g * f.height_mm), axis=-1).reshape(-1, 2)
+        try:
+            d = sensor.directions_local(m)
+        except UndistortError:
+            pass
+        else:
+            on = np.concatenate([d * (z / sensor.c) for z in depths]) @ sensor.R + sensor.pinhole
+            world, image = np.concatenate([world, on]), np.concatenate([image, sensor.project(on)])
     a, b = pixel_map(sensor.role, f)
-    ours = image[keep] * a + b
+    ours = image * a + b
     rvec = cv2.Rodrigues(np.asarray(R, float))[0]
-    theirs = cv2.projectPoints(world[keep].reshape(-1, 1, 3), rvec, np.asarray(t, float).reshape(3, 1),
+    theirs = cv2.projectPoints(world.reshape(-1, 1, 3), rvec, np.asarray(t, float).reshape(3, 1),
                                np.asarray(K, float), np.asarray(dist, float))[0].reshape(-1, 2)
     e = np.linalg.norm(ours - theirs, axis=1)
     return float(e.max()), float(np.sqrt(np.mean(e**2)))

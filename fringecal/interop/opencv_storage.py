@@ -5,7 +5,8 @@ cv2.FILE_STORAGE_READ)``; the camera is OpenCV's first camera, the projector (an
 inverse camera over its SLM's pixel grid) the second::
 
     imageSize1, imageSize2            (width, height) in pixels
-    cameraMatrix1, distCoeffs1        camera: K (3x3), (k1, k2, p1, p2, k3) (1x5; 1x12 with thin-prism terms)
+    cameraMatrix1, distCoeffs1        camera: K (3x3), (k1, k2, p1, p2, k3) (1x5; 1x12 with thin-prism terms;
+                                      1x14, fitted, with a correction field)
     cameraMatrix2, distCoeffs2        projector
     R, T                              x_prj = R x_cam + T (3x3, 3x1; mm), as cv2.stereoCalibrate
     E, F                              essential and fundamental matrix of (R, T)
@@ -17,6 +18,13 @@ inverse camera over its SLM's pixel grid) the second::
     projectorAnglesInCamera           (omega, phi, kappa) of the projector in the camera's
                                       fringecal frame: only picks the Euler-angle branch
     maxDiffPx1, rmsDiffPx1, maxDiffPx2, rmsDiffPx2   measured model difference (pixels)
+    modelFit1, fitTolerancePx1, ...    only for a sensor with a correction field, whose OpenCV
+                                      model is fitted (:func:`fringecal.interop.opencv.to_opencv`):
+                                      "fits" (worst difference at most fitTolerancePx) or
+                                      "approximates"; a comment at the top says the same in words
+
+A scanner whose sensors have no correction field is written exactly as before the
+fitted export existed (no extra key, no extra comment).
 
 Frames and pixel conventions: :mod:`fringecal.interop.opencv`.
 
@@ -39,13 +47,30 @@ import numpy as np
 
 from fringecal.atomic import write_text
 from fringecal.frames import Frame
-from fringecal.interop.opencv import DEPTHS_MM, GRID, F, ImportedSensor, OpenCVCamera, from_opencv, to_opencv
+from fringecal.interop.opencv import (
+    DEPTHS_MM,
+    FIT_TOLERANCE_PX,
+    GRID,
+    F,
+    ImportedSensor,
+    OpenCVCamera,
+    from_opencv,
+    to_opencv,
+)
 from fringecal.names import check_name, confined
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import SensorFormat, sensor_in_frame
 
-__all__ = ["OpenCVFileError", "StereoFile", "stereo_text", "write_rig", "read_stereo", "prior_scanner",
-           "THESIS_WIDTH_MM", "REQUIRED_KEYS"]
+__all__ = [
+    "REQUIRED_KEYS",
+    "THESIS_WIDTH_MM",
+    "OpenCVFileError",
+    "StereoFile",
+    "prior_scanner",
+    "read_stereo",
+    "stereo_text",
+    "write_rig",
+]
 
 #: the thesis's format widths (section 6.9.1), the default when a file gives none
 THESIS_WIDTH_MM = {"camera": 15.1, "projector": 19.0}
@@ -97,13 +122,16 @@ def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM) -> tuple[s
     fs = cv2.FileStorage("scanner.yml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY | cv2.FILE_STORAGE_FORMAT_YAML)
     fs.writeComment(f"fringecal scanner {scanner.name!r}: camera = 1, projector = 2 (inverse camera over its SLM "
                     "pixels); x_prj = R x_cam + T (mm), as cv2.stereoCalibrate")
+    for i, m in ((1, cam), (2, prj)):
+        if m.fitted:  # a correction field: the model is fitted, and the file says how well
+            fs.writeComment(f"{m.role} (distCoeffs{i}, cameraMatrix{i}): {m.statement}")
     fs.write("scanner", scanner.name)
     fs.write("cameraName", cam.name)
     fs.write("projectorName", prj.name)
     for i, m in ((1, cam), (2, prj)):
         _write_seq(fs, f"imageSize{i}", m.image_size)
         fs.write(f"cameraMatrix{i}", m.K)
-        fs.write(f"distCoeffs{i}", m.dist.reshape(1, -1))  # 5, or 12 with thin-prism terms
+        fs.write(f"distCoeffs{i}", m.dist.reshape(1, -1))  # 5, 12 with thin-prism terms, 14 fitted to a field
     fs.write("R", R)
     fs.write("T", T.reshape(3, 1))
     fs.write("E", E)
@@ -117,6 +145,10 @@ def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM) -> tuple[s
     for i, m in ((1, cam), (2, prj)):
         fs.write(f"maxDiffPx{i}", m.worst_px)
         fs.write(f"rmsDiffPx{i}", m.rms_px)
+    for i, m in ((1, cam), (2, prj)):
+        if m.fitted:
+            fs.write(f"modelFit{i}", m.verdict)
+            fs.write(f"fitTolerancePx{i}", FIT_TOLERANCE_PX)
     return fs.releaseAndGetString(), cam, prj
 
 
