@@ -688,3 +688,52 @@ def test_cli_rewrites_the_report(rd, tmp_path):
     empty.mkdir()
     res = runner.invoke(app, ["report", "--run", str(empty)])
     assert res.exit_code == 2 and "not a run directory" in res.output.replace("\n", "")
+
+
+def test_scanner_section_shows_each_correction_field_with_its_rms_and_u(rd):
+    """A calibration whose C1 has a correction field (coefficients a_j = 0.4 um * (-1)^j,
+    u_j = 0.1 um) and P1 a zero one: the parameter table of scanner1 gains two rows, the
+    field's RMS over the format with its first-order u (RMS = sqrt(sum a^2) = 1.744 um,
+    u = sqrt(sum (a_j u_j)^2) / RMS = 0.1 um, noise alone sqrt(sum u^2) = 0.44 um) and its
+    largest displacement; a sensor without a field says none; one line explains. A
+    14-parameter rig's section has neither (test_report_shows_the_numbers_of_the_run
+    counts its rows)."""
+    from fringecal.imagefield import CorrectionField, field_names, field_terms
+    from fringecal.report.sections.scanners import FIELD_GRID, field_displacement
+
+    base = _section(write_report(rd, TIMINGS).read_text(encoding="utf-8"), "scanners")
+    assert "correction field" not in base.lower()
+    K = field_terms()
+    a = 4e-4 * (-1.0) ** np.arange(K)
+    u = np.full(K, 1e-4)
+    cal = json.loads(rd.calibration.path.read_text())
+    for sensor, coefs in zip(cal["scanners"][0]["sensors"], (a, np.zeros(K))):
+        sensor["correction_field"] = {"degree": 4, "coefficients": {
+            n: {"value": float(v), "unit": "mm", "free": True, "u": float(w)} for n, v, w in zip(field_names(), coefs, u)}}
+    rd.calibration.path.write_text(json.dumps(cal))
+    rig = rd.calibration.load()
+    c1 = field_displacement(rig, 0)
+    rms = float(np.sqrt(np.sum(a ** 2)))  # the basis is orthonormal over the format
+    assert c1["rms_mm"] == pytest.approx(rms, rel=1e-9) and rms * 1e3 == pytest.approx(1.7436, abs=1e-4)
+    assert c1["u_rms_mm"] == pytest.approx(np.sqrt(np.sum((a * u) ** 2)) / rms, rel=1e-12) == pytest.approx(1e-4)
+    assert c1["noise_mm"] == pytest.approx(np.sqrt(K) * 1e-4)
+    fmt = rig.sensors[0].format  # the largest on a finer grid: the 41 x 41 one misses little of it
+    g = np.linspace(-0.5, 0.5, 4 * FIELD_GRID - 3)
+    m = np.stack(np.meshgrid(g * fmt.width_mm, g * fmt.height_mm), axis=-1).reshape(-1, 2)
+    fine = np.linalg.norm(CorrectionField.zero(fmt.width_mm, fmt.height_mm).with_coefficients(a).value(m), axis=-1)
+    assert 0.97 * fine.max() <= c1["largest_mm"] <= fine.max()
+    assert field_displacement(rig, 1) == {"rms_mm": 0.0, "largest_mm": 0.0, "u_rms_mm": pytest.approx(1e-4),
+                                          "noise_mm": pytest.approx(np.sqrt(K) * 1e-4)}
+    assert field_displacement(rig, 2) is None  # scanner2: no field
+    page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
+    scanners = _section(page, "scanners")
+    part1, part2 = scanners.split("Scanner scanner2")
+    rows = {re.sub(r"<[^>]+>", "", r.split("</td>")[0]): [re.sub(r"<[^>]+>", "", c)
+                                                           for c in re.findall(r"<td[^>]*>(.*?)</td>", r, re.S)]
+            for r in re.findall(r"<tr>(<td.*?)</tr>", part1, re.S)}
+    assert rows["correction field, RMS over the format"][2] == "1.74 ± 0.10 (noise alone 0.44)"
+    assert rows["correction field, largest over the format"][2] == f"{c1['largest_mm'] * 1e3:.3g}"
+    assert rows["correction field, RMS over the format"][1] == "µm"
+    assert "correction field, RMS over the format" in part2 and part2.count(">none<") == 4  # C2, P2
+    assert scanners.count("Correction field: the smooth displacement f") == 2
+    _well_formed(page)

@@ -1,4 +1,6 @@
-"""One part per scanner: its 14 + 14 parameters with their uncertainties, the residuals
+"""One part per scanner: its 14 + 14 parameters with their uncertainties (and the
+thin-prism terms, and the correction field's RMS and largest displacement, of a model
+that has them), the residuals
 and the coverage by control points over its camera's and projector's images, the
 uncertainty a measured point inherits from the calibration at three depths of its
 measuring volume, and its acceptance values; one part per black-box scanner: its
@@ -22,10 +24,12 @@ from fringecal.report.tables import table
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES
 
 __all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths", "acceptance_values",
-           "black_box_parts"]
+           "black_box_parts", "field_displacement"]
 
 #: Cells across the camera image of an uncertainty map.
 MAP_CELLS = 24
+#: Grid points per axis of the format on which a correction field's displacement is shown.
+FIELD_GRID = 41
 #: Maps drawn in this process, by the digests of what they are drawn from: a page rewritten
 #: from the same files (``fringecal serve``, a test's run directory) does not draw them again.
 _DRAWN: OrderedDict = OrderedDict()
@@ -63,6 +67,53 @@ def _prism_value(rig, i: int, j: int):
     return plus_minus(value, u)
 
 
+def field_displacement(rig, i: int) -> dict | None:
+    """Sensor ``i``'s correction field over its format, or None without one.
+
+    ``rms_mm`` and ``largest_mm``: RMS and largest length of ``field.value`` on a
+    :data:`FIELD_GRID` x :data:`FIELD_GRID` grid over the format, edges included (the grid
+    the basis is orthonormal on, so ``rms_mm`` is ``sqrt(sum a_j^2)`` to rounding).
+    ``u_rms_mm``: first-order standard uncertainty of that RMS from the coefficients'
+    standard uncertainties ``u_j`` (``rig.field_uncertainty``, taken as uncorrelated:
+    the file holds no covariance between them), ``sqrt(sum (a_j u_j)^2) / RMS``; None
+    without them. ``noise_mm``: ``sqrt(sum u_j^2)``, the RMS a field of zero would show
+    from the coefficients' noise alone (the estimated RMS is biased up by about it).
+    """
+    sensor = rig.sensors[i]
+    if sensor.field is None or (sensor.field.is_zero and not rig.field_free[i]):
+        return None
+    f = sensor.format
+    g = np.linspace(-0.5, 0.5, FIELD_GRID)
+    m = np.stack(np.meshgrid(g * f.width_mm, g * f.height_mm), axis=-1).reshape(-1, 2)
+    length = np.linalg.norm(sensor.field.value(m), axis=-1)
+    out = {"rms_mm": float(np.sqrt(np.mean(length ** 2))), "largest_mm": float(length.max()), "u_rms_mm": None,
+           "noise_mm": None}
+    u = None if rig.field_uncertainty is None else np.asarray(rig.field_uncertainty[i], float)
+    a = sensor.field.coefficients
+    if u is not None and u.shape == a.shape and np.all(np.isfinite(u)):
+        norm = float(np.sqrt(np.sum(a ** 2)))
+        out["u_rms_mm"] = float(np.sqrt(np.sum((a * u) ** 2)) / norm) if norm > 0 else float(np.sqrt(np.max(u ** 2)))
+        out["noise_mm"] = float(np.sqrt(np.sum(u ** 2)))
+    return out
+
+
+def _field_rows(rig, sensors) -> list:
+    """Rows of the correction field's RMS and largest displacement (µm) of each sensor."""
+    stats = [field_displacement(rig, i) for i in sensors]
+
+    def rms(d):
+        if d is None:
+            return "none"
+        if d["u_rms_mm"] is None:
+            return num(d["rms_mm"] * 1e3, ".3g")
+        return Markup("{} <span class=\"meta\">(noise alone {})</span>").format(
+            plus_minus(d["rms_mm"] * 1e3, d["u_rms_mm"] * 1e3), num(d["noise_mm"] * 1e3, ".2g"))
+
+    return [["correction field, RMS over the format", "µm", *(rms(d) for d in stats)],
+            ["correction field, largest over the format", "µm",
+             *("none" if d is None else num(d["largest_mm"] * 1e3, ".3g") for d in stats)]]
+
+
 def _parameters(rig, k: int):
     """The parameter table of scanner ``k`` (camera and projector columns)."""
     sc = rig.scanners[k]
@@ -72,6 +123,8 @@ def _parameters(rig, k: int):
     if rig.has_prism:  # the thin-prism terms of a model that has them
         rows += [[f"thin prism {p}", unit, *(_prism_value(rig, i, j) for i in sensors)]
                  for j, (p, unit) in enumerate(zip(PRISM_NAMES, ("1/mm", "1/mm³", "1/mm", "1/mm³")))]
+    if rig.has_field:  # the correction field's size, of a model that has one
+        rows += _field_rows(rig, sensors)
     return table(["Parameter", "Unit"] + [f"{s.name} ({s.role})" for s in sc.sensors], rows, left=2)
 
 
@@ -217,6 +270,7 @@ def build(run: RunData) -> dict:
     rig = run.load(run.rd.calibration)
     serials = (run.config().get("certificate") or {}).get("scanners") or {}
     scanners = [{"name": sc.name, "serial": serials.get(sc.name), "parameters": _parameters(rig, k),
+                 "field": rig.has_field,
                  "residuals": guard(residual_maps, run, sc.name), "uncertainty": guard(uncertainty_maps, run, sc.name),
                  "acceptance": guard(acceptance_values, run, sc.name)}
                 for k, sc in enumerate(rig.scanners)]
