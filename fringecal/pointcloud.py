@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from fringecal.lens import first_order_inverse, newton_step
+from fringecal.lens.inversion import first_order_inverse, newton_step
 from fringecal.sensor import Sensor
 
 __all__ = [

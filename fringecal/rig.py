@@ -4,7 +4,7 @@ A :class:`Rig` holds the sensors with their parameters and, per parameter, wheth
 the bundle adjustment may change it (``free``, shape (n_sensors, 14)), and whether it
 adjusts each sensor's thin-prism terms (``prism_free``, (n_sensors, 4), all False unless
 the run's sensor model frees them), and whether it adjusts each sensor's correction field
-(``field_free``, (n_sensors,), :mod:`fringecal.imagefield`). It converts to and from the
+(``field_free``, (n_sensors,), :mod:`fringecal.lens.field`). It converts to and from the
 sensor-parameter table (docs/contracts.md).
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from fringecal.imagefield import FIELD_DEGREE, CorrectionField, field_names, field_terms
+from fringecal.lens.field import FIELD_DEGREE, CorrectionField, field_names, field_terms
 from fringecal.names import check_name
 from fringecal.schemas import FREE_COLUMNS, SensorParametersTable, TableError, read_csv_text, validate_table
 from fringecal.sensor import PARAM_COLUMNS, PRISM_COLUMNS, Sensor, SensorFormat, scaled_format, sensor_in_frame

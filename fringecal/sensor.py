@@ -24,7 +24,7 @@ add to the same distortion of the ideal coordinates::
 
     dx += s1 r^2 + s2 r^4,   dy += s3 r^2 + s4 r^4
 
-Optional correction field (``Sensor.field``, :mod:`fringecal.imagefield`; None unless the
+Optional correction field (``Sensor.field``, :mod:`fringecal.lens.field`; None unless the
 model chosen for a run has it): a smooth field ``f`` over the *measured* image plane, so
 that a measured point ``m`` stands for the point ``m - f(m)`` of the model above.
 
@@ -48,7 +48,7 @@ from typing import Literal
 import numpy as np
 
 from fringecal.frames import Frame
-from fringecal.imagefield import CorrectionField, field_names
+from fringecal.lens.field import CorrectionField, field_names
 from fringecal.rotation import angles_from_matrix, rotation_matrix
 
 __all__ = [

@@ -332,7 +332,7 @@ class SensorParametersTable(_Base):
     ``s2_per_mm3``, ``s3_per_mm``, ``s4_per_mm3`` (OpenCV's s1..s4; empty or absent: 0)
     give start values of terms outside the 14 parameters (whether they are adjusted is
     the run's model choice, ``bundle.sensor_model``). Optional ``field_degree`` with
-    ``field_f01_mm`` ... (``fringecal.imagefield``; empty: no field) give a sensor's
+    ``field_f01_mm`` ... (``fringecal.lens.field``; empty: no field) give a sensor's
     correction field.
     """
 

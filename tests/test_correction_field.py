@@ -1,4 +1,4 @@
-"""The smooth correction field over each image plane (fringecal/imagefield.py) and the
+"""The smooth correction field over each image plane (fringecal/lens/field.py) and the
 sensor model ``field`` that adjusts it (calibration/models.py).
 
 One simulated thesis rig (control points every 40 px at 2048 px, the thesis's noise;
@@ -16,7 +16,7 @@ from fringecal.calibration.bundle import BundleOptions
 from fringecal.calibration.file import CalibrationFileError, read_calibration_xml, rig_from_dict, rig_to_dict, xml_text
 from fringecal.calibration.model import BundleProblem, Evaluator
 from fringecal.calibration.models import choose_sensor_model, fit_model
-from fringecal.imagefield import CorrectionField, _absorbed, _grid, _monomials, field_terms
+from fringecal.lens.field import CorrectionField, _absorbed, _grid, _monomials, field_terms
 from fringecal.pointcloud import triangulate_image_points
 from fringecal.rig import Rig, Scanner
 from fringecal.simulate.control_points import simulate_control_points, thesis_truth

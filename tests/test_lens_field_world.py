@@ -11,7 +11,7 @@ import pytest
 from fringecal.frames import Frame
 from fringecal.fringe.decode import DecodeSettings, decode
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.imagefield import _grid
+from fringecal.lens.field import _grid
 from fringecal.rig import scaled_scanner
 from fringecal.simulate import RenderConfig, artefact_scene, backdrop, render_measurement
 from fringecal.simulate import geometry as g

@@ -279,7 +279,7 @@ def test_imported_opencv_prior_calibrates_like_the_native_prior(tmp_path):
 # -- sensors with a correction field: OpenCV's 14 coefficients fitted, the difference stated --------------
 
 def _with_field(sensor, coefficients):
-    from fringecal.imagefield import CorrectionField
+    from fringecal.lens.field import CorrectionField
 
     return sensor.with_field(CorrectionField.zero(sensor.format.width_mm, sensor.format.height_mm)
                              .with_coefficients(coefficients))
@@ -297,7 +297,7 @@ def _independent_difference(sensor, cv, rng):
 def _prism_field(sensor, corner_mm):
     """Field coefficients of OpenCV's own s2 (x) and -s4/2 (y) about the principal point,
     ``corner_mm`` at the format's farthest corner: a field OpenCV's terms can hold."""
-    from fringecal.imagefield import CorrectionField, field_terms
+    from fringecal.lens.field import CorrectionField, field_terms
 
     f = sensor.format
     g = np.linspace(-0.5, 0.5, 41)
@@ -317,7 +317,7 @@ def test_a_sensor_with_a_correction_field_exports_a_fitted_model_and_its_worst_d
     differs from Sensor.project by at most 1.248 px, RMS 0.355 px. Asserted: the
     independent worst within the stated one (+1 %) and above 90 % of it, the RMS within
     5 %, the fit better than ignoring the field, the exterior exported exactly."""
-    from fringecal.imagefield import field_terms
+    from fringecal.lens.field import field_terms
     from fringecal.interop.opencv import F, model_difference
 
     s = thesis_rig.sensors[0]
@@ -373,7 +373,7 @@ def test_a_field_on_a_model_that_folds_over_in_the_corners_is_fitted_from_forwar
 def test_export_of_sensors_without_a_field_is_unchanged(thesis_rig, tmp_path):
     """A zero field is no field: the file is byte for byte the one without (5 and 12
     coefficients, thin prism included), with no fit key and no fit comment."""
-    from fringecal.imagefield import CorrectionField
+    from fringecal.lens.field import CorrectionField
     from fringecal.interop.opencv_storage import stereo_text
 
     prism = thesis_rig.with_params(thesis_rig.params, prism=np.tile([1e-5, 1e-8, -2e-5, 3e-8], (4, 1)))
@@ -391,7 +391,7 @@ def test_cli_export_of_a_field_sensor_states_the_fit(thesis_rig, tmp_path):
     """``fringecal export opencv`` of a calibration whose C1 has a field: the file carries
     distCoeffs1 as 1x14, modelFit1 and a comment with the worst difference; the command
     prints it (table column ``model``, one line per fitted sensor) and reads back."""
-    from fringecal.imagefield import field_terms
+    from fringecal.lens.field import field_terms
     from fringecal.rundir import RigFile
 
     fields = np.zeros((4, field_terms()))

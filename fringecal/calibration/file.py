@@ -45,7 +45,7 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
   held-out measurements with every candidate's held-out error and the residual-pattern
   statistic; :mod:`fringecal.calibration.models`). Sensors with thin-prism terms carry
   them as ``thin_prism`` (s1..s4 with unit, free flag and u) beside ``parameters``,
-  sensors with a correction field (:mod:`fringecal.imagefield`) as ``correction_field``
+  sensors with a correction field (:mod:`fringecal.lens.field`) as ``correction_field``
   (its ``degree``, the ``basis`` it is expressed in, and its ``coefficients`` f01.. in mm
   with free flag and u); without them the document is the 14-parameter one. The
   ``covariance`` block holds the 14 parameters' covariance (with a field: marginal over
@@ -72,7 +72,7 @@ import numpy as np
 from fringecal import __version__
 from fringecal.atomic import write_text
 from fringecal.calibration.propagation import ParameterCovariances
-from fringecal.imagefield import CorrectionField, field_names
+from fringecal.lens.field import CorrectionField, field_names
 from fringecal.names import UnsafeNameError, check_name
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES, Sensor, SensorFormat
@@ -197,7 +197,7 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
     return out
 
 
-_FIELD_BASIS = ("fringecal.imagefield: vector polynomials of total degree 2..degree in m / R (m measured "
+_FIELD_BASIS = ("fringecal.lens.field: vector polynomials of total degree 2..degree in m / R (m measured "
                 "image-plane mm from the format's centre, R half its diagonal), orthonormal over the format and "
                 "orthogonal to the fields the 14 parameters absorb; a measured point m stands for m - f(m)")
 

@@ -13,7 +13,7 @@ Each depends on at most 34 parameters: the 14 of the camera, the 14 of the proje
 depend on the pose. With free thin-prism terms (s1..s4 of camera and projector,
 :mod:`fringecal.sensor`) there are 42: camera prism 34..37 and projector prism 38..41
 after the 34 (:func:`local_slots`). With free correction fields
-(:mod:`fringecal.imagefield`, K coefficients per sensor) 2 K more follow: camera field,
+(:mod:`fringecal.lens.field`, K coefficients per sensor) 2 K more follow: camera field,
 then projector field. A field corrects the observation, ``m - f(m)``, and depends on the
 observation alone, so a coefficient's derivative is the principal point's weighted by its
 basis function there: ``d/d a_j = phi_j,x(m) d/d xi_h + phi_j,y(m) d/d eta_h``; the
@@ -46,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from fringecal.lens import first_order_inverse, first_order_inverse_prism, newton_step, newton_step_prism, prism_jacobian
+from fringecal.lens.inversion import first_order_inverse, first_order_inverse_prism, newton_step, newton_step_prism, prism_jacobian
 
 __all__ = ["N_LOCAL", "local_slots", "assemble", "scatter", "residual_rows", "replica_gradients"]
 

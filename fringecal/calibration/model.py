@@ -20,7 +20,7 @@ import pandas as pd
 
 from fringecal.artefact import Artefact
 from fringecal.calibration import kernels
-from fringecal.imagefield import FIELD_DEGREE, field_names, field_terms
+from fringecal.lens.field import FIELD_DEGREE, field_names, field_terms
 from fringecal.rig import Rig
 from fringecal.rotation import rotation_derivatives, rotation_matrix
 from fringecal.schemas import ControlPointsTable, PosePlanTable, TableError, validate_table
@@ -224,7 +224,7 @@ class ParameterLayout:
     ``sensor_index[i, j]`` is the position of parameter ``PARAM_NAMES[j]`` of sensor i in
     x, or -1 if fixed; ``prism_index[i, j]`` likewise for thin-prism term
     ``PRISM_NAMES[j]``; ``field_index[i, j]`` for coefficient j of sensor i's correction
-    field (:mod:`fringecal.imagefield`); ``pose_index[m, k]`` for pose parameter
+    field (:mod:`fringecal.lens.field`); ``pose_index[m, k]`` for pose parameter
     ``POSE_NAMES[k]``. The 14 sensor parameters come first (in rig order), then the free
     thin-prism terms, then the free field coefficients (neither for the thesis's model),
     then poses.

@@ -11,7 +11,7 @@ Candidates (``SENSOR_MODELS``; ``bundle.sensor_model`` of a run)
     Plus OpenCV's fourth-order thin-prism terms s2, s4 as well (``+ s2 r^4``, ``+ s4 r^4``).
 ``field``
     The 14 parameters plus a smooth correction field over each camera's and projector's
-    image plane (:mod:`fringecal.imagefield`: 19 orthonormal vector polynomials of degree
+    image plane (:mod:`fringecal.lens.field`: 19 orthonormal vector polynomials of degree
     2..4 per sensor, orthogonal to what the 14 parameters absorb; they span the thin-prism
     terms too, so this model does not free those). Its regularisation is its basis: a
     fixed low degree instead of a penalty whose weight would have to be chosen, and the

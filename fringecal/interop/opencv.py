@@ -29,7 +29,7 @@ terms fringecal lacks (rational k4..k6, tilt) are imported by a
 least-squares fit of k1, k2, k3, p1, p2 over the image, and the remaining difference is
 measured the same way.
 
-**A sensor with a correction field** (:mod:`fringecal.imagefield`) has no exact OpenCV
+**A sensor with a correction field** (:mod:`fringecal.lens.field`) has no exact OpenCV
 model: of the field's 19 degree-2..4 directions, OpenCV's terms hold about two (s2, s4)
 to first order. :func:`to_opencv` then fits OpenCV's 14-coefficient model (rational,
 thin prism, tilt) and the camera matrix to the sensor's whole mapping by least squares

@@ -145,7 +145,7 @@ class SimulationErrors(StrictModel):
         Thin-prism lens term of every camera and projector, sized by its image
         displacement at the corner in pixels of the sensor file's native format.
     lens_field_rms_um : float
-        A smooth degree-6 correction field (:mod:`fringecal.imagefield`) of every true
+        A smooth degree-6 correction field (:mod:`fringecal.lens.field`) of every true
         camera and projector, 45 coefficients drawn with equal variance per sensor,
         scaled to this RMS displacement (micrometres on the image plane) over the
         format: what a real lens adds beyond Brown's radial and tangential terms

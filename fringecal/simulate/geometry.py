@@ -44,7 +44,7 @@ the scalar monomials ``u^a v^b`` (b = 0..D, a = 0..D-b; x then y per monomial) i
 ``u, v = m / R`` (:func:`field_pack`). :func:`image_ray` then corrects the measured point
 ``m`` to ``m - f(m)`` first, and :func:`project_point` returns the measured point of the
 14-parameter (+prism) projection ``b``, the root of ``m - f(m) = b`` that
-:meth:`fringecal.imagefield.CorrectionField.measured` finds (by Newton here:
+:meth:`fringecal.lens.field.CorrectionField.measured` finds (by Newton here:
 :func:`field_measured`). Without a field the pack keeps its
 22 entries and both functions are the same arithmetic as before.
 """
@@ -56,8 +56,8 @@ import math
 import numpy as np
 from numba import njit
 
-from fringecal.imagefield import CorrectionField, _basis_matrix, _exponents
-from fringecal.lens import newton_step
+from fringecal.lens.field import CorrectionField, _basis_matrix, _exponents
+from fringecal.lens.inversion import newton_step
 from fringecal.sensor import Sensor
 
 SPHERE, CYLINDER, BOX, PLANE, PANEL = 0, 1, 2, 3, 4

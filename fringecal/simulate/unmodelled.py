@@ -24,7 +24,7 @@ Drift during a scan shifts the pattern by ``psi_f = scan_drift f / (n_frames - 1
 (rad of tau) at frame f of the sequence (both orientations), i.e. the phase
 ``t psi_f`` is added to every harmonic's step phase: :func:`frame_weights`.
 
-A lens field (:func:`lens_field`) is a degree-6 :class:`~fringecal.imagefield.CorrectionField`
+A lens field (:func:`lens_field`) is a degree-6 :class:`~fringecal.lens.field.CorrectionField`
 of a true camera or projector: :meth:`RenderErrors.sensors` attaches it to the scanner's
 sensors, and the kernel honours any sensor's field through its pack
 (:func:`fringecal.simulate.geometry.sensor_pack`).
@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.imagefield import CorrectionField, field_terms
+from fringecal.lens.field import CorrectionField, field_terms
 from fringecal.sensor import Sensor, SensorFormat
 from fringecal.simulate import geometry as g
 
@@ -204,7 +204,7 @@ def lens_field(fmt: SensorFormat, rms_um: float, rng: np.random.Generator) -> Co
     then scaled (the basis fields have RMS length 1, so the RMS is their norm in mm).
     About 19/45 of its energy lies in the calibration's degree-4 ``field`` model.
 
-    >>> from fringecal.imagefield import _grid
+    >>> from fringecal.lens.field import _grid
     >>> f = lens_field(SensorFormat(2048, 2048, 15.1, 15.1), 3.0, np.random.default_rng(1))
     >>> f.degree, f.n_terms, round(float(np.sqrt(np.mean(np.sum(f.value(_grid(15.1, 15.1)) ** 2, -1)))) * 1e3, 9)
     (6, 45, 3.0)
