@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 import sys
 import types
 from pathlib import Path
@@ -795,6 +796,12 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
     columns = model.to_schema().columns
     nullable = {n for n, c in columns.items() if c.nullable}
     floats = {n for n, c in columns.items() if str(c.dtype).startswith("float")} - set(model._infinite_allowed)
+    for name, c in columns.items():  # a pattern column (``field_f\d+_mm``): the columns it matches
+        if getattr(c, "regex", False):
+            matched = [str(col) for col in df.columns if re.fullmatch(name, str(col))]
+            opt += matched
+            nullable |= set(matched) if c.nullable else set()
+            floats |= set(matched) if str(c.dtype).startswith("float") else set()
     problems: list[tuple[Optional[int], Optional[str], str]] = []
     missing = [c for c in req if c not in df.columns]
     if missing:
@@ -870,6 +877,10 @@ def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataF
             if line is None and str(value).startswith(("TypeError(", "ValueError(")):
                 continue  # a check that could not run on uncoerced text: the cell's type error says why
             problems.append((line, col, f"value {value!r} {_describe_check(check)}"))
+        # a pattern column's case (``field_f\d+_mm``) repeats its cell's, named by its column
+        patterns = {n for n, c in columns.items() if getattr(c, "regex", False)}
+        named = {(p[0], p[2]) for p in problems if p[1] not in patterns}
+        problems = [p for p in problems if p[1] not in patterns or (p[0], p[2]) not in named]
         if not problems:
             problems.append((None, None, str(err)))
     if problems:

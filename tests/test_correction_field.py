@@ -147,3 +147,24 @@ def test_calibration_files_carry_the_field(field_fits, tmp_path):
     del doc["scanners"][1]["sensors"][1]["correction_field"]["coefficients"]["f07"]
     with pytest.raises(CalibrationFileError, match=r"scanner 'scanner2'.*P2.*f07"):
         rig_from_dict(doc, "cal.json")
+
+
+def test_a_sensor_table_with_a_field_on_some_sensors_round_trips_and_names_a_bad_cell(tmp_path):
+    import pandas as pd
+
+    from fringecal.rig import load_rig
+    from fringecal.schemas import TableError
+
+    rig = thesis_truth()[0]
+    one = _with_fields(rig, 4, 1e-3).sensors[0]
+    partial = replace(rig, scanners=(Scanner("scanner1", one, rig.sensors[1]), rig.scanners[1]))
+    partial.to_frame().to_csv(tmp_path / "rig.csv", index=False)
+    back = load_rig(tmp_path / "rig.csv")
+    np.testing.assert_array_equal(back.fields, partial.fields)
+    assert [s.field is not None for s in back.sensors] == [True, False, False, False]
+    df = pd.read_csv(tmp_path / "rig.csv").astype(object)
+    df.loc[0, "field_f03_mm"] = "abc"
+    df.to_csv(tmp_path / "bad.csv", index=False)
+    with pytest.raises(TableError) as err:
+        load_rig(tmp_path / "bad.csv")
+    assert str(err.value).endswith("line 2, column 'field_f03_mm': value 'abc' is not a number"), str(err.value)
