@@ -168,3 +168,40 @@ def test_a_sensor_table_with_a_field_on_some_sensors_round_trips_and_names_a_bad
     with pytest.raises(TableError) as err:
         load_rig(tmp_path / "bad.csv")
     assert str(err.value).endswith("line 2, column 'field_f03_mm': value 'abc' is not a number"), str(err.value)
+
+
+def test_a_length_budget_holds_the_field_coefficients_through_their_principal_point_derivative():
+    """The centre's derivative by each correction-field coefficient (budget.sighting_model)
+    against central differences of the re-triangulated, refitted sphere."""
+    from fringecal.calibration.propagation import triangulate_mm
+    from fringecal.verification.budget import SightingPoints, _refit, sighting_model
+
+    rig = _with_fields(thesis_truth()[0], 4, 1e-3)
+    sc = rig.scanners[0]
+    centre, radius = np.array([0.0, 0.0, 0.0]), 25.0
+    # the cap of a sphere that faces the camera: points on it, seen by both sensors
+    rng = np.random.default_rng(4)
+    towards = sc.camera.pinhole - centre
+    towards /= np.linalg.norm(towards)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = d[d @ towards > 0.5]
+    X = centre + radius * d
+    cam_mm, prj_mm = sc.camera.project(X), sc.projector.project(X)
+    pts = SightingPoints(sc, 0, cam_mm, prj_mm, centre, radius, 0.01)
+    model = sighting_model(pts, np.full(28, 1e-4))
+    assert model.J_field.shape == (3, 38)
+    h = 1e-5
+    worst = 0.0
+    for j in range(0, 38, 5):
+        moved = []
+        for sign in (1, -1):
+            fields = rig.fields.copy()
+            fields[j // 19, j % 19] += sign * h  # camera (sensor 0), then projector (sensor 1)
+            s2 = rig.with_params(rig.params, fields=fields).scanners[0]
+            moved.append(_refit(triangulate_mm(s2, cam_mm, prj_mm), centre, radius, iterations=6))
+        fd = (moved[0] - moved[1]) / (2 * h)
+        err = np.abs(fd - model.J_field[:, j]).max() / max(np.abs(fd).max(), 1e-9)
+        worst = max(worst, np.abs(fd).max())
+        assert err < 1e-3, (j, fd, model.J_field[:, j])
+    assert worst > 1.0  # a micrometre on the image moves the centre by tens of micrometres

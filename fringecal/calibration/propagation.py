@@ -22,7 +22,7 @@ from fringecal.pointcloud import triangulate_image_points
 from fringecal.rig import Rig, Scanner
 from fringecal.rotation import angles_from_matrix
 
-__all__ = ["ParameterCovariances", "parameter_covariances", "sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
+__all__ = ["ParameterCovariances", "FieldCovariances", "parameter_covariances", "sensor_covariance", "scanner_block", "point_jacobian", "point_covariance", "triangulate_mm",
            "point_variances", "point_uncertainty_map", "uncertainty_at_depth", "DepthUncertainty", "scanner_with", "STEP_FRACTION",
            "rigid_motion_basis", "frame_free_covariance", "ATTITUDE_WEIGHT_MM", "attitude_jacobian",
            "frame_motion_operator", "to_rig_frame"]
@@ -302,26 +302,51 @@ class ParameterCovariances:
     calibration, cmm : covariance from the adjustment and from the artefact table;
     scale : (n_sensors * 14,) parameter change per unit relative scale of the artefact;
     u_scale : relative standard uncertainty of the artefact's scale (temperature).
+    field : with free correction fields (:mod:`fringecal.lens.field`, K coefficients per
+        sensor), the same three over the extended vector: the n_sensors * 14 parameters,
+        then sensor i's coefficients at ``n_sensors * 14 + K i`` (:class:`FieldCovariances`);
+        the 14 parameters' blocks above are then marginal over the coefficients.
     """
 
     calibration: np.ndarray
     cmm: np.ndarray
     scale: np.ndarray
     u_scale: float
+    field: "FieldCovariances | None" = None
 
     @property
     def total(self) -> np.ndarray:
         return self.calibration + self.cmm + self.u_scale**2 * np.outer(self.scale, self.scale)
 
 
+@dataclass(frozen=True)
+class FieldCovariances:
+    """:class:`ParameterCovariances`' three over the extended vector (sensor parameters,
+    then correction-field coefficients): ``n_terms`` K coefficients per sensor."""
+
+    calibration: np.ndarray
+    cmm: np.ndarray
+    scale: np.ndarray
+    n_terms: int
+
+
 def parameter_covariances(arrays: dict, u_scale: float, u_factor: float = 1.0) -> ParameterCovariances:
     """The sensor-parameter covariances of a run's ``calibration_covariance.npz``
     (``u_factor`` on the artefact table's uncertainties, ``u_scale`` the relative
-    standard uncertainty of the artefact's scale)."""
-    idx = arrays["sensor_index"]
+    standard uncertainty of the artefact's scale), with the correction fields' where the
+    adjustment freed them (``field_index``)."""
     S = arrays["artefact_sensitivity"] * (u_factor * arrays["artefact_u"])[None, :]
-    scale = np.zeros(idx.size)
-    flat = idx.reshape(-1)
-    scale[flat >= 0] = arrays["scale_sensitivity"][flat[flat >= 0]]
-    return ParameterCovariances(sensor_covariance(idx, arrays["covariance"]), sensor_covariance(idx, S @ S.T),
-                                scale, float(u_scale))
+
+    def three(idx):
+        flat = np.asarray(idx).reshape(-1)
+        scale = np.zeros(flat.size)
+        scale[flat >= 0] = arrays["scale_sensitivity"][flat[flat >= 0]]
+        return sensor_covariance(flat, arrays["covariance"]), sensor_covariance(flat, S @ S.T), scale
+
+    idx = arrays["sensor_index"]
+    field_index = np.asarray(arrays.get("field_index", np.zeros((len(idx), 0))), np.int64)
+    field = None
+    if field_index.size and np.any(field_index >= 0):
+        field = FieldCovariances(*three(np.concatenate([np.ravel(idx), field_index.ravel()])),
+                                 int(field_index.shape[1]))
+    return ParameterCovariances(*three(idx), float(u_scale), field)

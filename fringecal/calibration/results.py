@@ -158,11 +158,14 @@ def covariance_arrays(result: BundleResult) -> dict:
     ``sensor_index`` (n_sensors, 14) position of each sensor parameter in it (-1 fixed);
     ``sensor_names``; the artefact's ``sphere_ids``; ``artefact_sensitivity`` (p, 4
     n_spheres) and ``artefact_u`` (4 n_spheres,) and ``scale_sensitivity`` (p,) of
-    :func:`fringecal.calibration.artefact_sensitivity.artefact_sensitivity`.
+    :func:`fringecal.calibration.artefact_sensitivity.artefact_sensitivity`;
+    ``field_index`` (n_sensors, K) position of each correction-field coefficient (K = 0
+    without a free field).
     """
 
     sens = artefact_sensitivity(result)
     return {"names": np.array(result.layout.names, dtype=str), "covariance": result.uncertainty.covariance,
             "sensor_index": result.layout.sensor_index, "sensor_names": np.array(result.layout.sensor_names, dtype=str),
             "sphere_ids": np.array(result.problem.artefact.ids, dtype=str), "artefact_sensitivity": sens.S,
-            "artefact_u": sens.u_artefact, "scale_sensitivity": sens.scale}
+            "artefact_u": sens.u_artefact, "scale_sensitivity": sens.scale,
+            "field_index": result.layout.field_index}

@@ -10,6 +10,11 @@ their standard uncertainties:
 
 * ``calibration``: theta from the adjustment, covariance ``Cov_theta`` (sensors and
   poses adjusted together; the sensors' block, :mod:`fringecal.calibration.propagation`);
+  with correction fields (:mod:`fringecal.lens.field`) theta holds their coefficients
+  too: a coefficient moves a point as the principal point does, weighted by its basis
+  function at the pixel (``dX/da_j = phi_j,x dX/dxi_h + phi_j,y dX/deta_h``), so its
+  column comes from the same differences (this term and the two artefact terms; the
+  Monte Carlo check draws the 14 parameters only);
 * ``artefact CMM``: the artefact table's own uncertainty moves theta by ``S Sigma_a S^T``
   (:mod:`fringecal.calibration.artefact_sensitivity`);
 * ``artefact temperature``: a relative scale ``cte * u_T`` of the artefact moves theta
@@ -47,6 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fringecal.calibration.propagation import ParameterCovariances, point_jacobian, scanner_with, triangulate_mm
+from fringecal.lens.field import FIELD_DEGREE, field_terms
 from fringecal.rig import Scanner
 from fringecal.spheres.fit import centre_sandwich_covariance
 
@@ -92,11 +98,14 @@ def block_params(sensor_params: np.ndarray, block: int) -> np.ndarray:
 @dataclass(frozen=True)
 class SightingModel:
     """Linearised fit of one sighting: ``J`` (3, 28) d(centre)/d(scanner parameters),
-    ``C_fit`` (3, 3) covariance of the centre from the fit's own noise (sandwich)."""
+    ``C_fit`` (3, 3) covariance of the centre from the fit's own noise (sandwich),
+    ``J_field`` (3, 2 K) d(centre)/d(camera's then projector's correction-field
+    coefficients), None without a field."""
 
     points: SightingPoints
     J: np.ndarray
     C_fit: np.ndarray
+    J_field: np.ndarray | None = None
 
 
 def _normals(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -111,7 +120,16 @@ def sighting_model(s: SightingPoints, std28: np.ndarray) -> SightingModel:
     AtA_inv = np.linalg.inv(A.T @ A)
     JX = point_jacobian(s.scanner, s.cam_mm, s.prj_mm, std28)  # (n, 3, 28)
     J = AtA_inv @ (A.T @ np.einsum("ni,nij->nj", A, JX))
-    return SightingModel(s, J, centre_sandwich_covariance(X, s.centre, s.radius_mm))
+    J_field = None
+    fields = [se.field for se in s.scanner.sensors]
+    if any(f is not None and f.degree == FIELD_DEGREE for f in fields):
+        K = field_terms(FIELD_DEGREE)
+        cols = []
+        for f, obs, pp in zip(fields, (s.cam_mm, s.prj_mm), (slice(6, 8), slice(20, 22))):
+            phi = f.basis(obs) if f is not None and f.degree == FIELD_DEGREE else np.zeros((len(obs), 2, K))
+            cols.append(np.einsum("ndk,nid->nik", phi, JX[:, :, pp]))  # (n, 3, K)
+        J_field = AtA_inv @ (A.T @ np.einsum("ni,nij->nj", A, np.concatenate(cols, axis=2)))
+    return SightingModel(s, J, centre_sandwich_covariance(X, s.centre, s.radius_mm), J_field)
 
 
 @dataclass(frozen=True)
@@ -137,6 +155,19 @@ def length_gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[
     return g, e, L
 
 
+def field_gradient(g: np.ndarray, a: SightingModel, b: SightingModel, e: np.ndarray, n_terms: int) -> np.ndarray:
+    """``g`` (dL/d sensor parameters) extended by dL/d each sensor's correction-field
+    coefficients (the extended vector of :class:`~fringecal.calibration.propagation.FieldCovariances`)."""
+    n14 = len(g)
+    out = np.concatenate([g, np.zeros(n14 // 14 * n_terms)])
+    for m, sign in ((a, 1.0), (b, -1.0)):
+        if m.J_field is None:
+            continue
+        start = n14 + 2 * m.points.block * n_terms  # the scanner's camera, then its projector
+        out[start:start + 2 * n_terms] += sign * (e @ m.J_field)
+    return out
+
+
 def length_budget(a: SightingModel, b: SightingModel, cov: ParameterCovariances, u_certificate_mm: float,
                   u_bar_temperature_rel: float, u_model_mm: float = 0.0, u_bias_mm: float = 0.0) -> LengthBudget:
     """Linear (GUM) budget of the length between sightings ``a`` and ``b``;
@@ -144,11 +175,14 @@ def length_budget(a: SightingModel, b: SightingModel, cov: ParameterCovariances,
     ``u_bias_mm`` the uncertainty of the calibration-bias correction
     (:func:`bootstrap_bias`; 0 without one)."""
     g, e, L = length_gradient(a, b, len(cov.scale))
+    terms = cov
+    if cov.field is not None and (a.J_field is not None or b.J_field is not None):
+        g, terms = field_gradient(g, a, b, e, cov.field.n_terms), cov.field
     u = {
-        "calibration": math.sqrt(max(float(g @ cov.calibration @ g), 0.0)),
+        "calibration": math.sqrt(max(float(g @ terms.calibration @ g), 0.0)),
         "calibration bias correction": float(u_bias_mm),
-        "artefact CMM": math.sqrt(max(float(g @ cov.cmm @ g), 0.0)),
-        "artefact temperature": abs(float(g @ cov.scale)) * cov.u_scale,
+        "artefact CMM": math.sqrt(max(float(g @ terms.cmm @ g), 0.0)),
+        "artefact temperature": abs(float(g @ terms.scale)) * cov.u_scale,
         "sphere fits": math.sqrt(float(e @ (a.C_fit + b.C_fit) @ e)),
         "bar certificate": float(u_certificate_mm),
         "bar temperature": float(u_bar_temperature_rel) * L,

@@ -202,7 +202,7 @@ def scaled_fit(model: SightingModel, factor: float) -> SightingModel:
     times ``factor**2``)."""
     if factor == 1.0:
         return model
-    return SightingModel(model.points, model.J, model.C_fit * factor**2)
+    return SightingModel(model.points, model.J, model.C_fit * factor**2, model.J_field)
 
 
 def _shift(model: SightingModel, factor: float) -> np.ndarray:
