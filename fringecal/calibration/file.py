@@ -71,7 +71,7 @@ import numpy as np
 
 from fringecal import __version__
 from fringecal.atomic import write_text
-from fringecal.calibration.propagation import ParameterCovariances
+from fringecal.calibration.propagation import FieldCovariances, ParameterCovariances
 from fringecal.lens.field import CorrectionField, field_names
 from fringecal.names import UnsafeNameError, check_name
 from fringecal.rig import Rig, Scanner
@@ -107,11 +107,25 @@ def covariance_document(rig: Rig, covariances) -> dict:
     for name in ("calibration", "cmm"):
         if np.shape(getattr(covariances, name)) != (n, n):
             raise ValueError(f"covariance {name!r} has shape {np.shape(getattr(covariances, name))}, expected {(n, n)}")
-    return {"parameters": parameter_names(rig),
-            "adjustment": np.asarray(covariances.calibration, float).tolist(),
-            "artefact_cmm": np.asarray(covariances.cmm, float).tolist(),
-            "artefact_scale": np.asarray(covariances.scale, float).tolist(),
-            "artefact_scale_u_rel": float(covariances.u_scale)}
+    out = {"parameters": parameter_names(rig), **_covariance_arrays(covariances),
+           "artefact_scale_u_rel": float(covariances.u_scale)}
+    if covariances.field is not None:
+        out["field"] = {"parameters": field_parameter_names(rig, covariances.field.n_terms),
+                        **_covariance_arrays(covariances.field)}
+    return out
+
+
+def field_parameter_names(rig: Rig, n_terms: int) -> list[str]:
+    """:func:`parameter_names`, then ``<sensor>.field.f01`` .. of every sensor (the
+    extended vector of :class:`~fringecal.calibration.propagation.FieldCovariances`)."""
+    names = field_names(next((s.field.degree for s in rig.sensors if s.field is not None
+                              and len(s.field.coefficients) == n_terms), 4))
+    return parameter_names(rig) + [f"{s.name}.field.{n}" for s in rig.sensors for n in names]
+
+
+def _covariance_arrays(c) -> dict:
+    return {"adjustment": np.asarray(c.calibration, float).tolist(), "artefact_cmm": np.asarray(c.cmm, float).tolist(),
+            "artefact_scale": np.asarray(c.scale, float).tolist()}
 
 
 #: the kinds of replicas a calibration document may carry
@@ -376,27 +390,40 @@ def _replicas(doc: dict, rig: Rig, source: str) -> dict:
 
 
 def _covariances(doc: dict, rig: Rig, source: str):
-    names = parameter_names(rig)
+    try:
+        u_scale = float(doc["artefact_scale_u_rel"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CalibrationFileError(f"{source}: covariance: {type(err).__name__}: {err}") from None
+    arrays = _covariance_block(doc, parameter_names(rig), source, "covariance")
+    if not np.isfinite(u_scale) or u_scale < 0:
+        raise CalibrationFileError(f"{source}: covariance 'artefact_scale_u_rel' must be finite and >= 0, got {u_scale}")
+    field = None
+    if "field" in doc:
+        n_terms = (len(doc["field"].get("parameters", [])) - len(parameter_names(rig))) // len(rig.sensors)
+        f = _covariance_block(doc["field"], field_parameter_names(rig, n_terms), source, "covariance field")
+        field = FieldCovariances(f["adjustment"], f["artefact_cmm"], f["artefact_scale"], n_terms)
+    return ParameterCovariances(arrays["adjustment"], arrays["artefact_cmm"], arrays["artefact_scale"], u_scale, field)
+
+
+def _covariance_block(doc: dict, names: list[str], source: str, where: str) -> dict:
+    """The three arrays of a covariance block, checked against ``names``."""
     n = len(names)
     try:
         if doc["parameters"] != names:
             raise ValueError(f"parameters do not name the sensors of the calibration in order ({n} expected)")
         arrays = {k: np.asarray(doc[k], float) for k in ("adjustment", "artefact_cmm", "artefact_scale")}
-        u_scale = float(doc["artefact_scale_u_rel"])
     except (KeyError, TypeError, ValueError) as err:
-        raise CalibrationFileError(f"{source}: covariance: {type(err).__name__}: {err}") from None
+        raise CalibrationFileError(f"{source}: {where}: {type(err).__name__}: {err}") from None
     for key, shape in (("adjustment", (n, n)), ("artefact_cmm", (n, n)), ("artefact_scale", (n,))):
         if arrays[key].shape != shape:
-            raise CalibrationFileError(f"{source}: covariance {key!r} has shape {arrays[key].shape}, expected {shape}")
+            raise CalibrationFileError(f"{source}: {where} {key!r} has shape {arrays[key].shape}, expected {shape}")
         if not np.isfinite(arrays[key]).all():
             bad = np.argwhere(~np.isfinite(arrays[key]))[0]
-            raise CalibrationFileError(f"{source}: covariance {key!r} holds non-finite values (first at "
+            raise CalibrationFileError(f"{source}: {where} {key!r} holds non-finite values (first at "
                                        f"{_entry(names, bad)})")
         if arrays[key].ndim == 2:
             _check_covariance(arrays[key], names, key, source)
-    if not np.isfinite(u_scale) or u_scale < 0:
-        raise CalibrationFileError(f"{source}: covariance 'artefact_scale_u_rel' must be finite and >= 0, got {u_scale}")
-    return ParameterCovariances(arrays["adjustment"], arrays["artefact_cmm"], arrays["artefact_scale"], u_scale)
+    return arrays
 
 
 def _entry(names: list[str], index) -> str:

@@ -318,6 +318,12 @@ class ParameterCovariances:
     def total(self) -> np.ndarray:
         return self.calibration + self.cmm + self.u_scale**2 * np.outer(self.scale, self.scale)
 
+    @property
+    def field_total(self) -> np.ndarray | None:
+        """:attr:`total` over the extended vector with the correction fields (None without)."""
+        f = self.field
+        return None if f is None else f.calibration + f.cmm + self.u_scale**2 * np.outer(f.scale, f.scale)
+
 
 @dataclass(frozen=True)
 class FieldCovariances:

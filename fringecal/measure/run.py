@@ -135,7 +135,9 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
                 found = measure_spheres(part, stores, cal.rig, cov, nominal, measurement=g, fit_factors=factors)
                 name = folders[g].name
                 fitted += [{"measurement": name, **m.as_dict()} for m in found]
-                table = sphere_distances(found, cov, adjustment, cal.replicas)
+                field = None if cov is None or cal.covariances.field is None else \
+                    (cal.covariances.field_total, cal.covariances.field.n_terms)
+                table = sphere_distances(found, cov, adjustment, cal.replicas, field)
                 distances += [{"measurement": name, **r} for r in table.to_dict("records")]
             parts.append(part.points)
             for k, (name, box) in enumerate(boxes.items()):

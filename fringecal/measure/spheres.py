@@ -60,6 +60,7 @@ from fringecal.verification.budget import (
     SightingPoints,
     bootstrap_bias,
     jackknife_model_error,
+    field_gradient,
     length_gradient,
     sighting_model,
 )
@@ -275,8 +276,8 @@ DISTANCE_COLUMNS = ["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_
 
 
 def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | None,
-                     adjustment: np.ndarray | None = None, replicas: Mapping[str, np.ndarray] | None = None
-                     ) -> pd.DataFrame:
+                     adjustment: np.ndarray | None = None, replicas: Mapping[str, np.ndarray] | None = None,
+                     field: tuple[np.ndarray, int] | None = None) -> pd.DataFrame:
     """Every distance between two measured centres of different spheres, with its
     standard uncertainty, as the verification states a ball-bar length:
     ``sphere_a, scanner_a, sphere_b, scanner_b, distance_mm, u_mm, bias_mm, model_error_mm``.
@@ -289,7 +290,10 @@ def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | No
     beyond that of its noise-only worlds, at the scale of the linear term of
     ``adjustment`` (the adjustment's share of ``covariance``), enters as ``model_error_mm``
     (:func:`~fringecal.verification.budget.jackknife_model_error`). NaN where the
-    calibration carries no such replicas."""
+    calibration carries no such replicas. ``field``: the covariance over the extended
+    vector with the correction fields' coefficients and their number per sensor
+    (:attr:`~fringecal.calibration.propagation.ParameterCovariances.field_total`), which
+    then replaces ``covariance`` for the distances whose sightings have a field."""
     rows = []
     if not measured:
         return pd.DataFrame(rows, columns=DISTANCE_COLUMNS)
@@ -306,7 +310,10 @@ def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | No
             if a.sphere == b.sphere:
                 continue
             g, e, L = length_gradient(a.model, b.model, n)
-            var = float(g @ covariance @ g) + float(e @ (a.model.C_fit + b.model.C_fit) @ e)
+            C = covariance
+            if field is not None and stated and (a.model.J_field is not None or b.model.J_field is not None):
+                g, C = field_gradient(g, a.model, b.model, e, field[1]), field[0]
+            var = float(g @ C @ g) + float(e @ (a.model.C_fit + b.model.C_fit) @ e)
             bias = model_error = float("nan")
             if boot is not None:
                 bias, u_bias, _ = bootstrap_bias(a.model.points, b.model.points, boot)

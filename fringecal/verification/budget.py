@@ -56,7 +56,7 @@ from fringecal.lens.field import FIELD_DEGREE, field_terms
 from fringecal.rig import Scanner
 from fringecal.spheres.fit import centre_sandwich_covariance
 
-__all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget",
+__all__ = ["SightingPoints", "SightingModel", "sighting_model", "LengthBudget", "length_budget", "field_gradient",
            "monte_carlo_lengths", "refitted_length", "length_gradient", "numerical_tolerance", "validate_linear",
            "BUDGET_TERMS", "bootstrap_bias", "block_params", "jackknife_spread", "jackknife_variance",
            "jackknife_model_error"]
