@@ -99,7 +99,7 @@ def bootstrap_calibrations(result: BundleResult, draws: int, seed: int = 0, work
             raise StartValueError(f"a bootstrap replica cannot form rays at {int(np.sum(~start.ok))} control "
                                   "points from the calibration")
         report, _, _ = minimise(ev, x, start, result.options, coarse=False, replica=True)
-        return result.layout.unpack(report.x, sensors, result.poses)[0]
+        return result.layout.sensor_rows(report.x, result.rig, result.poses)
 
     if workers <= 1:
         return np.stack([replica(r) for r in range(draws)])

@@ -143,16 +143,29 @@ def replicas_document(replicas: dict, left_out=None) -> dict:
     out = {}
     for kind in ("bootstrap", "jackknife"):
         if kind in replicas:
-            p = np.asarray(replicas[kind], float)
-            out[kind] = {"params": p.reshape(len(p), -1).tolist()}
+            out[kind] = {"params": _replica_rows(replicas[kind]).tolist()}
     if "jackknife" in out:
         if left_out is not None:
             out["jackknife"]["left_out"] = [str(m) for m in left_out]
         if "jackknife_noise" in replicas:
             q = np.asarray(replicas["jackknife_noise"], float)
             out["jackknife"]["noise_draws"] = int(len(q))
-            out["jackknife"]["noise_params"] = q.reshape(-1, q.shape[-2] * q.shape[-1]).tolist()
+            out["jackknife"]["noise_params"] = _replica_rows(q.reshape((-1,) + q.shape[-2:])).tolist()
     return out
+
+
+def _replica_rows(p) -> np.ndarray:
+    """Replicas (n, n_sensors, 14[+K]) as rows in the covariance's parameter order: every
+    sensor's 14, then (with correction fields) every sensor's K coefficients."""
+    p = np.asarray(p, float)
+    return np.concatenate([p[..., :14].reshape(len(p), -1), p[..., 14:].reshape(len(p), -1)], axis=1)
+
+
+def _replica_params(rows: np.ndarray, n_sensors: int) -> np.ndarray:
+    """Inverse of :func:`_replica_rows`: (n, n_sensors, 14[+K])."""
+    K = rows.shape[1] // n_sensors - 14
+    head = rows[:, :14 * n_sensors].reshape(len(rows), n_sensors, 14)
+    return np.concatenate([head, rows[:, 14 * n_sensors:].reshape(len(rows), n_sensors, K)], axis=2)
 
 
 def _parameter_entries(names, values, free, uncertainty, k: int) -> dict:
@@ -368,6 +381,11 @@ def _rows(rows, names: list[str], where: str, key: str = "params") -> np.ndarray
 def _replicas(doc: dict, rig: Rig, source: str) -> dict:
     """kind -> arrays of a document's ``replicas`` block (:func:`replicas_document`)."""
     names = parameter_names(rig)
+    first = next((b.get("params") for b in doc.values() if isinstance(b, dict)), None) if isinstance(doc, dict) else None
+    width = len(first[0]) if isinstance(first, list) and first and isinstance(first[0], list) else len(names)
+    if rig.has_field and width > len(names):  # a model with the fields: replicas carry their coefficients
+        names = field_parameter_names(rig, len(rig.fields[0]))
+    n_s = len(rig.sensors)
     out = {}
     if not isinstance(doc, dict):
         raise CalibrationFileError(f"{source}: replicas: expected an object of bootstrap, jackknife")
@@ -377,7 +395,7 @@ def _replicas(doc: dict, rig: Rig, source: str) -> dict:
             raise CalibrationFileError(f"{where}: unknown kind; expected bootstrap or jackknife")
         if not isinstance(block, dict):
             raise CalibrationFileError(f"{where}: expected an object with params")
-        out[kind] = _rows(block.get("params"), names, where).reshape(-1, len(names) // 14, 14)
+        out[kind] = _replica_params(_rows(block.get("params"), names, where), n_s)
         if kind == "jackknife" and "noise_params" in block:
             draws = block.get("noise_draws")
             noise = _rows(block["noise_params"], names, where, "noise_params")
@@ -385,7 +403,7 @@ def _replicas(doc: dict, rig: Rig, source: str) -> dict:
             if not isinstance(draws, int) or draws < 1 or len(noise) != draws * n:
                 raise CalibrationFileError(f"{where}: noise_params has {len(noise)} rows, expected noise_draws "
                                            f"({draws!r}) times the {n} replicas")
-            out["jackknife_noise"] = noise.reshape(draws, n, len(names) // 14, 14)
+            out["jackknife_noise"] = _replica_params(noise, n_s).reshape((draws, n) + out[kind].shape[1:])
     return out
 
 

@@ -140,7 +140,7 @@ def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
     if any(d.severity == "error" for d in rank):
         raise DegenerateCalibrationError(found + rank)
     report, _, _ = minimise(ev, x0, e0, options, coarse=False, replica=True)
-    return ev.layout.unpack(report.x, problem.rig.params, problem.poses)[0]
+    return ev.layout.sensor_rows(report.x, problem.rig, problem.poses)
 
 
 def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,
@@ -180,7 +180,7 @@ def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS,
     complete = [k for k in range(1, len(problems)) if all(params[k][j] is not None for j in keep)]
     for m, w in why.items():
         log.info("jackknife: no replica without measurement %s (%s)", m, w)
-    shape = result.rig.params.shape
+    shape = (result.rig.params.shape[0], result.rig.params.shape[1] + result.layout.n_field_terms)
 
     def stack(k):
         return np.stack([params[k][j] for j in keep]) if keep else np.empty((0,) + shape)

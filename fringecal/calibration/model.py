@@ -287,6 +287,13 @@ class ParameterLayout:
             out[m] = np.asarray(x, float)[self.field_index[m]]
         return out
 
+    def sensor_rows(self, x: np.ndarray, rig: Rig, poses: np.ndarray) -> np.ndarray:
+        """Each sensor's parameters at x as a replica stores them: (n_sensors, 14), or
+        (n_sensors, 14 + K) with its correction-field coefficients after its 14 where the
+        fields are free (:func:`fringecal.calibration.propagation.scanner_with` reads both)."""
+        sp = self.unpack(x, rig.params, poses)[0]
+        return np.concatenate([sp, self.unpack_fields(x, rig.fields)], axis=1) if self.field_free else sp
+
     def pack_rig(self, rig: Rig, poses: np.ndarray) -> np.ndarray:
         """x of ``rig``'s parameters (14, thin-prism, correction field) and ``poses``."""
         x = self.pack(rig.params, poses, rig.prism)

@@ -67,8 +67,23 @@ def triangulate_mm(scanner: Scanner, cam_mm, prj_mm) -> np.ndarray:
 
 
 def scanner_with(scanner: Scanner, params28: np.ndarray) -> Scanner:
-    """``scanner`` with other parameters (28,: camera 14, then projector 14)."""
-    return Scanner(scanner.name, scanner.camera.with_params(params28[:14]), scanner.projector.with_params(params28[14:]))
+    """``scanner`` with other parameters (28,: camera 14, then projector 14; or 28 + 2 K:
+    then the camera's and the projector's K correction-field coefficients,
+    :func:`fringecal.verification.budget.block_params`)."""
+    p = np.asarray(params28, float)
+    cam, prj = scanner.camera.with_params(p[:14]), scanner.projector.with_params(p[14:28])
+    if len(p) > 28:
+        K = (len(p) - 28) // 2
+        cam, prj = (_with_coefficients(s, c) for s, c in ((cam, p[28:28 + K]), (prj, p[28 + K:])))
+    return Scanner(scanner.name, cam, prj)
+
+
+def _with_coefficients(sensor, coefficients):
+    if sensor.field is None:
+        if np.any(coefficients != 0.0):
+            raise ValueError(f"sensor {sensor.name!r} has no correction field to take coefficients")
+        return sensor
+    return sensor.with_field(sensor.field.with_coefficients(coefficients))
 
 
 def point_jacobian(scanner: Scanner, cam_mm, prj_mm, std28) -> np.ndarray:

@@ -136,7 +136,7 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
                 name = folders[g].name
                 fitted += [{"measurement": name, **m.as_dict()} for m in found]
                 field = None if cov is None or cal.covariances.field is None else \
-                    (cal.covariances.field_total, cal.covariances.field.n_terms)
+                    (cal.covariances.field_total, cal.covariances.field.n_terms, cal.covariances.field.calibration)
                 table = sphere_distances(found, cov, adjustment, cal.replicas, field)
                 distances += [{"measurement": name, **r} for r in table.to_dict("records")]
             parts.append(part.points)

@@ -277,7 +277,7 @@ DISTANCE_COLUMNS = ["sphere_a", "scanner_a", "sphere_b", "scanner_b", "distance_
 
 def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | None,
                      adjustment: np.ndarray | None = None, replicas: Mapping[str, np.ndarray] | None = None,
-                     field: tuple[np.ndarray, int] | None = None) -> pd.DataFrame:
+                     field: tuple[np.ndarray, int, np.ndarray] | None = None) -> pd.DataFrame:
     """Every distance between two measured centres of different spheres, with its
     standard uncertainty, as the verification states a ball-bar length:
     ``sphere_a, scanner_a, sphere_b, scanner_b, distance_mm, u_mm, bias_mm, model_error_mm``.
@@ -291,9 +291,10 @@ def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | No
     ``adjustment`` (the adjustment's share of ``covariance``), enters as ``model_error_mm``
     (:func:`~fringecal.verification.budget.jackknife_model_error`). NaN where the
     calibration carries no such replicas. ``field``: the covariance over the extended
-    vector with the correction fields' coefficients and their number per sensor
-    (:attr:`~fringecal.calibration.propagation.ParameterCovariances.field_total`), which
-    then replaces ``covariance`` for the distances whose sightings have a field."""
+    vector with the correction fields' coefficients, their number per sensor and the
+    adjustment's share (:class:`~fringecal.calibration.propagation.FieldCovariances`),
+    which then replace ``covariance`` and ``adjustment`` for the distances whose
+    sightings have a field (the replicas then carry the coefficients too)."""
     rows = []
     if not measured:
         return pd.DataFrame(rows, columns=DISTANCE_COLUMNS)
@@ -319,7 +320,10 @@ def sphere_distances(measured: list[MeasuredSphere], covariance: np.ndarray | No
                 bias, u_bias, _ = bootstrap_bias(a.model.points, b.model.points, boot)
                 L, var = L - bias, var + u_bias**2
             if jack is not None:
-                model_error = jackknife_model_error(a.model, b.model, jack, noise, adjustment)["model_error_mm"]
+                extended = field is not None and jack.shape[-1] > 14
+                model_error = jackknife_model_error(a.model, b.model, jack, noise,
+                                                    field[2] if extended else adjustment,
+                                                    field[1] if extended else 0)["model_error_mm"]
                 var += model_error**2
             rows.append({"sphere_a": a.sphere, "scanner_a": a.scanner, "sphere_b": b.sphere, "scanner_b": b.scanner,
                          "distance_mm": L, "u_mm": float(np.sqrt(max(var, 0.0))) if stated else float("nan"),

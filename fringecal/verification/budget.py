@@ -91,8 +91,11 @@ class SightingPoints:
 
 def block_params(sensor_params: np.ndarray, block: int) -> np.ndarray:
     """(28,) scanner ``block``'s parameters out of per-sensor ones (n_sensors, 14),
-    the sensors in rig order (camera, projector of each scanner)."""
-    return np.concatenate([sensor_params[2 * block], sensor_params[2 * block + 1]])
+    the sensors in rig order (camera, projector of each scanner); out of replicas with
+    correction fields (n_sensors, 14 + K): (28 + 2 K,), the 28, then the camera's and
+    the projector's coefficients (:func:`fringecal.calibration.propagation.scanner_with`)."""
+    cam, prj = sensor_params[2 * block], sensor_params[2 * block + 1]
+    return np.concatenate([cam[:14], prj[:14], cam[14:], prj[14:]])
 
 
 @dataclass(frozen=True)
@@ -291,19 +294,24 @@ def jackknife_spread(a: SightingPoints, b: SightingPoints, params: np.ndarray) -
 
 
 def jackknife_model_error(a: SightingModel, b: SightingModel, params: np.ndarray, noise_params: np.ndarray,
-                          adjustment: np.ndarray) -> dict:
+                          adjustment: np.ndarray, field_terms_per_sensor: int = 0) -> dict:
     """The model-error term of the length between ``a`` and ``b``
     (:mod:`fringecal.calibration.jackknife`): its jackknife variance over ``params``
     (n, n_sensors, 14) against the mean of the same over the noise-only worlds
     ``noise_params`` (draws, n, n_sensors, 14), at the scale of its linear calibration
     term ``u = sqrt(g^T C g)`` (``adjustment`` the adjustment's sensor covariance,
-    (14 n_sensors) square): ``u sqrt(max(0, var_J / var_J,noise - 1))``.
+    (14 n_sensors) square, or with ``field_terms_per_sensor`` K the extended one of
+    :class:`~fringecal.calibration.propagation.FieldCovariances`): ``u sqrt(max(0,
+    var_J / var_J,noise - 1))``.
 
     Returns ``spread_mm`` (sqrt var_J), ``noise_spread_mm`` (sqrt var_J,noise),
     ``u_calibration_mm``, ``model_error_mm``, ``replicas`` and ``noise_draws``."""
     spread = jackknife_spread(a.points, b.points, params)
     noise = math.sqrt(float(np.mean([jackknife_spread(a.points, b.points, p) ** 2 for p in noise_params])))
-    g, _, _ = length_gradient(a, b, adjustment.shape[0])
+    n14 = adjustment.shape[0] * 14 // (14 + field_terms_per_sensor)
+    g, e, _ = length_gradient(a, b, n14)
+    if field_terms_per_sensor:
+        g = field_gradient(g, a, b, e, field_terms_per_sensor)
     u_linear = math.sqrt(max(float(g @ adjustment @ g), 0.0))
     excess = max(0.0, (spread / noise) ** 2 - 1.0) if noise > 0 else 0.0
     return {"spread_mm": spread, "noise_spread_mm": noise, "u_calibration_mm": u_linear,

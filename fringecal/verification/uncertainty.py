@@ -153,7 +153,11 @@ def ballbar_uncertainty(centres: pd.DataFrame, pixels: dict, stores: dict, rig: 
         bias = u_bias = spread = 0.0
         if boot is not None:
             bias, u_bias, spread = bootstrap_bias(a.points, b.points, boot)
-        jack = jackknife_model_error(a, b, replicas, noise, cov.calibration) if jackknifed else None
+        jack = None
+        if jackknifed:
+            extended = cov.field is not None and replicas.shape[-1] > 14
+            jack = jackknife_model_error(a, b, replicas, noise, cov.field.calibration if extended else cov.calibration,
+                                         cov.field.n_terms if extended else 0)
         u_model = 0.0 if jack is None else jack["model_error_mm"]
         budget = length_budget(a, b, cov, certificate_u_mm, u_bar_rel, u_model, u_bias)
         u = budget.combined_mm
