@@ -574,6 +574,7 @@ def test_each_switch_keys_exactly_the_steps_it_affects(realistic_run, realistic_
             ({"session_drift_mm": 0.01}, {"simulate-render"}),
             ({"projector_gamma": 1.8}, {"simulate-render", "simulate-ballbar"}),
             ({"thin_prism_corner_px": 0.3}, {"simulate-render", "simulate-ballbar"}),
+            ({"lens_field_rms_um": 1.0}, {"simulate-render", "simulate-ballbar"}),
             ({"phase_field_modes": 6}, {"simulate-render", "simulate-ballbar"}),
             ({"sphere_diameter_sd_mm": 0.005}, {"simulate-prepare"}),
             ({"ballbar_deviation": False}, {"simulate-prepare"}),
