@@ -1,9 +1,10 @@
 """The smooth correction field over each image plane (fringecal/lens/field.py) and the
 sensor model ``field`` that adjusts it (calibration/models.py).
 
-One simulated thesis rig (control points every 40 px at 2048 px, the thesis's noise;
-about 800 points) whose truth sensors carry a degree-4 field of 2 um per term (about
-9 um RMS over the image, 1.2 camera pixels), and the same rig without.
+One simulated thesis rig (control points every 20 px at 2048 px, the thesis's noise;
+about 3,150 points) whose truth sensors carry a degree-4 field of 0.7 um per term (3 um
+RMS over the image, 0.4 camera pixels: a coefficient of the size the model's prior
+expects, ``FIELD_PRIOR_MM``), and the same rig without.
 """
 
 import json
@@ -22,7 +23,7 @@ from fringecal.rig import Rig, Scanner
 from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 from fringecal.triangulation import closest_approach
 
-TERM_MM = 2e-3
+TERM_MM = 3e-3 / np.sqrt(19)
 OPTIONS = BundleOptions(bootstrap_draws=0, start="given")
 
 
@@ -37,7 +38,7 @@ def _with_fields(rig, degree, scale, seed=3):
 def _problem(scale):
     rig, art, poses = thesis_truth()
     truth = _with_fields(rig, 4, scale)
-    sim = simulate_control_points(truth, art, poses, spacing_px=40, rng=1)
+    sim = simulate_control_points(truth, art, poses, spacing_px=20, rng=1)
     return BundleProblem.from_tables(rig, art, sim.control_points, poses), truth
 
 
@@ -114,8 +115,8 @@ def test_field_model_recovers_the_truth_within_its_stated_u(field_fits):
     # 76 coefficients: RMS of z near 1, none beyond 4.5 (a 1-in-10,000 event for 76 normals)
     assert 0.7 < np.sqrt(np.mean(z ** 2)) < 1.5, z
     assert np.abs(z).max() < 4.5, z
-    # the field takes most of the residual the 14 parameters leave
-    assert richer.after.rms_f_mm < 0.5 * first.after.rms_f_mm, (first.after.rms_f_mm, richer.after.rms_f_mm)
+    # the field takes a quarter of the residual the 14 parameters leave (the rest is noise)
+    assert richer.after.rms_f_mm < 0.8 * first.after.rms_f_mm, (first.after.rms_f_mm, richer.after.rms_f_mm)
 
 
 def test_held_out_measurements_choose_the_field_only_where_the_images_have_one(field_fits):
@@ -124,7 +125,7 @@ def test_held_out_measurements_choose_the_field_only_where_the_images_have_one(f
     _, record = choose_sensor_model(problem, opts, candidates=("brown14", "field"), first=first)
     assert record["model"] == "field", record["comparisons"]
     (cmp,) = record["comparisons"]
-    assert cmp["gain"] > 0.5 and cmp["t"] > 3, cmp
+    assert cmp["gain"] > 0.2 and cmp["t"] > 3, cmp
     plain, _ = _problem(0.0)
     _, record = choose_sensor_model(plain, opts, candidates=("brown14", "field"))
     assert record["model"] == "brown14", record["comparisons"]

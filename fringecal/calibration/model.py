@@ -78,6 +78,9 @@ class BundleProblem:
         Weights of the alpha1 and alpha2 terms of F (thesis eq. 2-24).
     dropped : tuple of (measurement, reason)
         Measurements of the pose table that were left out (no control points).
+    field_prior_weight : float
+        lambda of the correction fields' prior: F gains ``lambda sum a_j^2`` over the free
+        coefficients (0: none; :mod:`fringecal.calibration.models` sets it).
     """
 
     rig: Rig
@@ -94,6 +97,7 @@ class BundleProblem:
     gamma1: float = 1.0
     gamma2: float = 1.0
     dropped: tuple = ()
+    field_prior_weight: float = 0.0
 
     def __post_init__(self):
         n_m = len(self.measurements)
@@ -519,6 +523,16 @@ class Evaluator:
             b = np.zeros(p)
             kernels.scatter(a["chunk_group"], a["gmap"], A1, A2, bv, N1, N2, b)
             ev.N1, ev.N2, ev.b = N1, N2, b
+        lam = pr.field_prior_weight
+        if lam > 0 and self.layout.field_free:
+            # the fields' prior: lambda |a|^2 in F, lambda I in its half Hessian (held in N2,
+            # which Evaluation.normal multiplies by gamma2), lambda a in its half gradient
+            idx = self.layout.field_index[self.layout.field_index >= 0]
+            coef = np.asarray(x, float)[idx]
+            ev.cost += lam * float(coef @ coef)
+            if want_jac:
+                ev.N2[idx, idx] += lam / pr.gamma2
+                ev.b[idx] += lam * coef
         return ev
 
     def replica_differences(self, x, prj_a: np.ndarray, prj_b: np.ndarray, flip: np.ndarray

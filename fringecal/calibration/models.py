@@ -13,9 +13,14 @@ Candidates (``SENSOR_MODELS``; ``bundle.sensor_model`` of a run)
     The 14 parameters plus a smooth correction field over each camera's and projector's
     image plane (:mod:`fringecal.lens.field`: 19 orthonormal vector polynomials of degree
     2..4 per sensor, orthogonal to what the 14 parameters absorb; they span the thin-prism
-    terms too, so this model does not free those). Its regularisation is its basis: a
-    fixed low degree instead of a penalty whose weight would have to be chosen, and the
-    held-out error below decides whether the data carry it at all.
+    terms too, so this model does not free those). Regularised twice: by its basis (a
+    fixed low degree), and by a prior that each coefficient is of order ``FIELD_PRIOR_MM``
+    (F gains ``lambda |a|^2``, ``lambda = s0^2 / FIELD_PRIOR_MM^2`` with ``s0^2`` the
+    variance per residual of the start values, the 14-parameter solution): the
+    observations only cover parts of each image, where the basis is no longer orthogonal
+    to a tilt, so without the prior a tilt traded against a principal-point shift and the
+    field drifts along a direction the data hardly see. The held-out error below decides
+    whether the data carry the field at all.
 ``auto`` (default)
     The candidate held-out measurements choose (below).
 
@@ -85,7 +90,7 @@ from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adj
 from fringecal.calibration.crossval import split_measurements, subproblem
 from fringecal.calibration.model import BundleProblem, Evaluator
 
-__all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "SCREEN_Z", "prism_free_of", "held_out_error",
+__all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "SCREEN_Z", "FIELD_PRIOR_MM", "prism_free_of", "held_out_error",
            "choose_sensor_model", "fit_model"]
 
 #: the candidates in order of size, with the thin-prism terms each frees (s1, s2, s3, s4)
@@ -100,6 +105,9 @@ T_MIN = 3.0
 #: residual-pattern Z of the 14-parameter fit below which ``model_selection: screened``
 #: keeps the 14 parameters without cross-validation
 SCREEN_Z = 3.0
+#: prior standard deviation of each correction-field coefficient (mm): lens errors beyond
+#: Brown's terms of a micrometre RMS over the image plane per term
+FIELD_PRIOR_MM = 1e-3
 
 
 def prism_free_of(model: str, n_sensors: int) -> np.ndarray:
@@ -112,7 +120,13 @@ def prism_free_of(model: str, n_sensors: int) -> np.ndarray:
 def _with_model(problem: BundleProblem, model: str) -> BundleProblem:
     rig = problem.rig.with_prism_free(prism_free_of(model, len(problem.rig.sensors)))
     rig = rig.with_field_free(CANDIDATES[model][1])
-    return problem.with_start(rig=rig)
+    out = problem.with_start(rig=rig)
+    if CANDIDATES[model][1]:
+        ev = Evaluator(problem)
+        e = ev.evaluate(ev.layout.pack_rig(problem.rig, problem.poses), False)
+        s0 = e.cost / max(2 * int(e.ok.sum()), 1)
+        out = replace(out, field_prior_weight=float(s0 / FIELD_PRIOR_MM ** 2))
+    return out
 
 
 def fit_model(problem: BundleProblem, options: BundleOptions, model: str) -> BundleResult:
