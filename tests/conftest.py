@@ -88,6 +88,17 @@ def thesis_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def pose1(thesis_dir):
+    """T_world_artefact of the thesis's first pose (table 6-1, scanner 1)."""
+    import pandas as pd
+
+    from fringecal.frames import Frame
+
+    row = pd.read_csv(thesis_dir / "poses_scanner1_table6-1.csv").iloc[0]
+    return Frame.from_params(row[["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]].to_numpy(float))
+
+
+@pytest.fixture(scope="session")
 def thesis_rig():
     from fringecal.rig import load_rig
 

@@ -8,7 +8,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fringecal.frames import Frame
 from fringecal.fringe.decode import DecodeSettings, decode
 from fringecal.fringe.sequence import FringeSequence
 from fringecal.lens.field import _grid
@@ -23,12 +22,6 @@ from fringecal.simulate.world import render_errors, sensor_lens_field, with_lens
 RMS_UM = 3.0
 ERRORS = SimulationErrors(lens_field_rms_um=RMS_UM, seed=2)
 SEQ = FringeSequence()
-
-
-@pytest.fixture(scope="module")
-def pose1(thesis_dir):
-    row = pd.read_csv(thesis_dir / "poses_scanner1_table6-1.csv").iloc[0]
-    return Frame.from_params(row[["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]].to_numpy(float))
 
 
 @pytest.fixture(scope="module")

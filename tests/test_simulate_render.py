@@ -2,11 +2,9 @@
 
 import numba
 import numpy as np
-import pandas as pd
 import pytest
 
 from fringecal.artefact import load_rods
-from fringecal.frames import Frame
 from fringecal.fringe.sequence import FringeSequence
 from fringecal.simulate import (
     LIGHT_LIT,
@@ -27,12 +25,6 @@ from fringecal.simulate import (
 from fringecal.simulate.visibility import pixel_centre_rays, sphere_visibility
 
 SHORT = FringeSequence(fringe_counts=(64, 63), n_steps=4)
-
-
-@pytest.fixture(scope="module")
-def pose1(thesis_dir):
-    row = pd.read_csv(thesis_dir / "poses_scanner1_table6-1.csv").iloc[0]
-    return Frame.from_params(row[["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]].to_numpy(float))
 
 
 @pytest.fixture(scope="module")

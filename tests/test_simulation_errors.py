@@ -5,7 +5,6 @@ scan and over a session, a thin-prism lens term; the ideal profile renders exact
 what the renderer rendered before the switches existed; the realistic profile."""
 
 import numpy as np
-import pandas as pd
 import pytest
 import yaml
 from numpy.polynomial import legendre
@@ -47,12 +46,6 @@ from fringecal.simulate.world import (
 SEQ = FringeSequence()  # the thesis's 7 counts x 7 steps: the aliasing tests need N = 7
 #: Noise-free, one sample per pixel, 16 bits, a white backdrop: frames are the contract to 1e-5.
 EXACT = RenderConfig(bit_depth=16, materials={"background": Material(albedo=1.0)}).ideal()
-
-
-@pytest.fixture(scope="module")
-def pose1(thesis_dir):
-    row = pd.read_csv(thesis_dir / "poses_scanner1_table6-1.csv").iloc[0]
-    return Frame.from_params(row[["tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad"]].to_numpy(float))
 
 
 @pytest.fixture(scope="module")

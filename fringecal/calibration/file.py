@@ -566,6 +566,18 @@ def xml_text(rig: Rig, metadata: dict | None = None) -> str:
     return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
+def _xml_leaves(element, where: str) -> dict:
+    """name -> {value, free[, u]} of an element's parameter leaves (beyond the thesis's layout)."""
+    out = {}
+    for e_p in element:
+        try:
+            out[e_p.tag] = {"value": float(e_p.text), "free": e_p.get("free", "false") == "true",
+                            **({"u": float(e_p.get("u"))} if e_p.get("u") is not None else {})}
+        except (TypeError, ValueError):
+            raise CalibrationFileError(f"{where} <{element.tag}><{e_p.tag}>: not a number: {e_p.text!r}") from None
+    return out
+
+
 def read_calibration_xml(path) -> Rig:
     path = Path(path)
     try:
@@ -602,25 +614,10 @@ def read_calibration_xml(path) -> Rig:
                      "parameters": params}
             e_tp = e_se.find("thin_prism")
             if e_tp is not None:
-                prism = {}
-                for e_p in e_tp:
-                    try:
-                        prism[e_p.tag] = {"value": float(e_p.text), "free": e_p.get("free", "false") == "true",
-                                          **({"u": float(e_p.get("u"))} if e_p.get("u") is not None else {})}
-                    except (TypeError, ValueError):
-                        raise CalibrationFileError(f"{path}: {where} <thin_prism><{e_p.tag}>: not a number: "
-                                                   f"{e_p.text!r}") from None
-                entry["thin_prism"] = prism
+                entry["thin_prism"] = _xml_leaves(e_tp, f"{path}: {where}")
             e_cf = e_se.find("correction_field")
             if e_cf is not None:
-                terms = {}
-                for e_p in e_cf:
-                    try:
-                        terms[e_p.tag] = {"value": float(e_p.text), "free": e_p.get("free", "false") == "true",
-                                          **({"u": float(e_p.get("u"))} if e_p.get("u") is not None else {})}
-                    except (TypeError, ValueError):
-                        raise CalibrationFileError(f"{path}: {where} <correction_field><{e_p.tag}>: not a number: "
-                                                   f"{e_p.text!r}") from None
+                terms = _xml_leaves(e_cf, f"{path}: {where}")
                 try:
                     degree = int(e_cf.get("degree", ""))
                 except ValueError:
