@@ -206,3 +206,32 @@ def test_a_length_budget_holds_the_field_coefficients_through_their_principal_po
         worst = max(worst, np.abs(fd).max())
         assert err < 1e-3, (j, fd, model.J_field[:, j])
     assert worst > 1.0  # a micrometre on the image moves the centre by tens of micrometres
+
+
+def test_the_monte_carlo_check_draws_the_field_coefficients_as_the_linear_budget_holds_them():
+    from fringecal.calibration.propagation import FieldCovariances, ParameterCovariances
+    from fringecal.verification.budget import SightingPoints, length_budget, monte_carlo_lengths, sighting_model
+
+    rig = _with_fields(thesis_truth()[0], 4, 1e-3)
+    sc = rig.scanners[0]
+    rng = np.random.default_rng(5)
+    sightings = []
+    for centre in (np.array([-300.0, 0.0, 0.0]), np.array([300.0, 50.0, 0.0])):
+        towards = sc.camera.pinhole - centre
+        towards /= np.linalg.norm(towards)
+        d = rng.normal(size=(600, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        X = centre + 25.0 * d[d @ towards > 0.5]
+        pts = SightingPoints(sc, 0, sc.camera.project(X), sc.projector.project(X), centre, 25.0, 1e-9)
+        sightings.append(sighting_model(pts, np.full(28, 1e-4)))
+    n14, K = 14 * len(rig.sensors), 19
+    # only the field coefficients uncertain (0.5 um each): the length's u comes from them alone
+    C = np.zeros((n14 + K * len(rig.sensors),) * 2)
+    C[n14:, n14:] = np.eye(K * len(rig.sensors)) * 5e-4 ** 2
+    zero = np.zeros((n14, n14))
+    cov = ParameterCovariances(zero, zero, np.zeros(n14), 0.0, FieldCovariances(C, np.zeros_like(C), np.zeros(len(C)), K))
+    a, b = sightings
+    u = length_budget(a, b, cov, 0.0, 0.0).u_mm["calibration"]
+    L = monte_carlo_lengths(a.points, b.points, cov, 0.0, 0.0, 2000, np.random.default_rng(1))
+    assert u > 1e-3  # micrometres on the image move a 600 mm length by micrometres
+    assert np.std(L) == pytest.approx(u, rel=0.1), (np.std(L), u)

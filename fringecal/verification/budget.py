@@ -13,8 +13,8 @@ their standard uncertainties:
   with correction fields (:mod:`fringecal.lens.field`) theta holds their coefficients
   too: a coefficient moves a point as the principal point does, weighted by its basis
   function at the pixel (``dX/da_j = phi_j,x dX/dxi_h + phi_j,y dX/deta_h``), so its
-  column comes from the same differences (this term and the two artefact terms; the
-  Monte Carlo check draws the 14 parameters only);
+  column comes from the same differences (this term, the two artefact terms and the
+  Monte Carlo check's draws);
 * ``artefact CMM``: the artefact table's own uncertainty moves theta by ``S Sigma_a S^T``
   (:mod:`fringecal.calibration.artefact_sensitivity`);
 * ``artefact temperature``: a relative scale ``cte * u_T`` of the artefact moves theta
@@ -226,9 +226,16 @@ def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCova
     ``shifts`` (two (3, 3) covariances or None): each refitted centre also moves as a
     whole by a draw of its own, the sighting's scatter beyond its points' noise."""
     blocks = sorted({a.block, b.block})
-    idx = np.concatenate([np.arange(28 * k, 28 * k + 28) for k in blocks])
-    F = _draw_sqrt(cov.total[np.ix_(idx, idx)])
-    base = {s.block: s.params for s in (a, b)}
+    idx = [np.arange(28 * k, 28 * k + 28) for k in blocks]
+    total, width, base = cov.total, 28, {s.block: s.params for s in (a, b)}
+    if cov.field is not None:  # draw the correction fields' coefficients too (block_params' order)
+        K, n14 = cov.field.n_terms, len(cov.scale)
+        idx = [np.concatenate([i, n14 + 2 * K * k + np.arange(2 * K)]) for i, k in zip(idx, blocks)]
+        total, width = cov.field_total, 28 + 2 * K
+        base = {s.block: np.concatenate([s.params, *(se.field.coefficients if se.field is not None else np.zeros(K)
+                                                      for se in s.scanner.sensors)]) for s in (a, b)}
+    idx = np.concatenate(idx)
+    F = _draw_sqrt(total[np.ix_(idx, idx)])
     X0 = {id(s): triangulate_mm(s.scanner, s.cam_mm, s.prj_mm) for s in (a, b)}
     normals = {id(s): _normals(X0[id(s)], s.centre) for s in (a, b)}
     shift = [None if S is None or not np.any(S) else _draw_sqrt(S) for S in (shifts or (None, None))]
@@ -238,7 +245,7 @@ def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCova
         centres = []
         for k, s in enumerate((a, b)):
             j = blocks.index(s.block)
-            sc = scanner_with(s.scanner, base[s.block] + dtheta[28 * j:28 * j + 28])
+            sc = scanner_with(s.scanner, base[s.block] + dtheta[width * j:width * j + width])
             X = triangulate_mm(sc, s.cam_mm, s.prj_mm)
             X = X + normals[id(s)] * (s.rms_mm * rng.standard_normal(len(X)))[:, None]
             c = _refit(X, s.centre, s.radius_mm)
