@@ -54,8 +54,13 @@ def sensor_covariance(sensor_index: np.ndarray, covariance: np.ndarray) -> np.nd
 
 
 def scanner_block(cov_sensors: np.ndarray, rig: Rig, scanner: str) -> np.ndarray:
-    """The (28, 28) block of one scanner (camera 14, then projector 14)."""
+    """The (28, 28) block of one scanner (camera 14, then projector 14); of an extended
+    covariance (:class:`FieldCovariances`), its (28 + 2 K) block (:func:`extended_indices`)."""
     i = [s.name for s in rig.scanners].index(scanner)
+    n14 = 14 * len(rig.sensors)
+    if cov_sensors.shape[0] > n14:
+        idx = extended_indices(len(rig.sensors), i, (cov_sensors.shape[0] - n14) // len(rig.sensors))
+        return cov_sensors[np.ix_(idx, idx)]
     sl = slice(28 * i, 28 * i + 28)
     return cov_sensors[sl, sl]
 
@@ -107,6 +112,40 @@ def point_jacobian(scanner: Scanner, cam_mm, prj_mm, std28) -> np.ndarray:
     return J
 
 
+#: the principal points' slots among a scanner's 28 parameters (camera xi_h, eta_h; projector)
+PRINCIPAL_POINTS = (slice(6, 8), slice(20, 22))
+
+
+def with_principal_point_steps(std28) -> np.ndarray:
+    """``std28`` with a 1 um step where a principal point is fixed: a correction field's
+    derivative is made of the principal point's (:func:`field_jacobian`)."""
+    std = np.array(std28, float, copy=True)
+    for sl in PRINCIPAL_POINTS:
+        std[sl] = np.where(std[sl] > 0, std[sl], 1e-3 / STEP_FRACTION)
+    return std
+
+
+def field_jacobian(scanner: Scanner, cam_mm, prj_mm, J: np.ndarray, n_terms: int) -> np.ndarray:
+    """d(point)/d(correction-field coefficients), (n, 3, 2 K): camera's K, then
+    projector's, from the points' Jacobian ``J`` (n, 3, 28) by the principal points: a
+    coefficient moves a point as the principal point does, weighted by its basis function
+    at the observation (zero for a sensor without a field)."""
+    cols = []
+    for sensor, obs, sl in zip(scanner.sensors, (cam_mm, prj_mm), PRINCIPAL_POINTS):
+        obs = np.asarray(obs, float).reshape(-1, 2)
+        f = sensor.field
+        phi = f.basis(obs) if f is not None and len(f.coefficients) == n_terms else np.zeros((len(obs), 2, n_terms))
+        cols.append(np.einsum("ndk,nid->nik", phi, J[:, :, sl]))
+    return np.concatenate(cols, axis=2)
+
+
+def extended_indices(n_sensors: int, block: int, n_terms: int) -> np.ndarray:
+    """Positions of scanner ``block``'s 28 parameters, then its camera's and projector's
+    K correction-field coefficients, in the extended vector of :class:`FieldCovariances`."""
+    return np.concatenate([np.arange(28 * block, 28 * block + 28),
+                           14 * n_sensors + 2 * n_terms * block + np.arange(2 * n_terms)])
+
+
 def point_covariance(J: np.ndarray, cov28: np.ndarray) -> np.ndarray:
     """Covariance (n, 3, 3) of points with Jacobians J (n, 3, 28)."""
     return np.einsum("nij,jk,nlk->nil", J, cov28, J)
@@ -115,16 +154,23 @@ def point_covariance(J: np.ndarray, cov28: np.ndarray) -> np.ndarray:
 def point_variances(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, rows, cols, block: int = 20000) -> np.ndarray:
     """Variances (n, 3) along the world axes of the points at pixels (rows, cols) of a
     measurement with phase maps ``tau_x``, ``tau_y``, from the parameter covariance
-    ``cov28`` (28, 28) of ``scanner`` (camera at the measurement's resolution)."""
+    ``cov28`` (28, 28) of ``scanner`` (camera at the measurement's resolution), or (28 +
+    2 K) square with its correction fields' coefficients (:func:`extended_indices`)."""
     rows, cols = np.asarray(rows, int), np.asarray(cols, int)
     tau_x, tau_y = np.asarray(tau_x), np.asarray(tau_y)
     std = np.sqrt(np.clip(np.diag(cov28), 0, None))
+    n_terms = (len(std) - 28) // 2
     out = np.zeros((len(rows), 3))
     for a in range(0, len(rows), block):
         r, c = rows[a:a + block], cols[a:a + block]
         cam = scanner.camera.image_mm(np.stack([c, r], axis=-1).astype(float))
         prj = scanner.projector.image_mm(np.stack([tau_x[r, c], tau_y[r, c]], axis=-1).astype(float))
-        C = point_covariance(point_jacobian(scanner, cam, prj, std), cov28)
+        if n_terms:
+            J = point_jacobian(scanner, cam, prj, with_principal_point_steps(std[:28]))
+            J = np.concatenate([J, field_jacobian(scanner, cam, prj, J, n_terms)], axis=2)
+        else:
+            J = point_jacobian(scanner, cam, prj, std)
+        C = point_covariance(J, cov28)
         out[a:a + block] = np.clip(np.diagonal(C, axis1=1, axis2=2), 0, None)
     return out
 
@@ -301,12 +347,16 @@ def frame_free_covariance(rig: Rig, covariance: np.ndarray) -> np.ndarray:
     angles are fixed, and the frame turns through its principal point. Lengths,
     shapes and the registration between scanners keep their uncertainty exactly (a
     rigid motion changes none of them); a point's uncertainty becomes that relative
-    to the rig.
+    to the rig. An extended covariance (:class:`FieldCovariances`) keeps its correction
+    fields' coefficients: a rigid motion does not change them, and they hold no field of
+    degree below 2, so none turns a bundle of rays (``P`` is the identity on them).
     """
     covariance = np.asarray(covariance, float)
     G = rigid_motion_basis(rig)
-    K = frame_motion_operator(rig, np.sqrt(np.clip(np.diag(covariance), 0, None)))
-    P = np.eye(G.shape[0]) - G @ K
+    n14 = G.shape[0]
+    K = frame_motion_operator(rig, np.sqrt(np.clip(np.diag(covariance)[:n14], 0, None)))
+    P = np.eye(len(covariance))
+    P[:n14, :n14] -= G @ K
     return P @ covariance @ P.T
 
 

@@ -114,11 +114,16 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
     boxes = scanners_from_document(cal.black_boxes) if cal.black_boxes else {}
     entries = [measurement_entries(f, cal.rig, kind, tuple(boxes)) for f in folders]
     ripple_fits = _ripple_fits(cal, calibration) if kind == "frames" else {}
-    cov = None
+    cov = placed = field = None
     if settings.uncertainty and cal.covariances is not None:
         cov = cal.covariances.total
+        if cal.covariances.field is not None:  # with correction fields: distances take the extended one
+            f = cal.covariances.field
+            field = (cal.covariances.field_total, f.n_terms, f.calibration)
+        # points and sphere positions: with the fields' coefficients where there are fields
+        placed = cov if field is None else field[0]
         if datum == "rig":
-            cov = frame_free_covariance(cal.rig, cov)
+            cov, placed = frame_free_covariance(cal.rig, cov), frame_free_covariance(cal.rig, placed)
     adjustment = None if cov is None else cal.covariances.calibration  # a distance's jackknife is compared with it
     factors = {s: max(1.0, float(d["kappa"])) for s, d in (cal.metadata.get("sighting_dispersion") or {}).items()}
     t_read = t_cloud = 0.0
@@ -130,13 +135,11 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         t_read += time.perf_counter() - t
         t = time.perf_counter()
         try:
-            part = measure_cloud(cal.rig, stores, settings, cov, measurement=g)
+            part = measure_cloud(cal.rig, stores, settings, placed, measurement=g)
             if nominal is not None:
-                found = measure_spheres(part, stores, cal.rig, cov, nominal, measurement=g, fit_factors=factors)
+                found = measure_spheres(part, stores, cal.rig, placed, nominal, measurement=g, fit_factors=factors)
                 name = folders[g].name
                 fitted += [{"measurement": name, **m.as_dict()} for m in found]
-                field = None if cov is None or cal.covariances.field is None else \
-                    (cal.covariances.field_total, cal.covariances.field.n_terms, cal.covariances.field.calibration)
                 table = sphere_distances(found, cov, adjustment, cal.replicas, field)
                 distances += [{"measurement": name, **r} for r in table.to_dict("records")]
             parts.append(part.points)

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from fringecal.calibration.propagation import triangulate_mm
+from fringecal.calibration.propagation import extended_indices, triangulate_mm
 from fringecal.measure.cloud import Cloud
 from fringecal.pointcloud import triangulate_maps
 from fringecal.rig import Rig
@@ -212,7 +212,9 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
     stores : scanner -> the store it was measured from (``tau_x``, ``tau_y``)
     rig : the calibration
     covariance : (14 n_sensors, 14 n_sensors) sensor covariance in the frame the
-        positions are to be stated in (the rig's: ``frame_free_covariance``), or None
+        positions are to be stated in (the rig's: ``frame_free_covariance``), or the
+        extended one with the correction fields' coefficients
+        (:attr:`~fringecal.calibration.propagation.ParameterCovariances.field_total`), or None
         (``u_position_mm`` NaN)
     spheres : ``sphere_id, x_mm, y_mm, z_mm, radius_mm``: nominal centres (within a
         few mm) and the certified radii
@@ -264,7 +266,11 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
                 continue
             pts, fraction = pts
             model = scaled_fit(sighting_model(pts, std[sl]), (fit_factors or {}).get(name, 1.0))
-            var = np.trace(model.J @ covariance[sl, sl] @ model.J.T) + np.trace(model.C_fit)
+            J, idx = model.J, np.arange(sl.start, sl.stop)
+            if covariance.shape[0] > 14 * len(rig.sensors) and model.J_field is not None:  # with the fields
+                J = np.concatenate([J, model.J_field], axis=1)
+                idx = extended_indices(len(rig.sensors), block, model.J_field.shape[1] // 2)
+            var = np.trace(J @ covariance[np.ix_(idx, idx)] @ J.T) + np.trace(model.C_fit)
             out.append(MeasuredSphere(str(s.sphere_id), name, pts.centre,
                                       float(np.sqrt(max(var, 0.0))) if stated else float("nan"),
                                       len(pts.cam_mm), fraction, model))

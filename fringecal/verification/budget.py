@@ -51,7 +51,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fringecal.calibration.propagation import ParameterCovariances, point_jacobian, scanner_with, triangulate_mm
+from fringecal.calibration.propagation import (
+    ParameterCovariances,
+    extended_indices,
+    field_jacobian,
+    point_jacobian,
+    scanner_with,
+    triangulate_mm,
+    with_principal_point_steps,
+)
 from fringecal.lens.field import FIELD_DEGREE, field_terms
 from fringecal.rig import Scanner
 from fringecal.spheres.fit import centre_sandwich_covariance
@@ -121,17 +129,14 @@ def sighting_model(s: SightingPoints, std28: np.ndarray) -> SightingModel:
     X = triangulate_mm(s.scanner, s.cam_mm, s.prj_mm)
     A = _normals(X, s.centre)
     AtA_inv = np.linalg.inv(A.T @ A)
-    JX = point_jacobian(s.scanner, s.cam_mm, s.prj_mm, std28)  # (n, 3, 28)
+    with_field = any(se.field is not None and se.field.degree == FIELD_DEGREE for se in s.scanner.sensors)
+    JX = point_jacobian(s.scanner, s.cam_mm, s.prj_mm,
+                        with_principal_point_steps(std28) if with_field else std28)  # (n, 3, 28)
     J = AtA_inv @ (A.T @ np.einsum("ni,nij->nj", A, JX))
     J_field = None
-    fields = [se.field for se in s.scanner.sensors]
-    if any(f is not None and f.degree == FIELD_DEGREE for f in fields):
-        K = field_terms(FIELD_DEGREE)
-        cols = []
-        for f, obs, pp in zip(fields, (s.cam_mm, s.prj_mm), (slice(6, 8), slice(20, 22))):
-            phi = f.basis(obs) if f is not None and f.degree == FIELD_DEGREE else np.zeros((len(obs), 2, K))
-            cols.append(np.einsum("ndk,nid->nik", phi, JX[:, :, pp]))  # (n, 3, K)
-        J_field = AtA_inv @ (A.T @ np.einsum("ni,nij->nj", A, np.concatenate(cols, axis=2)))
+    if with_field:
+        JF = field_jacobian(s.scanner, s.cam_mm, s.prj_mm, JX, field_terms(FIELD_DEGREE))
+        J_field = AtA_inv @ (A.T @ np.einsum("ni,nij->nj", A, JF))
     return SightingModel(s, J, centre_sandwich_covariance(X, s.centre, s.radius_mm), J_field)
 
 
@@ -229,8 +234,8 @@ def monte_carlo_lengths(a: SightingPoints, b: SightingPoints, cov: ParameterCova
     idx = [np.arange(28 * k, 28 * k + 28) for k in blocks]
     total, width, base = cov.total, 28, {s.block: s.params for s in (a, b)}
     if cov.field is not None:  # draw the correction fields' coefficients too (block_params' order)
-        K, n14 = cov.field.n_terms, len(cov.scale)
-        idx = [np.concatenate([i, n14 + 2 * K * k + np.arange(2 * K)]) for i, k in zip(idx, blocks)]
+        K = cov.field.n_terms
+        idx = [extended_indices(len(cov.scale) // 14, k, K) for k in blocks]
         total, width = cov.field_total, 28 + 2 * K
         base = {s.block: np.concatenate([s.params, *(se.field.coefficients if se.field is not None else np.zeros(K)
                                                       for se in s.scanner.sensors)]) for s in (a, b)}
