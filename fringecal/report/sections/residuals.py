@@ -61,6 +61,7 @@ def sensor_model(run: RunData) -> dict:
     pattern = rec["residual_pattern"]
     held = rec.get("held_out") or {}
     cmp = {c["richer"]: c for c in rec.get("comparisons") or []}
+    against = rec.get("t_against_lowest") or {}
     candidates = None
     if held:
         rows = []
@@ -68,13 +69,16 @@ def sensor_model(run: RunData) -> dict:
             c = cmp.get(name)
             rows.append([name, um(e["rms_f_mm"]), um(e["rms_eps1_mm"]), um(e["rms_eps2_mm"]),
                          "" if c is None else f"{100 * c['gain']:+.2f} % vs {c['simpler']}",
-                         "" if c is None else f"{c['t']:.1f}", "chosen" if name == rec["model"] else ""])
-        candidates = table(["Model", "Held-out RMS F", "RMS ε1", "RMS ε2", "Gain", "t", ""], rows, left=1)
+                         "" if c is None else f"{c['t']:.1f}",
+                         "" if name not in against else f"{against[name]:.1f}",
+                         "chosen" if name == rec["model"] else ""])
+        candidates = table(["Model", "Held-out RMS F", "RMS ε1", "RMS ε2", "Gain", "t", "t vs lowest", ""], rows,
+                           left=1)
     stats = table(["Scanner", "Sensor", "Residual", "Z", "Pattern RMS", "Bins"],
                   [[s["scanner"], s["sensor"], s["residual"], f"{s['z']:.1f}", f"{s['systematic_um']:.1f} um",
                     s["n_bins"]] for s in pattern["statistics"]], left=3)
     return {"model": rec["model"], "chosen_by": rec["chosen_by"], "min_gain": rec.get("min_gain"),
-            "t_min": rec.get("t_min"), "candidates": candidates, "message": pattern["message"],
+            "t_min": rec.get("t_min"), "one_se": rec.get("one_se", "-"), "candidates": candidates, "message": pattern["message"],
             "too_simple": pattern["too_simple"], "z_max": pattern["z_max"], "threshold": pattern["threshold"],
             "statistics": stats}
 
