@@ -116,7 +116,7 @@ def measure(rms_um: float, spacing_px: int, repeat: int) -> dict:
     start = problem.with_start(first.rig, first.poses)
     seconds = {"brown14": [], "field": []}
     for _ in range(repeat):
-        for model in seconds:
+        for model in list(seconds):
             t = time.perf_counter()
             fit = fit_model(start, options, model)
             seconds[model].append(time.perf_counter() - t)

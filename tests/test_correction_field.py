@@ -85,11 +85,11 @@ def test_sensor_with_a_field_projects_and_back_projects_consistently():
 
 
 def test_field_slots_of_the_kernels_match_finite_differences(field_fits):
-    problem, truth, _, richer = field_fits
+    problem, _, _, richer = field_fits
     pr = replace(problem.thinned(7), rig=richer.rig)
     ev = Evaluator(pr, chunk_size=5)
     x = ev.layout.pack_rig(pr.rig, richer.poses)
-    res, J, ok = ev.jacobian_rows(x)
+    _, J, _ = ev.jacobian_rows(x)
     cols = ev.global_columns()
     worst = 0.0
     for i in np.flatnonzero([".field." in n for n in ev.layout.names])[::7]:
