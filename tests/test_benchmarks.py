@@ -104,6 +104,8 @@ CHECKS = {
     "bundle": _bundle,
     "busy_neighbours": _busy_neighbours,
     "ceres": _ceres,
+    # a 3 um lens error leaves a pattern the 14 parameters cannot take and the field can
+    "correction_field": lambda d: d["sizes"][0]["z_max"]["brown14"] > 5 > d["sizes"][0]["z_max"]["field"],
     "convergence_basin": lambda d: d["rigs"]["thesis"]["scales"]["1"]["starts"] == 2,
     "decode": _decode,
     "image_import": _image_import,
