@@ -3,7 +3,9 @@ temporary folder for the whole session, never in the user's ~/.prefect."""
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -14,6 +16,9 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ.setdefault(_var, "1")
 
 _PREFECT_TMP = Path(tempfile.mkdtemp(prefix="fringecal-prefect-"))
+# removed when this process ends: every test process made one (up to 17 MB) and left it,
+# over a thousand in /tmp after two days of test runs
+atexit.register(shutil.rmtree, _PREFECT_TMP, ignore_errors=True)
 os.environ["PREFECT_HOME"] = str(_PREFECT_TMP / "home")
 os.environ["PREFECT_LOCAL_STORAGE_PATH"] = str(_PREFECT_TMP / "storage")
 os.environ["PREFECT_RESULTS_LOCAL_STORAGE_PATH"] = str(_PREFECT_TMP / "storage")
