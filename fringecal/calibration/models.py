@@ -97,6 +97,7 @@ from fringecal.calibration.crossval import split_measurements, subproblem
 from fringecal.calibration.model import BundleProblem, Evaluator
 
 __all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "ONE_SE", "SCREEN_Z", "FIELD_PRIOR_MM", "prism_free_of", "held_out_error",
+           "choose_by_held_out",
            "choose_sensor_model", "fit_model"]
 
 #: the candidates in order of size, with the thin-prism terms each frees (s1, s2, s3, s4)
@@ -203,6 +204,32 @@ def _compare(simple: dict, rich: dict) -> dict:
             "u_inflation_median": float(np.median(inflation)) if inflation.size else None}
 
 
+def choose_by_held_out(errors: dict) -> dict:
+    """The model the held-out errors choose (the module notes): ``errors`` maps each model,
+    ``brown14`` first and the others in order of size, to its :func:`held_out_error`
+    (its ``model``, ``sum_squares_mm2``: measurement -> held-out sum of squares, and
+    ``u_sensors`` are read). A richer model that predicts about as well as a smaller one
+    is not chosen; one that predicts clearly better is:
+
+    >>> def e(model, *ss):
+    ...     return {"model": model, "sum_squares_mm2": dict(enumerate(ss)), "u_sensors": [1.0]}
+    >>> base, prism = e("brown14", 10, 11, 12, 10), e("thin_prism", 8, 9, 10, 8.2)
+    >>> choose_by_held_out({"brown14": base, "thin_prism": prism,
+    ...                     "field": e("field", 7.7, 9.2, 9.75, 8.35)})["model"]
+    'thin_prism'
+    >>> choose_by_held_out({"brown14": base, "thin_prism": prism,
+    ...                     "field": e("field", 6, 7.1, 8, 6.3)})["model"]
+    'field'
+    """
+    models = list(errors)
+    comparisons = [_compare(errors[models[0]], errors[m]) for m in models[1:]]
+    eligible = [models[0]] + [c["richer"] for c in comparisons if c["richer_chosen"]]
+    lowest = min(eligible, key=lambda m: sum(errors[m]["sum_squares_mm2"].values()))
+    against = {m: 0.0 if m == lowest else _compare(errors[m], errors[lowest])["t"] for m in eligible}
+    return {"model": next(m for m in eligible if against[m] < ONE_SE), "comparisons": comparisons,
+            "eligible": eligible, "lowest_held_out": lowest, "t_against_lowest": against}
+
+
 def choose_sensor_model(problem: BundleProblem, options: BundleOptions, candidates=tuple(CANDIDATES),
                         first: BundleResult | None = None) -> tuple[BundleResult, dict]:
     """The adjustment with the sensor model ``options.sensor_model`` (``auto``: chosen by
@@ -240,22 +267,18 @@ def choose_sensor_model(problem: BundleProblem, options: BundleOptions, candidat
         return _with_pattern(first, pattern_first), record
     start = problem.with_start(first.rig, first.poses)
     errors = {"brown14": held_out_error(start, options, "brown14", halves)}
-    comparisons = []
     for model in [m for m in CANDIDATES if m in candidates and m != "brown14"]:
         errors[model] = held_out_error(start, options, model, halves)
-        comparisons.append(_compare(errors["brown14"], errors[model]))
-    eligible = ["brown14"] + [c["richer"] for c in comparisons if c["richer_chosen"]]
-    lowest = min(eligible, key=lambda m: sum(errors[m]["sum_squares_mm2"].values()))
-    against = {m: 0.0 if m == lowest else _compare(errors[m], errors[lowest])["t"] for m in eligible}
-    best = next(m for m in eligible if against[m] < ONE_SE)
+    choice = choose_by_held_out(errors)
+    best = choice["model"]
     result, pattern = first, pattern_first
     if best != "brown14":
         result = fit_model(start, options.model_copy(update={"start": "given"}), best)
         pattern = residual_pattern(result.problem, result.residuals, best)
     record = {"model": best, "chosen_by": "cross-validation on held-out measurements",
               "halves": [list(h) for h in halves], "min_gain": MIN_GAIN, "t_min": T_MIN, "one_se": ONE_SE,
-              "held_out": errors, "comparisons": comparisons, "eligible": eligible, "lowest_held_out": lowest,
-              "t_against_lowest": against,
+              "held_out": errors, "comparisons": choice["comparisons"], "eligible": choice["eligible"],
+              "lowest_held_out": choice["lowest_held_out"], "t_against_lowest": choice["t_against_lowest"],
               "residual_pattern_brown14": pattern_first.to_dict(), "residual_pattern": pattern.to_dict(),
               "seconds": time.perf_counter() - t0}
     return _with_pattern(result, pattern), record
