@@ -17,7 +17,7 @@ from fringecal.calibration.bundle import BundleOptions
 from fringecal.calibration.file import CalibrationFileError, read_calibration_xml, rig_from_dict, rig_to_dict, xml_text
 from fringecal.calibration.model import BundleProblem, Evaluator
 from fringecal.calibration.models import choose_sensor_model, fit_model
-from fringecal.lens.field import CorrectionField, _absorbed, _grid, _monomials, field_terms
+from fringecal.lens.field import CorrectionField, _absorbed, _monomials, field_terms, format_grid
 from fringecal.pointcloud import triangulate_image_points
 from fringecal.rig import Rig, Scanner
 from fringecal.simulate.control_points import simulate_control_points, thesis_truth
@@ -53,7 +53,7 @@ def field_fits():
 def test_basis_is_orthonormal_over_the_format_and_free_of_what_the_14_parameters_absorb():
     for w, h in ((15.1, 15.1), (19.0, 14.3)):
         f = CorrectionField.zero(w, h, 4)
-        grid = _grid(w, h)
+        grid = format_grid(w, h)
         phi = f.basis(grid).reshape(-1, f.n_terms) / np.sqrt(len(grid))
         assert f.n_terms == 19
         np.testing.assert_allclose(phi.T @ phi, np.eye(19), atol=1e-12)

@@ -10,7 +10,7 @@ import pytest
 
 from fringecal.fringe.decode import DecodeSettings, decode
 from fringecal.fringe.sequence import FringeSequence
-from fringecal.lens.field import _grid
+from fringecal.lens.field import format_grid
 from fringecal.rig import scaled_scanner
 from fringecal.simulate import RenderConfig, artefact_scene, backdrop, render_measurement
 from fringecal.simulate import geometry as g
@@ -45,7 +45,7 @@ def rendered(scanner, scene):
 
 
 def _rms_mm(field):
-    f = field.value(_grid(field.width_mm, field.height_mm))
+    f = field.value(format_grid(field.width_mm, field.height_mm))
     return float(np.sqrt(np.mean(np.sum(f ** 2, axis=-1))))
 
 

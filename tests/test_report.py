@@ -698,8 +698,9 @@ def test_scanner_section_shows_each_correction_field_with_its_rms_and_u(rd):
     largest displacement; a sensor without a field says none; one line explains. A
     14-parameter rig's section has neither (test_report_shows_the_numbers_of_the_run
     counts its rows)."""
+    from fringecal.lens.field import FORMAT_GRID_POINTS as FIELD_GRID
     from fringecal.lens.field import CorrectionField, field_names, field_terms
-    from fringecal.report.sections.scanners import FIELD_GRID, field_displacement
+    from fringecal.report.sections.scanners import field_displacement
 
     base = _section(write_report(rd, TIMINGS).read_text(encoding="utf-8"), "scanners")
     assert "correction field" not in base.lower()

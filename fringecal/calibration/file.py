@@ -380,15 +380,15 @@ def _rows(rows, names: list[str], where: str, key: str = "params") -> np.ndarray
 
 def _replicas(doc: dict, rig: Rig, source: str) -> dict:
     """kind -> arrays of a document's ``replicas`` block (:func:`replicas_document`)."""
+    if not isinstance(doc, dict):
+        raise CalibrationFileError(f"{source}: replicas: expected an object of bootstrap, jackknife")
     names = parameter_names(rig)
-    first = next((b.get("params") for b in doc.values() if isinstance(b, dict)), None) if isinstance(doc, dict) else None
+    first = next((b.get("params") for b in doc.values() if isinstance(b, dict)), None)
     width = len(first[0]) if isinstance(first, list) and first and isinstance(first[0], list) else len(names)
     if rig.has_field and width > len(names):  # a model with the fields: replicas carry their coefficients
         names = field_parameter_names(rig, len(rig.fields[0]))
     n_s = len(rig.sensors)
     out = {}
-    if not isinstance(doc, dict):
-        raise CalibrationFileError(f"{source}: replicas: expected an object of bootstrap, jackknife")
     for kind, block in doc.items():
         where = f"{source}: replicas {kind!r}"
         if kind not in ("bootstrap", "jackknife"):

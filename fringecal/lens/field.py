@@ -39,7 +39,7 @@ Coefficients are in mm: ``f(m) = sum_j a_j phi_j(m / R)``, each ``phi_j`` of RMS
 >>> f.n_terms, f.basis(np.zeros((1, 2))).shape
 (19, (1, 2, 19))
 >>> g = f.with_coefficients(np.eye(19)[0] * 1e-3)
->>> float(np.sqrt(np.mean(np.sum(g.value(_grid(15.1, 15.1)) ** 2, axis=-1))))
+>>> float(np.sqrt(np.mean(np.sum(g.value(format_grid(15.1, 15.1)) ** 2, axis=-1))))
 0.001
 """
 
@@ -50,11 +50,12 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["CorrectionField", "FIELD_DEGREE", "field_terms", "field_names"]
+__all__ = ["CorrectionField", "FIELD_DEGREE", "field_terms", "field_names", "format_grid", "FORMAT_GRID_POINTS"]
 
 #: highest total degree of the calibration's correction field
 FIELD_DEGREE = 4
-_GRID = 41
+#: grid points per axis of :func:`format_grid`
+FORMAT_GRID_POINTS = 41
 _DEPENDENT = 1e-8
 
 
@@ -73,10 +74,11 @@ def _monomials(uv: np.ndarray, degree: int) -> np.ndarray:
     return out
 
 
-def _grid(width_mm: float, height_mm: float) -> np.ndarray:
-    """The 41 x 41 grid (n, 2) over the format, in mm from its centre."""
-    x = np.linspace(-width_mm / 2, width_mm / 2, _GRID)
-    y = np.linspace(-height_mm / 2, height_mm / 2, _GRID)
+def format_grid(width_mm: float, height_mm: float) -> np.ndarray:
+    """The 41 x 41 grid (n, 2) over the format, edges included, in mm from its centre:
+    the grid the basis is orthonormal on (a field's RMS over it is ``|coefficients|``)."""
+    x = np.linspace(-width_mm / 2, width_mm / 2, FORMAT_GRID_POINTS)
+    y = np.linspace(-height_mm / 2, height_mm / 2, FORMAT_GRID_POINTS)
     return np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
 
 
@@ -100,7 +102,7 @@ def _absorbed(degree: int) -> np.ndarray:
 def _basis_matrix(width_mm: float, height_mm: float, degree: int) -> np.ndarray:
     """Coefficients (M, K) of the orthonormal basis fields over the vector monomials."""
     radius = float(np.hypot(width_mm, height_mm)) / 2
-    mono = _monomials(_grid(width_mm, height_mm) / radius, degree)  # (G, 2, M)
+    mono = _monomials(format_grid(width_mm, height_mm) / radius, degree)  # (G, 2, M)
     G, _, M = mono.shape
     vectors = mono.reshape(2 * G, M) / np.sqrt(G)  # inner product: mean squared length
     kept_fields, kept_coefs = [], []

@@ -204,9 +204,9 @@ def lens_field(fmt: SensorFormat, rms_um: float, rng: np.random.Generator) -> Co
     then scaled (the basis fields have RMS length 1, so the RMS is their norm in mm).
     About 19/45 of its energy lies in the calibration's degree-4 ``field`` model.
 
-    >>> from fringecal.lens.field import _grid
+    >>> from fringecal.lens.field import format_grid
     >>> f = lens_field(SensorFormat(2048, 2048, 15.1, 15.1), 3.0, np.random.default_rng(1))
-    >>> f.degree, f.n_terms, round(float(np.sqrt(np.mean(np.sum(f.value(_grid(15.1, 15.1)) ** 2, -1)))) * 1e3, 9)
+    >>> f.degree, f.n_terms, round(float(np.sqrt(np.mean(np.sum(f.value(format_grid(15.1, 15.1)) ** 2, -1)))) * 1e3, 9)
     (6, 45, 3.0)
     """
     z = rng.standard_normal(field_terms(LENS_FIELD_DEGREE))

@@ -166,13 +166,11 @@ def length_gradient(a: SightingModel, b: SightingModel, n_params: int) -> tuple[
 def field_gradient(g: np.ndarray, a: SightingModel, b: SightingModel, e: np.ndarray, n_terms: int) -> np.ndarray:
     """``g`` (dL/d sensor parameters) extended by dL/d each sensor's correction-field
     coefficients (the extended vector of :class:`~fringecal.calibration.propagation.FieldCovariances`)."""
-    n14 = len(g)
-    out = np.concatenate([g, np.zeros(n14 // 14 * n_terms)])
+    n_sensors = len(g) // 14
+    out = np.concatenate([g, np.zeros(n_sensors * n_terms)])
     for m, sign in ((a, 1.0), (b, -1.0)):
-        if m.J_field is None:
-            continue
-        start = n14 + 2 * m.points.block * n_terms  # the scanner's camera, then its projector
-        out[start:start + 2 * n_terms] += sign * (e @ m.J_field)
+        if m.J_field is not None:  # the scanner's camera's, then its projector's coefficients
+            out[extended_indices(n_sensors, m.points.block, n_terms)[28:]] += sign * (e @ m.J_field)
     return out
 
 

@@ -15,6 +15,7 @@ from collections import OrderedDict
 import numpy as np
 from markupsafe import Markup
 
+from fringecal.lens.field import format_grid
 from fringecal.report import figures
 from fringecal.report.figures import Image
 from fringecal.report.formatting import PARAM_LABELS, PARAM_UNITS, finite, length, num, plus_minus, um
@@ -28,8 +29,6 @@ __all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths
 
 #: Cells across the camera image of an uncertainty map.
 MAP_CELLS = 24
-#: Grid points per axis of the format on which a correction field's displacement is shown.
-FIELD_GRID = 41
 #: Maps drawn in this process, by the digests of what they are drawn from: a page rewritten
 #: from the same files (``fringecal serve``, a test's run directory) does not draw them again.
 _DRAWN: OrderedDict = OrderedDict()
@@ -70,9 +69,9 @@ def _prism_value(rig, i: int, j: int):
 def field_displacement(rig, i: int) -> dict | None:
     """Sensor ``i``'s correction field over its format, or None without one.
 
-    ``rms_mm`` and ``largest_mm``: RMS and largest length of ``field.value`` on a
-    :data:`FIELD_GRID` x :data:`FIELD_GRID` grid over the format, edges included (the grid
-    the basis is orthonormal on, so ``rms_mm`` is ``sqrt(sum a_j^2)`` to rounding).
+    ``rms_mm`` and ``largest_mm``: RMS and largest length of ``field.value`` on
+    :func:`fringecal.lens.field.format_grid` (the grid the basis is orthonormal on, so
+    ``rms_mm`` is ``sqrt(sum a_j^2)`` to rounding).
     ``u_rms_mm``: first-order standard uncertainty of that RMS from the coefficients'
     standard uncertainties ``u_j`` (``rig.field_uncertainty``, taken as uncorrelated:
     the file holds no covariance between them), ``sqrt(sum (a_j u_j)^2) / RMS``; None
@@ -82,10 +81,8 @@ def field_displacement(rig, i: int) -> dict | None:
     sensor = rig.sensors[i]
     if sensor.field is None or (sensor.field.is_zero and not rig.field_free[i]):
         return None
-    f = sensor.format
-    g = np.linspace(-0.5, 0.5, FIELD_GRID)
-    m = np.stack(np.meshgrid(g * f.width_mm, g * f.height_mm), axis=-1).reshape(-1, 2)
-    length = np.linalg.norm(sensor.field.value(m), axis=-1)
+    field = sensor.field
+    length = np.linalg.norm(field.value(format_grid(field.width_mm, field.height_mm)), axis=-1)
     out = {"rms_mm": float(np.sqrt(np.mean(length ** 2))), "largest_mm": float(length.max()), "u_rms_mm": None,
            "noise_mm": None}
     u = None if rig.field_uncertainty is None else np.asarray(rig.field_uncertainty[i], float)
