@@ -235,3 +235,23 @@ def test_the_monte_carlo_check_draws_the_field_coefficients_as_the_linear_budget
     L = monte_carlo_lengths(a.points, b.points, cov, 0.0, 0.0, 2000, np.random.default_rng(1))
     assert u > 1e-3  # micrometres on the image move a 600 mm length by micrometres
     assert np.std(L) == pytest.approx(u, rel=0.1), (np.std(L), u)
+
+
+def test_weak_directions_leave_out_what_the_field_prior_holds_but_not_a_weak_pair_beside_it():
+    """Columns a, b, c of free parameters and f, a field coefficient held by a prior: f
+    mimics a (the field over a small observed region), b and c are nearly one parameter."""
+    from fringecal.calibration.uncertainty import NEAR_SINGULAR, weak_directions
+
+    rng = np.random.default_rng(0)
+    t = rng.normal(size=(500, 4))
+    J = np.column_stack([t[:, 0], t[:, 1], t[:, 1] + 1e-6 * t[:, 2], t[:, 0] + 1e-7 * t[:, 3]])
+    N = J.T @ J
+    N[3, 3] += 1e-8  # the prior's lambda: a and f are told apart by it alone
+    names = ["a", "b", "c", "f"]
+    weak = {frozenset(w.parameters): w.ratio for w in weak_directions(N, names)[0]}
+    assert set(weak) == {frozenset("af"), frozenset("bc")} and max(weak.values()) < NEAR_SINGULAR, weak
+    held, _ = weak_directions(N, names, regularised=np.array([False, False, False, True]))
+    assert [set(w.parameters) for w in held] == [{"b", "c"}], held
+    # the b-c direction keeps its ratio (within 10 %: a is independent of it; only the
+    # largest eigenvalue, which the ratio divides by, changes with the columns left)
+    assert abs(held[0].ratio / weak[frozenset("bc")] - 1) < 0.1, (held[0].ratio, weak)

@@ -549,7 +549,8 @@ def _adjust(problem: BundleProblem, options: BundleOptions, found: list) -> Bund
         start, stop, _, _ = problem.groups()
         meat = score_meat(J, ev.global_columns(), plain.res, weights * ok[:, None], gamma, layout.n, start, stop)
         del J
-    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names, meat)
+    unc = estimate_uncertainty(e1.N1, e1.N2, plain.res, weights, gamma, layout.names, meat,
+                               layout.field_slots(problem.field_prior_weight))
     sp, po = layout.unpack(x, problem.rig.params, problem.poses)
     std_s = np.zeros_like(sp)
     m = layout.sensor_index >= 0

@@ -160,7 +160,8 @@ def check_rank(N: np.ndarray, layout: ParameterLayout, problem: BundleProblem, w
     if uncertainty is not None:
         weak = list(uncertainty.weak)
     else:
-        weak, _ = weak_directions(N, layout.names, threshold=NEAR_SINGULAR)
+        weak, _ = weak_directions(N, layout.names, threshold=NEAR_SINGULAR,
+                                  regularised=layout.field_slots(problem.field_prior_weight))
     ref_cam = problem.rig.scanner(problem.rig.reference).camera.name
     ref_row = [s.name for s in problem.rig.sensors].index(ref_cam)
     gauge_free = bool(problem.rig.free[ref_row, :6].any())

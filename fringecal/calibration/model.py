@@ -283,6 +283,16 @@ class ParameterLayout:
     def n_field_terms(self) -> int:
         return int(self.field_index.shape[1]) if self.field_free else 0
 
+    def field_slots(self, prior_weight: float) -> np.ndarray | None:
+        """(n,) bool: the free correction-field coefficients, where a prior of
+        ``prior_weight`` > 0 holds them (:attr:`BundleProblem.field_prior_weight`); None
+        without one (nothing regularised)."""
+        if not (self.field_free and prior_weight > 0):
+            return None
+        out = np.zeros(self.n, bool)
+        out[self.field_index[self.field_index >= 0]] = True
+        return out
+
     def unpack_fields(self, x: np.ndarray, fields: np.ndarray) -> np.ndarray:
         """Correction-field coefficients (n_sensors, K) with the free entries taken from x."""
         out = np.array(fields, float, copy=True)
