@@ -1,0 +1,80 @@
+"""The observed region of a sensor (fringecal.lens.observed_region): the grid, its covered
+fraction and ``contains`` against regions known by construction, and its round trip
+through calibration.json."""
+
+import json
+
+import numpy as np
+import pytest
+
+from fringecal.lens.observed_region import MIN_POINTS_PER_CELL, ObservedRegion, grid_shape
+
+#: the thesis projector's format (mm): 4:3, a 16 x 12 grid
+W, H = 19.0, 14.3
+
+
+def _uniform(x0, x1, y0, y1, n=200, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.stack([rng.uniform(x0, x1, n * n), rng.uniform(y0, y1, n * n)], axis=-1)
+
+
+def test_observations_over_the_left_half_cover_half_the_format_and_contain_exactly_it():
+    """40,000 points uniform over x < 0: every left cell holds ~312 points, no right cell
+    one; the fraction is 1/2 exactly and ``contains`` is x < 0 on the format."""
+    obs = _uniform(-W / 2, 0.0, -H / 2, H / 2)
+    region = ObservedRegion.from_observations(obs, W, H)
+    assert region.shape == grid_shape(W, H) == (12, 16)
+    assert region.fraction == 0.5
+    assert region.observed[:, :8].all() and not region.observed[:, 8:].any()
+    assert region.counts.sum() == len(obs)
+    probe = _uniform(-W / 2, W / 2, -H / 2, H / 2, n=100, seed=1)
+    np.testing.assert_array_equal(region.contains(probe), probe[:, 0] < 0)
+    # off the format, NaN: never inside; shapes (..., 2) -> (...)
+    assert region.contains(np.array([[-W, 0.0], [-1.0, H], [np.nan, 0.0], [-1.0, 0.0]])).tolist() == \
+        [False, False, False, True]
+    assert region.contains(np.zeros((3, 4, 2))).shape == (3, 4)
+
+
+def test_a_quarter_and_the_threshold():
+    """The top-left quarter (x < 0, y < 0) is 1/4 of the format; a cell with fewer than
+    MIN_POINTS_PER_CELL points is not observed, one with exactly that many is."""
+    region = ObservedRegion.from_observations(_uniform(-W / 2, 0.0, -H / 2, 0.0), W, H)
+    assert region.fraction == 0.25
+    centre = np.array([[(0.5 - 8) * W / 16, (0.5 - 6) * H / 12]])   # the middle of cell (0, 0)
+    few = ObservedRegion.from_observations(np.repeat(centre, MIN_POINTS_PER_CELL - 1, axis=0), W, H)
+    enough = ObservedRegion.from_observations(np.repeat(centre, MIN_POINTS_PER_CELL, axis=0), W, H)
+    assert few.fraction == 0.0 and not few.contains(centre)[0]
+    assert enough.fraction == 1 / 192 and enough.contains(centre)[0] and enough.observed[0, 0]
+
+
+def test_bad_grids_are_refused():
+    with pytest.raises(ValueError, match="whole numbers"):
+        ObservedRegion(W, H, np.array([[1.5, 2.0]]))
+    with pytest.raises(ValueError, match="cells says"):
+        ObservedRegion.from_dict({**ObservedRegion(W, H, np.ones((2, 3))).to_dict(), "cells": [2, 3]})
+    with pytest.raises(ValueError, match="format_mm"):
+        ObservedRegion.from_dict({"cells": [1, 1]})
+
+
+def test_regions_round_trip_through_calibration_json(thesis_rig, tmp_path):
+    """Every sensor's region written by rig_to_dict is read back equal by read_calibration;
+    a file without regions reads as 'unknown' (no entry), as files before them do."""
+    from fringecal.calibration.file import read_calibration, rig_to_dict
+
+    regions = {s.name: ObservedRegion.from_observations(_uniform(-1.0, s.format.width_mm / 2, -2.0, 3.0, n=60,
+                                                                 seed=k), s.format.width_mm, s.format.height_mm)
+               for k, s in enumerate(thesis_rig.sensors)}
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(rig_to_dict(thesis_rig, observed_regions=regions)))
+    back = read_calibration(path).observed_regions
+    assert set(back) == {s.name for s in thesis_rig.sensors}
+    for name, r in regions.items():
+        assert back[name] == r and 0 < back[name].fraction < 1
+    plain = tmp_path / "plain.json"
+    plain.write_text(json.dumps(rig_to_dict(thesis_rig)))
+    assert read_calibration(plain).observed_regions == {}
+    doc = rig_to_dict(thesis_rig, observed_regions=regions)
+    doc["scanners"][0]["sensors"][0]["observed_region"]["points_per_cell"] = [[1, 2]]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="observed_region"):
+        read_calibration(path)
