@@ -192,8 +192,8 @@ def test_report_is_written_atomically_and_self_contained(rd):
     for anchor in {v[1:] for v in links if v.startswith("#")}:
         assert f'id="{anchor}"' in page
     assert not re.search(r"<script|<link|<iframe|@import|url\(", page, re.I)
-    # two histograms, the ball-bar plot and per scanner its residual and uncertainty maps
-    assert page.count("data:image/png;base64,") == 3 + 2 * len(SCANNERS)
+    # two histograms, the ball-bar plot and per scanner its residual maps, observed regions and uncertainty maps
+    assert page.count("data:image/png;base64,") == 3 + 3 * len(SCANNERS)
     _well_formed(page)
 
 
@@ -523,7 +523,7 @@ def test_missing_optional_files_give_notes(rd):
     assert f"Timings from {rd.summary.rel}" in timing and "120.5 s (2 min 0 s)" in timing
     assert "181.0 s (3 min 1 s)" in timing
     assert CREATED in page.split("<nav>")[0] and COMMAND in _section(page, "provenance")
-    assert page.count("data:image/png;base64,") == 1 + 2 * len(SCANNERS)  # eps1's histogram and the maps
+    assert page.count("data:image/png;base64,") == 1 + 3 * len(SCANNERS)  # eps1's histogram and the maps
     assert "Could not be shown" not in page
     _well_formed(page)
 
