@@ -30,8 +30,9 @@ def test_observations_over_the_left_half_cover_half_the_format_and_contain_exact
     probe = _uniform(-W / 2, W / 2, -H / 2, H / 2, n=100, seed=1)
     np.testing.assert_array_equal(region.contains(probe), probe[:, 0] < 0)
     # off the format, NaN: never inside; shapes (..., 2) -> (...)
-    assert region.contains(np.array([[-W, 0.0], [-1.0, H], [np.nan, 0.0], [-1.0, 0.0]])).tolist() == \
-        [False, False, False, True]
+    with np.errstate(all="raise"):
+        assert region.contains(np.array([[-W, 0.0], [-1.0, H], [np.nan, 0.0], [-np.inf, 0.0], [-1.0, 0.0]])).tolist() \
+            == [False, False, False, False, True]
     assert region.contains(np.zeros((3, 4, 2))).shape == (3, 4)
 
 

@@ -128,8 +128,9 @@ class ObservedRegion:
         with np.errstate(invalid="ignore"):
             rel = m / size + 0.5                               # 0..1 over the format
             on = np.all((rel >= 0) & (rel <= 1), axis=-1)      # False for NaN
-        ix = np.clip(np.floor(np.nan_to_num(rel[..., 0]) * nx), 0, nx - 1).astype(np.int64)
-        iy = np.clip(np.floor(np.nan_to_num(rel[..., 1]) * ny), 0, ny - 1).astype(np.int64)
+        rel = np.where(on[..., None], rel, 0.0)                # off the format, NaN, inf: not cast
+        ix = np.minimum(np.floor(rel[..., 0] * nx), nx - 1).astype(np.int64)
+        iy = np.minimum(np.floor(rel[..., 1] * ny), ny - 1).astype(np.int64)
         return np.where(on, iy * nx + ix, -1)
 
     def contains(self, image_mm) -> np.ndarray:
