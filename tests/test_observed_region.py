@@ -79,3 +79,19 @@ def test_regions_round_trip_through_calibration_json(thesis_rig, tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="observed_region"):
         read_calibration(path)
+
+
+def test_a_cloud_written_before_the_flag_reads_with_nothing_flagged(tmp_path):
+    """A PLY of the ten fields before ``outside_observed_region`` reads whole, the flag 0."""
+    from plyfile import PlyData, PlyElement
+
+    from fringecal.measure import POINT_DTYPE, read_cloud
+
+    old = np.dtype([(n, POINT_DTYPE[n]) for n in POINT_DTYPE.names if n != "outside_observed_region"])
+    pts = np.zeros(3, old)
+    pts["x"], pts["u"] = [1.0, 2.0, 3.0], [4, 5, 6]
+    PlyData([PlyElement.describe(pts, "vertex")], text=False, byte_order="<",
+            comments=['scanners: ["s1"]', 'measurements: ["m"]']).write(str(tmp_path / "old.ply"))
+    cloud = read_cloud(tmp_path / "old.ply")
+    assert cloud.points["x"].tolist() == [1.0, 2.0, 3.0] and cloud.points["u"].tolist() == [4, 5, 6]
+    assert cloud.points["outside_observed_region"].tolist() == [0, 0, 0] and cloud.scanners == ("s1",)
