@@ -245,8 +245,8 @@ def test_max_eps1_drops_exactly_the_points_beyond_it(cell):
 
 
 def test_the_calibration_records_where_each_sensors_control_points_lay(small_run):
-    """calibration.json's observed_region of every sensor is the grid of the run's
-    control points (tables/control_points.csv) counted anew from their pixels and phases."""
+    """calibration.json's observed_region of every sensor is the hull and grid of the run's
+    control points (tables/control_points.csv) found anew from their pixels and phases."""
     rd = small_run[0]
     cal = read_calibration(rd.calibration.path)
     cp = rd.control_points.load()
@@ -259,7 +259,7 @@ def test_the_calibration_records_where_each_sensors_control_points_lay(small_run
                                                      fmt.height_mm)
             region = cal.observed_regions[sensor.name]
             assert region == truth and region.counts.sum() == len(mine)
-            assert 0 < region.fraction < 1      # four poses at 320 px see a part of each image
+            assert 0 < region.fraction_of_cells < region.fraction < 1  # four poses see a part of each image
 
 
 def _uniform_mm(fmt, x0: float, x1: float, n: int = 400) -> np.ndarray:
@@ -271,7 +271,7 @@ def _uniform_mm(fmt, x0: float, x1: float, n: int = 400) -> np.ndarray:
 
 def test_points_outside_a_region_built_to_exclude_them_are_flagged_exactly(cell, tmp_path):
     """A calibration whose regions are replaced: scanner1's camera observed only right of
-    the grid line through the middle of the store's valid pixels (its projector over all
+    a line (at a sixteenth of the width) through the middle of the store's valid pixels (its projector over all
     of its format), scanner2's camera nowhere and its projector not known.
     ``fringecal measure --spheres`` on a ball-bar position then flags exactly scanner1's
     points left of that line (or with phases off the projector's format) and every
@@ -291,9 +291,10 @@ def test_points_outside_a_region_built_to_exclude_them_are_flagged_exactly(cell,
                                                            cam1.format.height_mm),
                prj1.name: ObservedRegion.from_observations(_uniform_mm(prj1.format, 0.0, 1.0), prj1.format.width_mm,
                                                            prj1.format.height_mm),
-               cam2.name: ObservedRegion(cam2.format.width_mm, cam2.format.height_mm, np.zeros((16, 16)))}
-    assert (regions[cam1.name].fraction, regions[prj1.name].fraction, regions[cam2.name].fraction) == \
-        (1 - split, 1.0, 0.0)
+               cam2.name: ObservedRegion(cam2.format.width_mm, cam2.format.height_mm, np.zeros((16, 16)),
+                                         np.zeros((0, 2)))}
+    np.testing.assert_allclose([regions[cam1.name].fraction, regions[prj1.name].fraction,
+                                regions[cam2.name].fraction], [1 - split, 1.0, 0.0], atol=1e-5)
     for sc in doc["scanners"]:
         for se in sc["sensors"]:
             se.pop("observed_region", None)

@@ -20,15 +20,20 @@ def _uniform(x0, x1, y0, y1, n=200, seed=0):
 
 def test_observations_over_the_left_half_cover_half_the_format_and_contain_exactly_it():
     """40,000 points uniform over x < 0: every left cell holds ~312 points, no right cell
-    one; the fraction is 1/2 exactly and ``contains`` is x < 0 on the format."""
+    one; the hull covers half the format (within 0.1 %: the hull of uniform points falls
+    short of their rectangle by about its perimeter over sqrt(n)) and ``contains`` is
+    x < 0 but within 0.05 mm of the rectangle's edges."""
     obs = _uniform(-W / 2, 0.0, -H / 2, H / 2)
     region = ObservedRegion.from_observations(obs, W, H)
     assert region.shape == grid_shape(W, H) == (12, 16)
-    assert region.fraction == 0.5
+    assert abs(region.fraction - 0.5) < 1e-3 and region.fraction_of_cells == 0.5
     assert region.observed[:, :8].all() and not region.observed[:, 8:].any()
     assert region.counts.sum() == len(obs)
     probe = _uniform(-W / 2, W / 2, -H / 2, H / 2, n=100, seed=1)
-    np.testing.assert_array_equal(region.contains(probe), probe[:, 0] < 0)
+    inside = region.contains(probe)
+    clear = (np.abs(probe[:, 0]) > 0.05) & (np.abs(probe[:, 0]) < W / 2 - 0.05) & (np.abs(probe[:, 1]) < H / 2 - 0.05)
+    np.testing.assert_array_equal(inside[clear], probe[clear, 0] < 0)
+    assert not inside[probe[:, 0] >= 0].any()
     # off the format, NaN: never inside; shapes (..., 2) -> (...)
     with np.errstate(all="raise"):
         assert region.contains(np.array([[-W, 0.0], [-1.0, H], [np.nan, 0.0], [-np.inf, 0.0], [-1.0, 0.0]])).tolist() \
@@ -36,23 +41,45 @@ def test_observations_over_the_left_half_cover_half_the_format_and_contain_exact
     assert region.contains(np.zeros((3, 4, 2))).shape == (3, 4)
 
 
+def test_the_hull_bridges_the_gaps_between_sphere_images_but_not_a_stray_point():
+    """Two blobs in opposite corners (the images of two spheres): the hull holds the
+    line between them, where no control point lies; three stray points alone in a far
+    cell (fewer than MIN_POINTS_PER_CELL) do not stretch it."""
+    a = _uniform(-W / 2 + 1, -W / 2 + 3, -H / 2 + 1, -H / 2 + 3, n=30)
+    b = _uniform(W / 2 - 3, W / 2 - 1, H / 2 - 3, H / 2 - 1, n=30, seed=1)
+    stray = np.array([[W / 2 - 0.3, -H / 2 + 0.3]] * 3)
+    region = ObservedRegion.from_observations(np.concatenate([a, b, stray]), W, H)
+    assert region.contains([[0.0, 0.0], [-2.0, -1.5]]).all()           # between the blobs
+    assert not region.contains([[W / 2 - 0.3, -H / 2 + 0.3], [-W / 2 + 1, H / 2 - 1]]).any()
+    assert region.fraction_of_cells < region.fraction < 0.3
+
+
 def test_a_quarter_and_the_threshold():
     """The top-left quarter (x < 0, y < 0) is 1/4 of the format; a cell with fewer than
     MIN_POINTS_PER_CELL points is not observed, one with exactly that many is."""
     region = ObservedRegion.from_observations(_uniform(-W / 2, 0.0, -H / 2, 0.0), W, H)
-    assert region.fraction == 0.25
-    centre = np.array([[(0.5 - 8) * W / 16, (0.5 - 6) * H / 12]])   # the middle of cell (0, 0)
-    few = ObservedRegion.from_observations(np.repeat(centre, MIN_POINTS_PER_CELL - 1, axis=0), W, H)
-    enough = ObservedRegion.from_observations(np.repeat(centre, MIN_POINTS_PER_CELL, axis=0), W, H)
-    assert few.fraction == 0.0 and not few.contains(centre)[0]
-    assert enough.fraction == 1 / 192 and enough.contains(centre)[0] and enough.observed[0, 0]
+    assert abs(region.fraction - 0.25) < 1e-3 and region.fraction_of_cells == 0.25
+    centre = np.array([(0.5 - 8) * W / 16, (0.5 - 6) * H / 12])   # the middle of cell (0, 0)
+    corners = centre + 0.2 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [0, 0]])  # a 0.4 mm square
+    few = ObservedRegion.from_observations(corners[:MIN_POINTS_PER_CELL - 1], W, H)
+    enough = ObservedRegion.from_observations(corners[:MIN_POINTS_PER_CELL], W, H)
+    assert few.fraction == 0.0 and not few.contains(centre)
+    assert enough.observed[0, 0] and enough.fraction_of_cells == 1 / 192 and enough.contains(centre)
+    assert abs(enough.fraction - 0.16 / (W * H)) < 1e-12
 
 
-def test_bad_grids_are_refused():
+def test_bad_regions_are_refused():
+    ok = ObservedRegion.from_observations(_uniform(-1, 1, -1, 1, n=20), W, H)
     with pytest.raises(ValueError, match="whole numbers"):
-        ObservedRegion(W, H, np.array([[1.5, 2.0]]))
+        ObservedRegion(W, H, np.array([[1.5, 2.0]]), ok.hull)
     with pytest.raises(ValueError, match="cells says"):
-        ObservedRegion.from_dict({**ObservedRegion(W, H, np.ones((2, 3))).to_dict(), "cells": [2, 3]})
+        ObservedRegion.from_dict({**ok.to_dict(), "cells": [2, 3]})
+    with pytest.raises(ValueError, match="hull_mm"):
+        ObservedRegion.from_dict({k: v for k, v in ok.to_dict().items() if k != "hull_mm"})
+    with pytest.raises(ValueError, match="counter-clockwise"):
+        ObservedRegion.from_dict({**ok.to_dict(), "hull_mm": ok.hull[::-1].tolist()})
+    with pytest.raises(ValueError, match="off the format"):
+        ObservedRegion.from_dict({**ok.to_dict(), "hull_mm": (ok.hull * 20).tolist()})
     with pytest.raises(ValueError, match="format_mm"):
         ObservedRegion.from_dict({"cells": [1, 1]})
 

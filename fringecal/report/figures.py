@@ -240,9 +240,10 @@ def uncertainty_maps_png(maps: list, fmt) -> bytes:
 
 
 def observed_regions_png(regions: list) -> bytes:
-    """The observed region of each sensor of a scanner, side by side: its grid over the
-    image plane (mm from the format's centre, rows down as the camera's), observed cells
-    dark, the fraction observed in the title.
+    """The observed region of each sensor of a scanner, side by side: over the image plane
+    (mm from the format's centre, rows down as the camera's) the cells holding control
+    points (grey) and the hull of them (the region, outlined), its share of the format in
+    the title.
 
     Parameters
     ----------
@@ -264,6 +265,9 @@ def observed_regions_png(regions: list) -> bytes:
         ax.grid(which="minor", color="0.75", lw=0.3)
         ax.tick_params(which="minor", length=0)
         ax.tick_params(labelsize=6)
+        if len(region.hull):
+            ring = np.vstack([region.hull, region.hull[:1]])
+            ax.plot(ring[:, 0], ring[:, 1], color="C3", lw=1.2)
         ax.set_title(f"{name} ({role}): {100 * region.fraction:.0f} % observed", fontsize=8)
         ax.set_xlabel("image plane x (mm)", fontsize=7)
         if k == 0:
