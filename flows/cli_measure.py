@@ -34,6 +34,7 @@ def _print(summary: dict) -> None:
         t.add_row(name, f"{s['points']:,}", f"{1000 * s['eps1_rms_mm']:.1f}", u, str(len(s["sources"])))
     console.print(t)
     console.print(f"uncertainty: {summary['uncertainty']}")
+    _print_observed_region(summary["observed_region"])
     if summary["overlap"]:
         o = Table(title="overlap: distance of one scanner's points from the other's surface")
         for col in ("points of", "from surface of", "n", "mean (um)", "RMS (um)", "95 % |d| (um)"):
@@ -49,6 +50,21 @@ def _print(summary: dict) -> None:
     console.print(f"{summary['seconds']['total']:.1f} s")
 
 
+def _print_observed_region(region: dict) -> None:
+    """One warning line per store with points outside the calibration's observed region;
+    a note when the calibration records no region for some sensors."""
+    for r in region["stores"]:
+        if r["outside"]:
+            err_console.print(f"[yellow]warning: {r['store']}: {r['outside']:,} of {r['points']:,} points "
+                              f"({100 * r['fraction']:.1f} %) lie outside the region of the image planes the "
+                              "calibration observed (flagged in outside_observed_region)[/]", soft_wrap=True)
+    if region["unknown"]:
+        console.print(f"observed region: not recorded in the calibration file for {', '.join(region['unknown'])}; "
+                      "their points are not flagged")
+    elif not region["points_outside"]:
+        console.print("observed region: every point lies inside the region the calibration observed")
+
+
 def _um(value) -> str:
     return "-" if value is None or value != value else f"{1000 * value:.1f}"
 
@@ -57,11 +73,14 @@ def _print_spheres(spheres: dict, datum: str) -> None:
     from rich.table import Table
 
     t = Table(title=f"spheres of {spheres['nominal']}: centres, u of the position ({datum} frame)")
-    for col in ("measurement", "sphere", "scanner", "x (mm)", "y (mm)", "z (mm)", "u (um)", "points"):
+    for col in ("measurement", "sphere", "scanner", "x (mm)", "y (mm)", "z (mm)", "u (um)", "points",
+                "outside observed region"):
         t.add_column(col, justify="left" if col in ("measurement", "sphere", "scanner") else "right")
     for r in spheres["fitted"]:
+        outside = r.get("n_outside_observed_region")
         t.add_row(r["measurement"], r["sphere"], r["scanner"], f"{r['x_mm']:.3f}", f"{r['y_mm']:.3f}",
-                  f"{r['z_mm']:.3f}", _um(r["u_position_mm"]), f"{r['n_points']:,}")
+                  f"{r['z_mm']:.3f}", _um(r["u_position_mm"]), f"{r['n_points']:,}",
+                  "not known" if outside is None else f"{outside:,}")
     console.print(t if spheres["fitted"] else "spheres: none found (none seen whole enough by any scanner)")
     if spheres["distances"]:
         d = Table(title="distances between sphere centres, each with its own u (what a CMM compares)")
@@ -124,7 +143,8 @@ def measure_command(
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ):
     """Triangulate every valid pixel of every scanner in the global frame into one point cloud
-    (per point: scanner, camera pixel, eps1, modulation, standard uncertainty)."""
+    (per point: scanner, camera pixel, eps1, modulation, standard uncertainty, and whether its camera pixel
+    or projector phases lie outside the region the calibration observed)."""
     from fringecal.flows.validate import calibration_file, input_folder, output_file, output_folder
     from fringecal.measure import MeasurementSourceError
     from fringecal.measure.run import measure_folder

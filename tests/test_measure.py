@@ -23,6 +23,7 @@ from typer.testing import CliRunner
 from fringecal.calibration.file import read_calibration
 from fringecal.calibration.propagation import frame_free_covariance, frame_motion_operator, scanner_block, to_rig_frame
 from fringecal.frames import frames_from_rows
+from fringecal.lens.observed_region import ObservedRegion
 from fringecal.measure import MeasureSettings, measure_cloud, point_uncertainty, read_cloud
 from fringecal.measure.overlap import surface_distances
 from fringecal.measure.spheres import measure_spheres, sphere_distances
@@ -204,7 +205,8 @@ def test_the_ply_is_read_back_whole_by_plyfile(cell):
     ply = PlyData.read(str(out))
     v = ply["vertex"].data
     assert ply.text is False and ply.byte_order == "<"
-    assert v.dtype.names == ("x", "y", "z", "scanner", "measurement", "u", "v", "eps1", "modulation", "u_mm")
+    assert v.dtype.names == ("x", "y", "z", "scanner", "measurement", "u", "v", "eps1", "modulation", "u_mm",
+                             "outside_observed_region")
     assert len(v) == summary["points"] == sum(s["points"] for s in summary["scanners"].values())
     assert 'scanners: ["scanner1", "scanner2"]' in ply.comments
     assert np.all(v["u"] % 2 == 0) and np.all(v["v"] % 2 == 0)              # --decimate 2
@@ -240,6 +242,107 @@ def test_max_eps1_drops_exactly_the_points_beyond_it(cell):
     a, b = read_cloud(cell["root"] / "a.zarr"), read_cloud(cell["root"] / "b.zarr")
     assert len(b) == int(np.count_nonzero(np.abs(a.points["eps1"]) <= 0.3)) < len(a) == full["points"]
     assert cut["uncertainty"] == "not requested" and np.isnan(b.points["u_mm"]).all()
+
+
+def test_the_calibration_records_where_each_sensors_control_points_lay(small_run):
+    """calibration.json's observed_region of every sensor is the hull and grid of the run's
+    control points (tables/control_points.csv) found anew from their pixels and phases."""
+    rd = small_run[0]
+    cal = read_calibration(rd.calibration.path)
+    cp = rd.control_points.load()
+    assert set(cal.observed_regions) == {s.name for s in cal.rig.sensors}
+    for sc in cal.rig.scanners:
+        mine = cp[cp["scanner"] == sc.name]
+        for sensor, columns in ((sc.camera, ["u_px", "v_px"]), (sc.projector, ["tau_x_rad", "tau_y_rad"])):
+            fmt = sensor.format
+            truth = ObservedRegion.from_observations(sensor.image_mm(mine[columns].to_numpy(float)), fmt.width_mm,
+                                                     fmt.height_mm)
+            region = cal.observed_regions[sensor.name]
+            assert region == truth and region.counts.sum() == len(mine)
+            assert 0 < region.fraction_of_cells < region.fraction < 1  # four poses see a part of each image
+
+
+def _uniform_mm(fmt, x0: float, x1: float, n: int = 400) -> np.ndarray:
+    """n x n points uniform over x in (x0, x1] of the format's width (fractions) and its height."""
+    x = np.linspace((x0 - 0.5 + 1e-6) * fmt.width_mm, (x1 - 0.5) * fmt.width_mm, n)
+    y = np.linspace(-fmt.height_mm / 2, fmt.height_mm / 2, n)
+    return np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
+
+
+def test_points_outside_a_region_built_to_exclude_them_are_flagged_exactly(cell, tmp_path):
+    """A calibration whose regions are replaced: scanner1's camera observed only right of
+    a line (at a sixteenth of the width) through the middle of the store's valid pixels (its projector over all
+    of its format), scanner2's camera nowhere and its projector not known.
+    ``fringecal measure --spheres`` on a ball-bar position then flags exactly scanner1's
+    points left of that line (or with phases off the projector's format) and every
+    point of scanner2, drops none, warns once per store with the count, and each sphere
+    of scanner2 has all its points outside."""
+    from fringecal.flows.cli import app
+
+    bar = next(iter(cell["ballbar"].values()))
+    with open_store(bar["stores"]["scanner1"]) as ds:
+        width = int(ds.sizes["u"])
+        split = round(16 * float(np.median(np.nonzero(ds.valid.values)[1])) / (width - 1)) / 16
+    doc = json.loads(cell["calibration"].read_text())
+    rig = read_calibration(cell["calibration"]).rig
+    cam1, prj1 = rig.scanner("scanner1").sensors
+    cam2, prj2 = rig.scanner("scanner2").sensors
+    regions = {cam1.name: ObservedRegion.from_observations(_uniform_mm(cam1.format, split, 1.0), cam1.format.width_mm,
+                                                           cam1.format.height_mm),
+               prj1.name: ObservedRegion.from_observations(_uniform_mm(prj1.format, 0.0, 1.0), prj1.format.width_mm,
+                                                           prj1.format.height_mm),
+               cam2.name: ObservedRegion(cam2.format.width_mm, cam2.format.height_mm, np.zeros((16, 16)),
+                                         np.zeros((0, 2)))}
+    np.testing.assert_allclose([regions[cam1.name].fraction, regions[prj1.name].fraction,
+                                regions[cam2.name].fraction], [1 - split, 1.0, 0.0], atol=1e-5)
+    for sc in doc["scanners"]:
+        for se in sc["sensors"]:
+            se.pop("observed_region", None)
+            if se["name"] in regions:
+                se["observed_region"] = regions[se["name"]].to_dict()
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(json.dumps(doc))
+    folder = tmp_path / "bar"
+    folder.mkdir()
+    for s, path in bar["stores"].items():
+        os.symlink(path, folder / f"{s}.zarr")
+    nominal = tmp_path / "nominal.csv"
+    pd.DataFrame({"sphere_id": bar["ids"], "x_mm": bar["centres"][:, 0], "y_mm": bar["centres"][:, 1],
+                  "z_mm": bar["centres"][:, 2], "radius_mm": bar["radii"]}).to_csv(nominal, index=False)
+    out = tmp_path / "bar.ply"
+    r = CliRunner().invoke(app, ["measure", "--calibration", str(calibration), "--stores", str(folder), "-o",
+                                 str(out), "--no-uncertainty", "--spheres", str(nominal)])
+    assert r.exit_code == 0, r.output
+    cloud = read_cloud(out)
+    flags = cloud.points["outside_observed_region"]
+    with open_store(folder / "scanner1.zarr") as ds:
+        mine = cloud.points[cloud.points["scanner"] == 0]
+        tau = np.stack([ds.tau_x.values[mine["v"], mine["u"]], ds.tau_y.values[mine["v"], mine["u"]]], axis=-1)
+        valid = int(np.count_nonzero(ds.valid.values))
+    expected = (mine["u"] / (width - 1) < split) | np.any(np.abs(tau) > np.pi, axis=1)
+    assert 0 < expected.sum() < len(mine) <= valid
+    np.testing.assert_array_equal(flags[cloud.points["scanner"] == 0].astype(bool), expected)
+    assert flags[cloud.points["scanner"] == 1].all()
+    text = " ".join(r.output.split())
+    for s, n, k in (("scanner1", len(mine), int(expected.sum())),
+                    ("scanner2", int(np.sum(cloud.points["scanner"] == 1)), int(np.sum(cloud.points["scanner"] == 1)))):
+        assert f"warning: {folder / s}.zarr: {k:,} of {n:,} points ({100 * k / n:.1f} %) lie outside" in text, text
+    assert "not recorded in the calibration file for " + prj2.name in text
+    # the summary: per store, and per sphere
+    r = CliRunner().invoke(app, ["measure", "--calibration", str(calibration), "--stores", str(folder), "-o",
+                                 str(tmp_path / "again.ply"), "--no-uncertainty", "--spheres", str(nominal), "--json"])
+    summary = json.loads(r.output)
+    region = summary["observed_region"]
+    assert region["known"] == [cam1.name, prj1.name, cam2.name] and region["unknown"] == [prj2.name]
+    assert region["points_outside"] == int(flags.sum()) and summary["points"] == len(cloud)
+    assert {x["scanner"]: x["outside"] for x in region["stores"]} == {"scanner1": int(expected.sum()),
+                                                                       "scanner2": int(np.sum(cloud.points["scanner"] == 1))}
+    fitted = summary["spheres"]["fitted"]
+    assert {f["scanner"] for f in fitted} == {"scanner1", "scanner2"}
+    for f in fitted:
+        assert 0 <= f["n_outside_observed_region"] <= f["n_points"]
+        if f["scanner"] == "scanner2":
+            assert f["n_outside_observed_region"] == f["n_points"]
 
 
 def test_overlap_distance_of_two_samplings_of_one_surface():

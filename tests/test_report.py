@@ -192,8 +192,8 @@ def test_report_is_written_atomically_and_self_contained(rd):
     for anchor in {v[1:] for v in links if v.startswith("#")}:
         assert f'id="{anchor}"' in page
     assert not re.search(r"<script|<link|<iframe|@import|url\(", page, re.I)
-    # two histograms, the ball-bar plot and per scanner its residual and uncertainty maps
-    assert page.count("data:image/png;base64,") == 3 + 2 * len(SCANNERS)
+    # two histograms, the ball-bar plot and per scanner its residual maps, observed regions and uncertainty maps
+    assert page.count("data:image/png;base64,") == 3 + 3 * len(SCANNERS)
     _well_formed(page)
 
 
@@ -523,7 +523,7 @@ def test_missing_optional_files_give_notes(rd):
     assert f"Timings from {rd.summary.rel}" in timing and "120.5 s (2 min 0 s)" in timing
     assert "181.0 s (3 min 1 s)" in timing
     assert CREATED in page.split("<nav>")[0] and COMMAND in _section(page, "provenance")
-    assert page.count("data:image/png;base64,") == 1 + 2 * len(SCANNERS)  # eps1's histogram and the maps
+    assert page.count("data:image/png;base64,") == 1 + 3 * len(SCANNERS)  # eps1's histogram and the maps
     assert "Could not be shown" not in page
     _well_formed(page)
 
@@ -737,4 +737,36 @@ def test_scanner_section_shows_each_correction_field_with_its_rms_and_u(rd):
     assert rows["correction field, RMS over the format"][1] == "µm"
     assert "correction field, RMS over the format" in part2 and part2.count(">none<") == 4  # C2, P2
     assert scanners.count("Correction field: the smooth displacement f") == 2
+    _well_formed(page)
+
+
+def test_scanner_section_shows_the_observed_region_of_each_sensor(rd):
+    """The bundle step's observed regions, recounted from the control points it read
+    (tables/control_points.csv): the page states each sensor's covered fraction of its
+    format (rounded to 1 %) beside a figure of the grid per scanner; a calibration.json
+    without regions (written before them) gives a note and the rest of the section."""
+    from fringecal.calibration.file import read_calibration
+    from fringecal.lens.observed_region import ObservedRegion
+
+    cal = read_calibration(rd.calibration.path)
+    cp = rd.control_points.load()
+    section = _section(render_report(rd, TIMINGS), "scanners")
+    for sc in cal.rig.scanners:
+        mine = cp[cp.scanner == sc.name]
+        for sensor, columns in ((sc.camera, ["u_px", "v_px"]), (sc.projector, ["tau_x_rad", "tau_y_rad"])):
+            fmt = sensor.format
+            truth = ObservedRegion.from_observations(sensor.image_mm(mine[columns].to_numpy(float)), fmt.width_mm,
+                                                     fmt.height_mm)
+            assert cal.observed_regions[sensor.name] == truth and 0 < truth.fraction <= 1
+            assert f"{sensor.name} ({sensor.role}) {100 * truth.fraction:.0f} %" in section
+        assert f'alt="regions of the image planes of {sc.name} the calibration observed"' in section
+    doc = json.loads(rd.calibration.path.read_text())
+    for sc in doc["scanners"]:
+        for se in sc["sensors"]:
+            del se["observed_region"]
+    rd.calibration.path.write_text(json.dumps(doc))
+    page = write_report(rd, TIMINGS).read_text(encoding="utf-8")
+    section = _section(page, "scanners")
+    assert section.count("records no observed region of") == 2 and "the calibration observed\"" not in section
+    assert 'alt="residuals and control points over the images of scanner1"' in section
     _well_formed(page)

@@ -54,6 +54,12 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
   corrected in its calibration stacks (only where it did): the mean of their fits,
   :func:`fringecal.fringe.ripple.ripple_document`. ``fringecal measure`` corrects a
   small object's stack with it when the calibration is read outside its run directory.
+* ``observed_region`` (per sensor, beside ``parameters``) -- where on its image plane the
+  adjustment's control points lay: their count on a grid over the format and the
+  fraction of the format they cover (:class:`fringecal.lens.observed_region.ObservedRegion`);
+  ``fringecal measure`` flags the points measured outside it. A file without it (one
+  written before it existed, or by another program) reads as "not known":
+  :attr:`Calibration.observed_regions` has no entry for that sensor.
 * ``provenance`` -- the digests of the adjustment's input files, its settings and their
   digest, the package versions. The run's whole configuration is in its
   ``manifest.json``; a calibration depends only on the settings listed here and on its
@@ -73,6 +79,7 @@ from fringecal import __version__
 from fringecal.atomic import write_text
 from fringecal.calibration.propagation import FieldCovariances, ParameterCovariances
 from fringecal.lens.field import CorrectionField, field_names
+from fringecal.lens.observed_region import ObservedRegion
 from fringecal.names import UnsafeNameError, check_name
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES, Sensor, SensorFormat
@@ -180,14 +187,16 @@ def _parameter_entries(names, values, free, uncertainty, k: int) -> dict:
 
 def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, provenance: dict | None = None,
                 sensor_model: dict | None = None, replicas: dict | None = None,
-                phase_ripple: dict | None = None) -> dict:
+                phase_ripple: dict | None = None, observed_regions: dict | None = None) -> dict:
     """The JSON document of ``rig``; ``covariances``
     (:class:`~fringecal.calibration.propagation.ParameterCovariances`), ``provenance``,
     ``sensor_model`` (the model's choice and its evidence,
     :func:`fringecal.calibration.models.choose_sensor_model`), ``replicas`` (a
     :func:`replicas_document`) and ``phase_ripple`` (scanner -> orientation -> its
-    ripple, :func:`fringecal.fringe.ripple.ripple_document`) are added when given (see
-    the module notes)."""
+    ripple, :func:`fringecal.fringe.ripple.ripple_document`) are added when given, and
+    each sensor's ``observed_region`` from ``observed_regions`` (sensor name ->
+    :class:`~fringecal.lens.observed_region.ObservedRegion`) where it names the sensor
+    (see the module notes)."""
 
     out = {"software": "fringecal", "version": __version__, "reference_scanner": rig.reference,
            "scanners": [], "metadata": dict(metadata or {})}
@@ -219,6 +228,8 @@ def rig_to_dict(rig: Rig, metadata: dict | None = None, covariances=None, proven
             if sensor.field is not None:
                 entry["sensors"][-1]["correction_field"] = _field_entry(sensor.field, rig.field_free[k],
                                                                         rig.field_uncertainty, k)
+            if sensor.name in (observed_regions or {}):
+                entry["sensors"][-1]["observed_region"] = observed_regions[sensor.name].to_dict()
             k += 1
         out["scanners"].append(entry)
     return out
@@ -357,6 +368,9 @@ class Calibration:
     # scanner -> orientation -> the phase ripple its decoder corrects small stacks with
     # (fringecal.fringe.ripple.ripple_document records)
     phase_ripple: dict = field(default_factory=dict)
+    # sensor name -> where its control points lay (fringecal.lens.observed_region); a sensor
+    # without an entry: not known (a file without observed_region)
+    observed_regions: dict = field(default_factory=dict)
 
 
 def _rows(rows, names: list[str], where: str, key: str = "params") -> np.ndarray:
@@ -520,7 +534,30 @@ def read_calibration(path) -> Calibration:
     replicas = _replicas(d["replicas"], rig, str(path)) if "replicas" in d else {}
     ripple = _phase_ripple(d["phase_ripple"], rig, str(path)) if "phase_ripple" in d else {}
     return Calibration(rig, cov, dict(d.get("provenance") or {}), dict(d.get("metadata") or {}), d.get("black_boxes"),
-                       replicas, ripple)
+                       replicas, ripple, _observed_regions(d, rig, str(path)))
+
+
+def _observed_regions(d: dict, rig: Rig, source: str) -> dict:
+    """sensor name -> :class:`~fringecal.lens.observed_region.ObservedRegion` of every
+    sensor entry that has an ``observed_region`` (checked: its grid, and its format the
+    sensor's)."""
+    out = {}
+    formats = {s.name: s.format for s in rig.sensors}
+    for sc in d["scanners"]:
+        for se in sc["sensors"]:
+            if "observed_region" not in se:
+                continue
+            where = f"{source}: scanner {sc['name']!r} sensor {se['name']!r}: observed_region"
+            try:
+                region = ObservedRegion.from_dict(se["observed_region"])
+            except ValueError as err:
+                raise CalibrationFileError(f"{where}: {err}") from None
+            fmt = formats[se["name"]]
+            if not np.allclose([region.width_mm, region.height_mm], fmt.size_mm, rtol=1e-9):
+                raise CalibrationFileError(f"{where}: format_mm {[region.width_mm, region.height_mm]} is not the "
+                                           f"sensor's format ({fmt.width_mm} x {fmt.height_mm} mm)")
+            out[se["name"]] = region
+    return out
 
 
 def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:

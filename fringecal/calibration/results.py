@@ -15,10 +15,12 @@ import pandas as pd
 
 from fringecal.calibration.artefact_sensitivity import artefact_sensitivity
 from fringecal.calibration.bundle import BundleResult
-from fringecal.calibration.model import triangulated_points
+from fringecal.calibration.model import BundleProblem, triangulated_points
+from fringecal.lens.observed_region import ObservedRegion
 from fringecal.schemas import BinnedResidualsTable, MeasurementResidualsTable, SphereResidualsTable, validate_table
 
-__all__ = ["residual_tables", "binned_residuals", "IMAGE_BINS", "volume_diagonal_mm", "summary", "covariance_arrays"]
+__all__ = ["residual_tables", "binned_residuals", "IMAGE_BINS", "volume_diagonal_mm", "summary", "covariance_arrays",
+           "observed_regions"]
 
 #: Bins across each sensor's image width for :func:`binned_residuals` (its height gets
 #: as many as keep the bins square: 16 x 16 on a square camera, 16 x 12 on a 4:3 projector).
@@ -85,6 +87,21 @@ def binned_residuals(result: BundleResult, nx: int = IMAGE_BINS) -> pd.DataFrame
                              "mean_eps2_mm": sums[2][c] / n[c], "rms_eps2_mm": float(np.sqrt(sums[3][c] / n[c]))})
     columns = list(BinnedResidualsTable.to_schema().columns)
     return validate_table(pd.DataFrame(rows, columns=columns), BinnedResidualsTable, "residuals binned over the images")
+
+
+def observed_regions(problem: BundleProblem) -> dict[str, ObservedRegion]:
+    """Sensor name -> where its control points of ``problem`` lay on its image plane
+    (:class:`~fringecal.lens.observed_region.ObservedRegion`): every camera's pixels
+    and every projector's phases of the points the adjustment used, as measured
+    image-plane mm (``cam_mm``, ``prj_mm``). A scanner without control points gets an
+    empty region (nothing observed)."""
+    out = {}
+    for k, scanner in enumerate(problem.rig.scanners):
+        mine = problem.scanner_idx == k
+        for sensor, image_mm in ((scanner.camera, problem.cam_mm[mine]), (scanner.projector, problem.prj_mm[mine])):
+            out[sensor.name] = ObservedRegion.from_observations(image_mm, sensor.format.width_mm,
+                                                                sensor.format.height_mm)
+    return out
 
 
 def volume_diagonal_mm(result: BundleResult) -> float:

@@ -18,7 +18,17 @@ modulation  f4    the weaker of the two orientations' fringe modulation (DN)
 u_mm        f4    standard uncertainty of the point's position from the
                   calibration (3-D: sqrt of the trace of its covariance), mm;
                   NaN when the calibration carries no covariance
+outside_    u1    1 where the point's camera pixel or its projector phases
+observed_         lie outside the region of that sensor's image plane where
+region            the calibration saw control points, else 0 (also where the
+                  calibration file records no region, and for a black box's
+                  points)
 =========== ===== =========================================================
+
+The last field is the calibration's observed region
+(:class:`fringecal.lens.observed_region.ObservedRegion`, per sensor in
+``calibration.json``): the model there is extrapolated, untested by any control point,
+and a correction field may be far off. Such points are flagged, never dropped.
 
 The uncertainty is the calibration's covariance (adjustment, artefact CMM and
 artefact scale, :class:`fringecal.calibration.propagation.ParameterCovariances`) propagated
@@ -49,16 +59,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from fringecal.calibration.propagation import point_variances, scanner_block
+from fringecal.lens.observed_region import ObservedRegion
 from fringecal.pointcloud import triangulate_maps
 from fringecal.rig import Rig, Scanner
 from fringecal.verification.measure import store_scanner
 
 __all__ = ["POINT_DTYPE", "Cloud", "MeasureSettings", "scanner_points", "measure_cloud", "point_uncertainty",
-           "UNCERTAINTY_STEP", "SAME_SURFACE_MM"]
+           "UNCERTAINTY_STEP", "SAME_SURFACE_MM", "OUTSIDE", "outside_observed_region"]
 
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scanner", "u1"), ("measurement", "<u2"),
                         ("u", "<u2"), ("v", "<u2"),
-                        ("eps1", "<f4"), ("modulation", "<f4"), ("u_mm", "<f4")])
+                        ("eps1", "<f4"), ("modulation", "<f4"), ("u_mm", "<f4"),
+                        ("outside_observed_region", "u1")])
+#: the field of :data:`POINT_DTYPE` that flags points outside the calibration's observed region
+OUTSIDE = "outside_observed_region"
+
 #: pixel spacing of the grid on which the uncertainty is computed exactly
 UNCERTAINTY_STEP = 4
 #: a grid node within this distance of a point lies on its surface (mm)
@@ -104,6 +119,20 @@ class Cloud:
         return {s: int(n[i]) for i, s in enumerate(self.scanners)}
 
 
+def outside_observed_region(scanner: Scanner, regions: Mapping[str, ObservedRegion] | None, cam_mm,
+                            prj_mm) -> np.ndarray:
+    """Whether each point, seen at camera image-plane ``cam_mm`` (n, 2) and projector
+    image-plane ``prj_mm`` (n, 2), lies outside the observed region of its camera or of
+    its projector (``regions``: sensor name -> region) -> bool (n,). A sensor without a
+    region (not known) flags nothing."""
+    out = np.zeros(len(cam_mm), bool)
+    for sensor, image_mm in ((scanner.camera, cam_mm), (scanner.projector, prj_mm)):
+        region = (regions or {}).get(sensor.name)
+        if region is not None:
+            out |= ~region.contains(image_mm)
+    return out
+
+
 def point_uncertainty(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, rows, cols) -> np.ndarray:
     """Exact standard uncertainty (n,) in mm (sqrt of the covariance's trace) of the
     points at pixels (rows, cols) of a store with phases ``tau_x``, ``tau_y`` (maps);
@@ -145,7 +174,8 @@ def _interpolated_uncertainty(scanner, cov28, tau_x, tau_y, xyz, keep, step: int
 
 
 def scanner_points(scanner: Scanner, index: int, store, settings: MeasureSettings = MeasureSettings(),
-                   cov28: np.ndarray | None = None, measurement: int = 0) -> np.ndarray:
+                   cov28: np.ndarray | None = None, measurement: int = 0,
+                   regions: Mapping[str, ObservedRegion] | None = None) -> np.ndarray:
     """The points (structured array of :data:`POINT_DTYPE`) of one scanner's store.
 
     Parameters
@@ -156,6 +186,8 @@ def scanner_points(scanner: Scanner, index: int, store, settings: MeasureSetting
         ``modulation_y`` maps, shape (rows, cols) (an opened store or an in-memory
         decoded measurement)
     cov28 : (28, 28) covariance of the scanner's parameters, or None (``u_mm`` NaN)
+    regions : sensor name -> its observed region (``outside_observed_region``; None or
+        a sensor missing: nothing flagged)
     """
     tau_x = np.asarray(store["tau_x"])
     tau_y = np.asarray(store["tau_y"])
@@ -177,6 +209,9 @@ def scanner_points(scanner: Scanner, index: int, store, settings: MeasureSetting
     pts["eps1"] = maps.eps1[rows, cols]
     mod = np.minimum(np.asarray(store["modulation_x"])[rows, cols], np.asarray(store["modulation_y"])[rows, cols])
     pts["modulation"] = mod
+    cam_mm = scanner.camera.image_mm(np.stack([cols, rows], axis=-1))
+    prj_mm = scanner.projector.image_mm(np.stack([tau_x[rows, cols], tau_y[rows, cols]], axis=-1))
+    pts[OUTSIDE] = outside_observed_region(scanner, regions, cam_mm, prj_mm)
     if cov28 is None or not settings.uncertainty:
         pts["u_mm"] = np.nan
     else:
@@ -187,7 +222,8 @@ def scanner_points(scanner: Scanner, index: int, store, settings: MeasureSetting
 
 
 def measure_cloud(rig: Rig, stores: Mapping[str, object], settings: MeasureSettings = MeasureSettings(),
-                  covariance: np.ndarray | None = None, measurement: int = 0) -> Cloud:
+                  covariance: np.ndarray | None = None, measurement: int = 0,
+                  regions: Mapping[str, ObservedRegion] | None = None) -> Cloud:
     """One cloud of every scanner's store of one measurement.
 
     Parameters
@@ -198,6 +234,8 @@ def measure_cloud(rig: Rig, stores: Mapping[str, object], settings: MeasureSetti
     covariance : (14 n_sensors, 14 n_sensors) covariance of every sensor parameter in
         rig order (``ParameterCovariances.total``), or None
     measurement : the value of the points' ``measurement`` field
+    regions : sensor name -> its observed region
+        (:attr:`fringecal.calibration.file.Calibration.observed_regions`), or None
     """
 
     names = tuple(s.name for s in rig.scanners)
@@ -211,5 +249,5 @@ def measure_cloud(rig: Rig, stores: Mapping[str, object], settings: MeasureSetti
         ds = stores[name]
         scanner = store_scanner(ds, rig.scanner(name))
         cov28 = None if covariance is None else scanner_block(covariance, rig, name)
-        parts.append(scanner_points(scanner, i, ds, settings, cov28, measurement))
+        parts.append(scanner_points(scanner, i, ds, settings, cov28, measurement, regions))
     return Cloud(np.concatenate(parts) if parts else np.empty(0, POINT_DTYPE), names)

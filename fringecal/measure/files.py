@@ -7,7 +7,8 @@ lines name the scanners in order, the calibration file and the units). The zarr 
 holds the same fields as variables on one dimension ``point`` with the scanner names
 and provenance as attributes, chunked, so a cloud of hundreds of millions of points
 can be read in parts. Both are written under a temporary name and renamed into place:
-an interrupted write leaves no half file.
+an interrupted write leaves no half file. A cloud written before the
+``outside_observed_region`` field existed reads with it 0 (nothing flagged).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fringecal.atomic import atomic_paths
-from fringecal.measure.cloud import POINT_DTYPE, Cloud
+from fringecal.measure.cloud import OUTSIDE, POINT_DTYPE, Cloud
 from fringecal.store import open_store, write_store
 
 __all__ = ["CLOUD_SUFFIXES", "write_cloud", "read_cloud", "write_ply", "read_ply"]
@@ -49,12 +50,13 @@ def read_ply(path) -> Cloud:
 
     data = PlyData.read(str(path))
     vertex = data["vertex"].data
-    missing = [n for n in POINT_DTYPE.names if n not in vertex.dtype.names]
+    missing = [n for n in POINT_DTYPE.names if n not in vertex.dtype.names and n != OUTSIDE]
     if missing:
         raise ValueError(f"{path}: vertex has no {', '.join(missing)} (fields: {', '.join(vertex.dtype.names)})")
-    pts = np.empty(len(vertex), POINT_DTYPE)
+    pts = np.zeros(len(vertex), POINT_DTYPE)
     for n in POINT_DTYPE.names:
-        pts[n] = vertex[n]
+        if n in vertex.dtype.names:
+            pts[n] = vertex[n]
     def listed(prefix):
         return tuple(next((json.loads(c[len(prefix):]) for c in data.comments if c.startswith(prefix)), []))
 
@@ -86,8 +88,9 @@ def read_cloud(path) -> Cloud:
     path = Path(path)
     if path.suffix.lower() == ".zarr":
         with open_store(path) as ds:
-            pts = np.empty(ds.sizes["point"], POINT_DTYPE)
+            pts = np.zeros(ds.sizes["point"], POINT_DTYPE)
             for n in POINT_DTYPE.names:
-                pts[n] = ds[n].values
+                if n in ds or n != OUTSIDE:
+                    pts[n] = ds[n].values
             return Cloud(pts, tuple(ds.attrs["scanners"]), tuple(ds.attrs["measurements"]))
     return read_ply(path)

@@ -10,7 +10,7 @@ import numpy as np
 from fringecal.calibration.blackbox import point_uncertainty, scanners_from_document, transform_points
 from fringecal.calibration.file import read_calibration
 from fringecal.calibration.propagation import frame_free_covariance
-from fringecal.measure.cloud import POINT_DTYPE, Cloud, MeasureSettings, measure_cloud
+from fringecal.measure.cloud import OUTSIDE, POINT_DTYPE, Cloud, MeasureSettings, measure_cloud
 from fringecal.measure.files import CLOUD_SUFFIXES, write_cloud
 from fringecal.measure.overlap import overlap_report
 from fringecal.measure.sources import MeasurementSourceError, measurement_entries, open_entry
@@ -18,7 +18,7 @@ from fringecal.rundir import RunDir
 from fringecal.scancloud import load_points
 from fringecal.measure.spheres import measure_spheres, read_nominal_spheres, sphere_distances
 
-__all__ = ["measure_folder", "check_output"]
+__all__ = ["measure_folder", "check_output", "observed_region_summary"]
 
 
 def check_output(out) -> Path:
@@ -70,6 +70,34 @@ def _ripple_fits(cal, path) -> dict[str, list[dict]]:
     return out
 
 
+def _outside_per_store(part: Cloud, group: dict, measurement: str) -> list[dict]:
+    """Per store of one measurement's cloud (modelled scanners only): its points and
+    how many of them the observed region flags."""
+    out = []
+    for i, name in enumerate(part.scanners):
+        if name not in group:
+            continue
+        flags = part.points[OUTSIDE][part.points["scanner"] == i]
+        n, k = int(len(flags)), int(flags.sum())
+        out.append({"store": str(group[name]), "scanner": name, "measurement": measurement, "points": n,
+                    "outside": k, "fraction": k / n if n else 0.0})
+    return out
+
+
+def observed_region_summary(cal, per_store: list[dict]) -> dict:
+    """The summary's ``observed_region``: the sensors whose region the calibration
+    records (``known``) and those it does not (``unknown``: their points cannot be
+    flagged), each known sensor's covered fraction of its format, and per store the
+    points outside (``stores``) with their total and fraction over every store."""
+    regions = cal.observed_regions
+    sensors = [s.name for s in cal.rig.sensors]
+    n = sum(r["points"] for r in per_store)
+    k = sum(r["outside"] for r in per_store)
+    return {"known": [s for s in sensors if s in regions], "unknown": [s for s in sensors if s not in regions],
+            "fraction_of_format": {s: regions[s].fraction for s in sensors if s in regions},
+            "points_outside": k, "fraction_outside": k / n if n else 0.0, "stores": per_store}
+
+
 def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettings = MeasureSettings(),
                    decode_settings=None, datum: str = "rig", spheres=None) -> dict:
     """Measure ``folders`` (a measurement folder or a list of them; one entry per
@@ -92,7 +120,14 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
     each centre with the u of its position (in the frame of ``datum``), every distance
     between two of them with its own u (:func:`~fringecal.measure.spheres.sphere_distances`).
 
-    Returns the summary: points per scanner, their median ``u_mm`` and RMS ``eps1``,
+    Every point whose camera pixel or projector phases lie outside the region of that
+    sensor's image plane the calibration observed (the file's ``observed_region``,
+    :class:`~fringecal.lens.observed_region.ObservedRegion`) is flagged in the cloud's
+    ``outside_observed_region`` field and counted per store (``observed_region`` of the
+    summary); each sphere states how many of its points are.
+
+    Returns the summary: points per scanner, their median ``u_mm``, RMS ``eps1`` and
+    how many lie outside the observed region,
     the overlap between scanners (:func:`~fringecal.measure.overlap.overlap_report`),
     the spheres and their distances, wall times, and what the cloud's header records. Every folder is checked before
     any is read; the cloud file appears whole or not at all.
@@ -127,7 +162,8 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
     adjustment = None if cov is None else cal.covariances.calibration  # a distance's jackknife is compared with it
     factors = {s: max(1.0, float(d["kappa"])) for s, d in (cal.metadata.get("sighting_dispersion") or {}).items()}
     t_read = t_cloud = 0.0
-    parts, fitted, distances = [], [], []
+    regions = cal.observed_regions
+    parts, fitted, distances, per_store = [], [], [], []
     for g, group in enumerate(entries):   # one measurement in memory at a time
         t = time.perf_counter()
         stores = {name: open_entry(path, kind, decode_settings, ripple_fits.get(name, ()))
@@ -135,9 +171,11 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         t_read += time.perf_counter() - t
         t = time.perf_counter()
         try:
-            part = measure_cloud(cal.rig, stores, settings, placed, measurement=g)
+            part = measure_cloud(cal.rig, stores, settings, placed, measurement=g, regions=regions)
+            per_store += _outside_per_store(part, group, folders[g].name)
             if nominal is not None:
-                found = measure_spheres(part, stores, cal.rig, placed, nominal, measurement=g, fit_factors=factors)
+                found = measure_spheres(part, stores, cal.rig, placed, nominal, measurement=g, fit_factors=factors,
+                                        regions=regions)
                 name = folders[g].name
                 fitted += [{"measurement": name, **m.as_dict()} for m in found]
                 table = sphere_distances(found, cov, adjustment, cal.replicas, field)
@@ -170,12 +208,14 @@ def measure_folder(calibration, folders, kind: str, out, settings: MeasureSettin
         eps1 = float(np.sqrt(np.mean(p["eps1"].astype(float) ** 2)))
         per[name] = {"sources": [str(g[name]) for g in entries if name in g], "points": int(len(p)),
                      "eps1_rms_mm": eps1 if np.isfinite(eps1) else None,
-                     "u_mm_median": float(np.median(p["u_mm"])) if cov is not None else None}
+                     "u_mm_median": float(np.median(p["u_mm"])) if cov is not None else None,
+                     "outside_observed_region": int(p[OUTSIDE].sum())}
     return {"out": str(out), "points": len(cloud), "measurements": [str(f) for f in folders], "scanners": per,
             "datum": datum,
             "uncertainty": "from the calibration's covariance" if cov is not None else
             ("not requested" if not settings.uncertainty else "none: the calibration file carries no covariance"),
             "overlap": [o.as_dict() for o in overlap],
+            "observed_region": observed_region_summary(cal, per_store),
             "spheres": None if nominal is None else {"nominal": str(spheres), "fitted": fitted, "distances": distances},
             "seconds": {"read": t_read, "triangulate": t_cloud, "overlap_and_write": t_write,
                         "total": time.perf_counter() - t0}}

@@ -36,6 +36,11 @@ bias cannot be predicted, left out) and fitted again. A sphere seen only in part
 scanner.
 The linearised fit is :func:`fringecal.verification.budget.sighting_model`, the one
 the ball-bar's length budget uses.
+
+Each sighting also states how many of its fitted points have a camera pixel or
+projector phases outside the calibration's observed region
+(:func:`~fringecal.measure.cloud.outside_observed_region`): where the model was never
+tested, its stated u does not cover what the extrapolation may do.
 """
 
 from __future__ import annotations
@@ -47,7 +52,8 @@ import numpy as np
 import pandas as pd
 
 from fringecal.calibration.propagation import extended_indices, triangulate_mm
-from fringecal.measure.cloud import Cloud
+from fringecal.lens.observed_region import ObservedRegion
+from fringecal.measure.cloud import Cloud, outside_observed_region
 from fringecal.pointcloud import triangulate_maps
 from fringecal.rig import Rig
 from fringecal.spheres.candidates import find_sphere_candidates
@@ -133,7 +139,8 @@ class MeasuredSphere:
     """One sphere as one scanner measured it: ``centre`` (3,) mm, ``u_position_mm`` its
     3-D standard uncertainty in the frame of the covariance given, the points kept and
     their fraction of the sphere's image disc, ``model`` the linearised fit (for
-    distances)."""
+    distances), ``n_outside`` how many of its points lie outside the calibration's
+    observed region (None: the calibration records no region for its sensors)."""
 
     sphere: str
     scanner: str
@@ -142,11 +149,13 @@ class MeasuredSphere:
     n_points: int
     disc_fraction: float
     model: SightingModel
+    n_outside: int | None = None
 
     def as_dict(self) -> dict:
         return {"sphere": self.sphere, "scanner": self.scanner, "x_mm": float(self.centre[0]),
                 "y_mm": float(self.centre[1]), "z_mm": float(self.centre[2]),
-                "u_position_mm": self.u_position_mm, "n_points": self.n_points, "disc_fraction": self.disc_fraction}
+                "u_position_mm": self.u_position_mm, "n_points": self.n_points, "disc_fraction": self.disc_fraction,
+                "n_outside_observed_region": self.n_outside}
 
 
 def _point_noise_mm(X: np.ndarray, radius: float) -> float:
@@ -202,8 +211,8 @@ def _fit(scanner, block, uv, tau, edge, radius, footprint_px, rejection: Rejecti
 
 def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covariance: np.ndarray,
                     spheres: pd.DataFrame, footprint_px: float = 1.0, measurement: int = 0,
-                    rejection: RejectionConfig | None = None, fit_factors: dict | None = None
-                    ) -> list[MeasuredSphere]:
+                    rejection: RejectionConfig | None = None, fit_factors: dict | None = None,
+                    regions: Mapping[str, ObservedRegion] | None = None) -> list[MeasuredSphere]:
     """Every sphere of ``spheres`` in every scanner that sees it.
 
     Parameters
@@ -225,6 +234,7 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
     fit_factors : scanner -> factor on its fits' uncertainty, the scatter of its centres
         between spheres in the calibration's views (``max(1, kappa)``, the calibration
         file's ``metadata.sighting_dispersion``; :mod:`fringecal.spheres.dispersion`)
+    regions : sensor name -> its observed region (each sighting's ``n_outside``), or None
     """
     stated = covariance is not None
     if not stated:
@@ -271,9 +281,11 @@ def measure_spheres(cloud: Cloud, stores: Mapping[str, object], rig: Rig, covari
                 J = np.concatenate([J, model.J_field], axis=1)
                 idx = extended_indices(len(rig.sensors), block, model.J_field.shape[1] // 2)
             var = np.trace(J @ covariance[np.ix_(idx, idx)] @ J.T) + np.trace(model.C_fit)
+            known = any(sensor.name in (regions or {}) for sensor in scanner.sensors)
+            n_outside = int(outside_observed_region(scanner, regions, pts.cam_mm, pts.prj_mm).sum()) if known else None
             out.append(MeasuredSphere(str(s.sphere_id), name, pts.centre,
                                       float(np.sqrt(max(var, 0.0))) if stated else float("nan"),
-                                      len(pts.cam_mm), fraction, model))
+                                      len(pts.cam_mm), fraction, model, n_outside))
     return out
 
 

@@ -3,7 +3,8 @@
 The residual histograms are the run's own ``figures/*.png``
 (:mod:`fringecal.report.plotting`); drawn here are the ball-bar errors per position, the
 acceptance test's positions in the world frame, each scanner's residual and coverage
-maps over its images and its measuring-uncertainty maps.
+maps over its images, the regions of its image planes the calibration observed and its
+measuring-uncertainty maps.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from fringecal.report.plotting import figure as _figure
 from fringecal.report.plotting import png as _png
 
 __all__ = ["TEST_COLOURS", "Image", "acceptance_png", "ballbar_png", "residual_maps_png", "uncertainty_maps_png",
-           "binned_grid"]
+           "binned_grid", "observed_regions_png"]
 
 #: Colour of each acceptance object (and of the ball-bar) in the positions figure.
 TEST_COLOURS = {"sphere": "tab:blue", "dumbbell": "tab:orange", "flat": "tab:green", "ballbar": "tab:purple"}
@@ -235,4 +236,41 @@ def uncertainty_maps_png(maps: list, fmt) -> bytes:
         bar = fig.colorbar(image, ax=fig.axes, fraction=0.02, pad=0.02)
         bar.set_label("u of a measured point (µm, k = 1)", fontsize=7)
         bar.ax.tick_params(labelsize=6)
+    return _png(fig)
+
+
+def observed_regions_png(regions: list) -> bytes:
+    """The observed region of each sensor of a scanner, side by side: over the image plane
+    (mm from the format's centre, rows down as the camera's) the cells holding control
+    points (grey) and the hull of them (the region, outlined), its share of the format in
+    the title.
+
+    Parameters
+    ----------
+    regions : (sensor name, role, :class:`~fringecal.lens.observed_region.ObservedRegion`) per sensor
+
+    Returns
+    -------
+    The PNG's bytes.
+    """
+    fig = _figure(3.4 * len(regions) + 0.4, 2.9)
+    for k, (name, role, region) in enumerate(regions):
+        ax = fig.add_subplot(1, len(regions), k + 1)
+        w, h = region.width_mm, region.height_mm
+        ax.imshow(region.observed.astype(float), cmap="Greys", vmin=0, vmax=1.6, origin="upper",
+                  interpolation="nearest", extent=(-w / 2, w / 2, h / 2, -h / 2))
+        ny, nx = region.shape
+        ax.set_xticks(np.linspace(-w / 2, w / 2, nx + 1), minor=True)
+        ax.set_yticks(np.linspace(-h / 2, h / 2, ny + 1), minor=True)
+        ax.grid(which="minor", color="0.75", lw=0.3)
+        ax.tick_params(which="minor", length=0)
+        ax.tick_params(labelsize=6)
+        if len(region.hull):
+            ring = np.vstack([region.hull, region.hull[:1]])
+            ax.plot(ring[:, 0], ring[:, 1], color="C3", lw=1.2)
+        ax.set_title(f"{name} ({role}): {100 * region.fraction:.0f} % observed", fontsize=8)
+        ax.set_xlabel("image plane x (mm)", fontsize=7)
+        if k == 0:
+            ax.set_ylabel("image plane y (mm)", fontsize=7)
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.16, top=0.88, wspace=0.3)
     return _png(fig)

@@ -26,7 +26,8 @@ from fringecal.calibration.file import REPLICA_KINDS, replicas_document, rig_to_
 from fringecal.calibration.jackknife import MIN_REPLICAS, jackknife_calibrations
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
-from fringecal.calibration.results import binned_residuals, covariance_arrays, residual_tables, summary
+from fringecal.calibration.results import (binned_residuals, covariance_arrays, observed_regions, residual_tables,
+                                           summary)
 from fringecal.config import ConfigError
 from fringecal.digests import digest_path, digest_value
 from fringecal.frames import Frame
@@ -254,8 +255,9 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
                   black_boxes: dict | None = None, phase_ripple: dict | None = None) -> list:
     """Write the calibration of ``result`` (a :class:`~fringecal.calibration.bundle.BundleResult`)
     into ``rd``, all or nothing: ``calibration.json`` (with ``covariances``, the
-    :class:`~fringecal.calibration.propagation.ParameterCovariances`, and ``provenance``)
-    and its XML twin, the parameter, pose and residual tables, the residual histograms,
+    :class:`~fringecal.calibration.propagation.ParameterCovariances`, ``provenance`` and
+    each sensor's observed region) and its XML twin, the parameter, pose and residual
+    tables, the residual histograms,
     ``bundle_summary.json`` (``doc``) and the covariance ``arrays``. Every file is first
     written under a temporary name and renamed into place only when all are complete."""
     meta = {"after": doc["after"], "before": doc["before"], "one_part_in_1p96_sigma": doc["one_part_in_1p96_sigma"],
@@ -264,6 +266,9 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
             "sighting_dispersion": doc.get("sighting_dispersion") or {}}
     model = doc.get("sensor_model")
     per_sphere, per_meas = residual_tables(result)
+    regions = observed_regions(result.problem)
+    log.info("image plane observed by the control points: %s",
+             ", ".join(f"{name} {100 * r.fraction:.0f} %" for name, r in regions.items()))
     tables = {rd.sensors_calibrated: result.sensors_frame(), rd.poses_calibrated: result.poses_frame(),
               rd.residuals_per_sphere: per_sphere, rd.residuals_per_measurement: per_meas,
               rd.residuals_binned: binned_residuals(result)}
@@ -277,7 +282,8 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
         tmp = dict(zip([f.rel for f in files], tmps))
         replicas = {kind: arrays[f"{kind}_params"] for kind in REPLICA_KINDS if f"{kind}_params" in arrays}
         calibration = rig_to_dict(result.rig, meta, covariances, provenance, model,
-                                  replicas_document(replicas, arrays.get("jackknife_left_out")), phase_ripple)
+                                  replicas_document(replicas, arrays.get("jackknife_left_out")), phase_ripple,
+                                  regions)
         if black_boxes is not None:
             calibration["black_boxes"] = black_boxes
         tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")

@@ -1,7 +1,8 @@
 """One part per scanner: its 14 + 14 parameters with their uncertainties (and the
 thin-prism terms, and the correction field's RMS and largest displacement, of a model
 that has them), the residuals
-and the coverage by control points over its camera's and projector's images, the
+and the coverage by control points over its camera's and projector's images, the region of
+each image the calibration observed (``calibration.json``'s ``observed_region``), the
 uncertainty a measured point inherits from the calibration at three depths of its
 measuring volume, and its acceptance values; one part per black-box scanner: its
 transform and scale with their uncertainties (``black_boxes.json``), its 4x4 matrix
@@ -25,7 +26,7 @@ from fringecal.report.tables import table
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES
 
 __all__ = ["build", "correlations", "residual_maps", "uncertainty_maps", "depths", "acceptance_values",
-           "black_box_parts", "field_displacement"]
+           "black_box_parts", "field_displacement", "observed_region"]
 
 #: Cells across the camera image of an uncertainty map.
 MAP_CELLS = 24
@@ -140,6 +141,23 @@ def residual_maps(run: RunData, scanner: str) -> dict:
              for role, g in mine.groupby("role")}
     return {"image": Image(png, f"residuals and control points over the images of {scanner}"), "n": n,
             "covered": ", ".join(f"{role} {k} of {total} cells" for role, (k, total) in sorted(cells.items()))}
+
+
+def observed_region(run: RunData, scanner: str) -> dict:
+    """Where on its camera's and projector's image planes the calibration saw control
+    points (:class:`~fringecal.lens.observed_region.ObservedRegion` of each sensor,
+    ``calibration.json``): the figure of the grids and each sensor's covered fraction."""
+    cal = run.calibration_file()
+    sensors = cal.rig.scanner(scanner).sensors
+    regions = [(s.name, s.role, cal.observed_regions[s.name]) for s in sensors if s.name in cal.observed_regions]
+    if not regions:
+        raise Missing(f"{run.rd.calibration.rel} records no observed region of {scanner} (a calibration written "
+                      "before fringecal recorded it)")
+    png = _drawn(("observed", _sha(run.rd.calibration), scanner), lambda: figures.observed_regions_png(regions))
+    first = regions[0][2]
+    return {"image": Image(png, f"regions of the image planes of {scanner} the calibration observed"),
+            "fractions": ", ".join(f"{name} ({role}) {100 * r.fraction:.0f} %" for name, role, r in regions),
+            "cells": f"{first.shape[1]} × {first.shape[0]}", "min_points": first.min_points}
 
 
 def depths(run: RunData, scanner: str) -> tuple[list[float], str]:
@@ -268,7 +286,8 @@ def build(run: RunData) -> dict:
     serials = (run.config().get("certificate") or {}).get("scanners") or {}
     scanners = [{"name": sc.name, "serial": serials.get(sc.name), "parameters": _parameters(rig, k),
                  "field": rig.has_field,
-                 "residuals": guard(residual_maps, run, sc.name), "uncertainty": guard(uncertainty_maps, run, sc.name),
+                 "residuals": guard(residual_maps, run, sc.name), "observed": guard(observed_region, run, sc.name),
+                 "uncertainty": guard(uncertainty_maps, run, sc.name),
                  "acceptance": guard(acceptance_values, run, sc.name)}
                 for k, sc in enumerate(rig.scanners)]
     return {"scanners": scanners, "black_boxes": boxes, "correlations": guard(correlations, run)}
