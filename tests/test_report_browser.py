@@ -90,7 +90,8 @@ def test_page_loads_without_console_messages_and_its_links_and_images_hold(repor
     assert len(targets) == 10 and set(targets) <= set(ids)
     assert not re.findall(r'\bhref="(?!#)', dom)
     images = re.findall(r'<img [^>]*src="data:image/png;base64,([^"]+)"', dom)
-    assert len(images) == 3 + 2 * len(SCANNERS)  # histograms, ball-bar plot, each scanner's two maps
+    # histograms, ball-bar plot, each scanner's two maps and its observed regions
+    assert len(images) == 3 + 3 * len(SCANNERS)
     for encoded in images:
         width, height = _png_size(base64.b64decode(encoded, validate=True))
         assert width >= 400 and height >= 200
