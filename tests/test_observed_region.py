@@ -122,3 +122,38 @@ def test_a_cloud_written_before_the_flag_reads_with_nothing_flagged(tmp_path):
     cloud = read_cloud(tmp_path / "old.ply")
     assert cloud.points["x"].tolist() == [1.0, 2.0, 3.0] and cloud.points["u"].tolist() == [4, 5, 6]
     assert cloud.points["outside_observed_region"].tolist() == [0, 0, 0] and cloud.scanners == ("s1",)
+
+
+def test_the_verification_states_how_much_of_each_ballbar_position_lies_outside(small_run, small_config):
+    """verification.json's ``observed_region``: per position the sphere fits' pixels
+    outside the calibration's regions, as counted again from those pixels; a region that
+    excludes scanner2's camera wholly puts all its pixels outside and none of scanner1's,
+    and no regions none."""
+    from fringecal.calibration.file import read_calibration
+    from fringecal.run.config import load_run_config
+    from fringecal.spheres.robust import RejectionConfig
+    from fringecal.steps.verify import ballbar_stores
+    from fringecal.verification.measure import measure_positions, positions_outside
+
+    rd = small_run[0]
+    cal = read_calibration(rd.calibration.path)
+    stated = rd.verification.load()["calibrated"]["observed_region"]
+    assert set(stated) == {str(p["measurement"]) for p in rd.verification.load()["calibrated"]["positions"]}
+    stores = ballbar_stores(rd)
+    _, _, pixels = measure_positions(stores, cal.rig, rd.ballbar.load(),
+                                     RejectionConfig(**load_run_config(small_config).extraction.rejection), pixels=True)
+    assert positions_outside(stores, cal.rig, pixels, cal.observed_regions) == stated
+    cam2 = cal.rig.scanner("scanner2").camera
+    nowhere = {cam2.name: ObservedRegion(cam2.format.width_mm, cam2.format.height_mm, np.zeros((16, 16)),
+                                         np.zeros((0, 2)))}
+    excluded = positions_outside(stores, cal.rig, pixels, nowhere)
+    seen_by_2 = 0
+    for position, e in excluded.items():
+        by = e["scanners"]
+        assert by.get("scanner1", {"outside": 0})["outside"] == 0
+        if "scanner2" in by:
+            seen_by_2 += 1
+            assert by["scanner2"]["outside"] == by["scanner2"]["points"] > 0
+        assert e["outside"] == sum(s["outside"] for s in by.values()) and e["points"] == sum(s["points"] for s in by.values())
+    assert seen_by_2 > 0
+    assert all(e["outside"] == 0 for e in positions_outside(stores, cal.rig, pixels, {}).values())

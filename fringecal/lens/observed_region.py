@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ObservedRegion", "CELLS_ACROSS", "MIN_POINTS_PER_CELL", "grid_shape"]
+__all__ = ["ObservedRegion", "CELLS_ACROSS", "MIN_POINTS_PER_CELL", "grid_shape", "outside"]
 
 #: cells across the format's width
 CELLS_ACROSS = 16
@@ -63,6 +63,24 @@ def grid_shape(width_mm: float, height_mm: float, across: int = CELLS_ACROSS) ->
     ((12, 16), (16, 16))
     """
     return max(1, int(round(across * height_mm / width_mm))), int(across)
+
+
+def outside(regions, sightings) -> np.ndarray:
+    """Whether each of n points lies outside the observed region of any sensor that saw
+    it -> bool (n,).
+
+    ``regions``: sensor name -> :class:`ObservedRegion` (None or a sensor missing: not
+    known, flags nothing); ``sightings``: (sensor name, image_mm (n, 2)) of the same n
+    points, e.g. a scanner's camera pixels and projector phases as image-plane mm.
+    """
+    out = None
+    for name, image_mm in sightings:
+        region = (regions or {}).get(name)
+        if out is None:
+            out = np.zeros(len(image_mm), bool)
+        if region is not None:
+            out |= ~region.contains(image_mm)
+    return np.zeros(0, bool) if out is None else out
 
 
 def _convex_hull(points: np.ndarray) -> np.ndarray:

@@ -59,7 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fringecal.calibration.propagation import point_variances, scanner_block
-from fringecal.lens.observed_region import ObservedRegion
+from fringecal.lens.observed_region import ObservedRegion, outside
 from fringecal.pointcloud import triangulate_maps
 from fringecal.rig import Rig, Scanner
 from fringecal.verification.measure import store_scanner
@@ -125,12 +125,7 @@ def outside_observed_region(scanner: Scanner, regions: Mapping[str, ObservedRegi
     image-plane ``prj_mm`` (n, 2), lies outside the observed region of its camera or of
     its projector (``regions``: sensor name -> region) -> bool (n,). A sensor without a
     region (not known) flags nothing."""
-    out = np.zeros(len(cam_mm), bool)
-    for sensor, image_mm in ((scanner.camera, cam_mm), (scanner.projector, prj_mm)):
-        region = (regions or {}).get(sensor.name)
-        if region is not None:
-            out |= ~region.contains(image_mm)
-    return out
+    return outside(regions, ((scanner.camera.name, cam_mm), (scanner.projector.name, prj_mm)))
 
 
 def point_uncertainty(scanner: Scanner, cov28: np.ndarray, tau_x, tau_y, rows, cols) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 
+from fringecal.calibration.file import read_calibration
 from fringecal.rundir import RunDir
 from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
 from fringecal.verification.black_box import verify_with_black_boxes
@@ -69,10 +70,17 @@ class Verify(Step):
             return
         halves = rd.crossval_halves.load() if rd.crossval_halves.exists() else None
         points_verdict = rd.crossval.load().get("verdict") if rd.crossval.exists() else None
+        regions = read_calibration(rd.calibration.path).observed_regions
         centres, failures, result, budget = verify_ballbar(ballbar_stores(rd), rd.calibration.load(), rd.ballbar.load(),
                                                            cfg.extraction.rejection, cfg.verification, diagonal,
                                                            rd.covariance.load(), halves, points_verdict,
-                                                           fit_factors(rd.bundle_summary.load(), cfg.verification))
+                                                           fit_factors(rd.bundle_summary.load(), cfg.verification),
+                                                           regions)
+        outside = {p: e for p, e in (result.observed_region or {}).items() if e["outside"]}
+        if outside:
+            log.info("ball-bar positions measured partly outside the region of the images the calibration observed "
+                     "(share of the sphere fits' pixels): %s",
+                     ", ".join(f"{p} {100 * e['fraction']:.0f} %" for p, e in outside.items()))
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner, f.reason)
         rd.ballbar_centres.save(centres)

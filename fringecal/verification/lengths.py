@@ -86,6 +86,9 @@ class BallBarResult:
     volume_diagonal_mm: float | None
     uncertainty: GumStatement
     passed: bool = field(default=True)
+    # position -> the sphere fits' pixels outside the calibration's observed region
+    # (fringecal.verification.measure.positions_outside); None: not known
+    observed_region: dict | None = None
 
     @property
     def one_part_in(self) -> float | None:
@@ -105,6 +108,7 @@ class BallBarResult:
             "pass": self.passed,
             "uncertainty": asdict(self.uncertainty),
             "positions": self.positions.to_dict("records"),
+            **({"observed_region": self.observed_region} if self.observed_region is not None else {}),
         }
 
 

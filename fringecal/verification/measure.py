@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pandas as pd
 
+from fringecal.lens.observed_region import outside
 from fringecal.rig import Rig, Scanner, scaled_scanner
 from fringecal.spheres.fit import FitError
 from fringecal.spheres.passes import measurement_maps
@@ -30,7 +31,7 @@ from fringecal.verification.ballbar import (
     refit_sighting,
 )
 
-__all__ = ["measure_position", "measure_positions", "store_sightings", "store_scanner", "store_maps", "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
+__all__ = ["measure_position", "measure_positions", "positions_outside", "store_sightings", "store_scanner", "store_maps", "CENTRE_COLUMNS", "FAILURE_COLUMNS"]
 
 #: Columns of the centres and failures tables of :func:`measure_position`.
 CENTRE_COLUMNS = ["position", "scanner", "sphere_id", "x_mm", "y_mm", "z_mm", "radius_mm", "rms_mm", "n_points"]
@@ -224,3 +225,38 @@ def measure_positions(stores: dict, rig: Rig, ballbar, rejection_config, workers
     if not pixels:
         return tables
     return (*tables, {(r["position"], r["scanner"], r["sphere_id"]): r["pixels"] for r in rows})
+
+
+def positions_outside(stores: dict, rig: Rig, pixels: dict, regions) -> dict:
+    """Per ball-bar position, how many of the pixels its sphere fits kept lie outside the
+    calibration's observed region of the camera or projector that saw them
+    (:func:`fringecal.lens.observed_region.outside`; ``regions``: sensor name ->
+    region).
+
+    Parameters
+    ----------
+    stores : position -> scanner -> store path
+    pixels : (position, scanner, sphere_id) -> (rows, cols) of the kept camera pixels
+        (:func:`measure_positions` with ``pixels``)
+
+    Returns
+    -------
+    position -> {"points", "outside", "fraction", "scanners": scanner -> {"points", "outside"}}
+    """
+    out: dict = {}
+    for (position, name, _), (rows, cols) in sorted(pixels.items()):
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        with open_store(stores[position][name]) as ds:
+            scanner = store_scanner(ds, rig.scanner(name))
+            tau = np.stack([np.asarray(ds["tau_x"])[rows, cols], np.asarray(ds["tau_y"])[rows, cols]], axis=-1)
+        cam_mm = scanner.camera.image_mm(np.stack([cols, rows], axis=-1).astype(float))
+        flags = outside(regions, ((scanner.camera.name, cam_mm), (scanner.projector.name,
+                                                                  scanner.projector.image_mm(tau))))
+        entry = out.setdefault(position, {"points": 0, "outside": 0, "scanners": {}})
+        mine = entry["scanners"].setdefault(name, {"points": 0, "outside": 0})
+        for e in (entry, mine):
+            e["points"] += int(len(flags))
+            e["outside"] += int(flags.sum())
+    for entry in out.values():
+        entry["fraction"] = entry["outside"] / entry["points"] if entry["points"] else 0.0
+    return out

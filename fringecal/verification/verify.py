@@ -7,13 +7,15 @@ own uncertainty budget (:mod:`.uncertainty`).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pandas as pd
 
 from fringecal.artefact import Artefact
 from fringecal.rig import Rig
 from fringecal.spheres.robust import RejectionConfig
 from fringecal.verification.lengths import BallBarResult, ballbar_lengths, evaluate_ballbar
-from fringecal.verification.measure import measure_positions
+from fringecal.verification.measure import measure_positions, positions_outside
 from fringecal.verification.settings import VerificationConfig
 from fringecal.verification.uncertainty import ballbar_uncertainty
 
@@ -22,8 +24,8 @@ __all__ = ["verify_ballbar"]
 
 def verify_ballbar(stores: dict, rig: Rig, ballbar: Artefact, rejection: dict, settings: VerificationConfig,
                    diagonal_mm: float, covariance: dict | None = None, halves: dict | None = None,
-                   points_verdict: str | None = None, fit_factors: dict | None = None
-                   ) -> tuple[pd.DataFrame, pd.DataFrame, BallBarResult, dict | None]:
+                   points_verdict: str | None = None, fit_factors: dict | None = None,
+                   regions: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame, BallBarResult, dict | None]:
     """Centres, failures and the evaluated lengths of the ball-bar measured with ``rig``.
 
     Parameters
@@ -38,6 +40,9 @@ def verify_ballbar(stores: dict, rig: Rig, ballbar: Artefact, rejection: dict, s
     halves, points_verdict : the cross-validation's half-calibrations and its verdict
     fit_factors : scanner -> factor on its sphere fits' uncertainty
         (:func:`~fringecal.verification.uncertainty.ballbar_uncertainty`)
+    regions : sensor name -> the calibration's observed region of its image plane
+        (``calibration.json``); with them the result states, per position, how many of
+        the fits' pixels lie outside (:func:`~fringecal.verification.measure.positions_outside`)
 
     Returns
     -------
@@ -56,4 +61,6 @@ def verify_ballbar(stores: dict, rig: Rig, ballbar: Artefact, rejection: dict, s
         lengths = lengths.assign(length_mm=[e["length_mm"] for e in budget["lengths"]])
     result = evaluate_ballbar(lengths.length_mm, reference_length, lengths.measurement, settings.mpe_mm,
                               diagonal_mm, settings.certificate_u_mm, settings.certificate_k, settings.coverage_factor)
+    if regions:
+        result = replace(result, observed_region=positions_outside(stores, rig, pixels, regions))
     return centres, failures, result, budget

@@ -51,17 +51,23 @@ def _where(run: RunData, cal: dict, recorded: dict) -> str:
 
 def _positions(cal: dict, true: dict | None, no_true: str, recorded: dict):
     true_by = {str(p.get("measurement")): p for p in (true or {}).get("positions", [])}
+    region = cal.get("observed_region")  # absent: a calibration without observed regions
     rows = []
     for p in cal["positions"]:
         name = str(p["measurement"])
         scanners = recorded.get(name, recorded.get(name.split(":")[0], []))
         row = [name, ", ".join(map(str, scanners)), num(p["length_mm"], ".4f", "mm"), um(p["error_mm"]),
                pass_cell(p["pass"])]
+        if region is not None:
+            e = region.get(name, region.get(name.split(":")[0]))
+            row += [f"{100 * e['fraction']:.0f} %" if e else "-"]
         if true is not None:
             t = true_by.get(name)
             row += [um(t["error_mm"]), pass_cell(t["pass"])] if t else ["not measured", ""]
         rows.append(row)
     heads = ["Position", "Recorded by", "Length", "Error", "Pass"]
+    if region is not None:
+        heads += ["Outside observed region"]
     if true is not None:
         heads += ["Error (true parameters)", "Pass (true parameters)"]
     else:
