@@ -78,9 +78,9 @@ class Verify(Step):
                                                            regions)
         outside = {p: e for p, e in (result.observed_region or {}).items() if e["outside"]}
         if outside:
-            log.info("ball-bar positions measured partly outside the region of the images the calibration observed "
-                     "(share of the sphere fits' pixels): %s",
-                     ", ".join(f"{p} {100 * e['fraction']:.0f} %" for p, e in outside.items()))
+            log.warning("ball-bar measured partly where the calibration extrapolates, outside the region of the "
+                        "images its control points covered (share of the sphere fits' pixels): %s",
+                        ", ".join(f"{p} {100 * e['fraction']:.0f} %" for p, e in outside.items()))
         for f in failures.itertuples():
             log.warning("ball-bar position %s, scanner %s: %s", f.position, f.scanner, f.reason)
         rd.ballbar_centres.save(centres)
