@@ -1,7 +1,7 @@
 """Benchmark of ``fringecal measure``: 24 stores of 2048 px (the thesis's 12 artefact
 poses x 2 scanners, 12 measurement folders) into one binary PLY, as a user runs it.
 
-    PYTHONPATH=. python benchmarks/measure.py [--width 2048] [--repeats 3] [--out FILE.json]
+    PYTHONPATH=. python benchmarks/measure.py [--width 2048] [--repeats 3] [--without-regions] [--out FILE.json]
 
 ``--smoke``: 64 px stores, one repeat.
 
@@ -13,7 +13,10 @@ table 6-8), the hit is projected into the projector and its phases written with
 artefact's dark background. The calibration file is those sensors with a diagonal
 covariance (each parameter's standard uncertainty from the default run's magnitudes:
 the cost of the propagation does not depend on the values, only on how many
-parameters are uncertain: all 14 of every sensor here).
+parameters are uncertain: all 14 of every sensor here) and each sensor's observed
+region, built from the stores' own valid pixels and phases (every point is inside it,
+but each is tested: ``--without-regions`` leaves the regions out, as a calibration
+file written before them).
 
 Timed: the command ``fringecal measure --calibration CAL --stores M1 ... --stores M12
 --out cloud.ply --json`` in a fresh process (imports and numba's cached kernels
@@ -45,9 +48,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import add_options, conditions, finish  # noqa: E402
 
 from fringecal.artefact import load_artefact  # noqa: E402
-from fringecal.calibration.file import write_calibration_json  # noqa: E402
+from fringecal.calibration.file import rig_to_dict  # noqa: E402
 from fringecal.calibration.propagation import ParameterCovariances  # noqa: E402
 from fringecal.frames import frames_from_rows  # noqa: E402
+from fringecal.lens.observed_region import ObservedRegion  # noqa: E402
 from fringecal.pointcloud import camera_ray_cache  # noqa: E402
 from fringecal.rig import (
     load_rig,  # noqa: E402
@@ -73,8 +77,9 @@ def _sphere_hits(origin, dirs, centres, radii):
     return best
 
 
-def make_store(scanner, centres, radii, path: Path, rng) -> float:
-    """The decoded store of ``scanner`` looking at spheres; returns its valid fraction."""
+def make_store(scanner, centres, radii, path: Path, rng) -> tuple[float, np.ndarray, np.ndarray]:
+    """The decoded store of ``scanner`` looking at spheres; returns its valid fraction and
+    the valid points' camera and projector image-plane mm (n, 2) each."""
     import xarray as xr
 
     cam, prj = scanner.camera, scanner.projector
@@ -96,27 +101,35 @@ def make_store(scanner, centres, radii, path: Path, rng) -> float:
                      "modulation_x": (("v", "u"), mod), "modulation_y": (("v", "u"), mod)},
                     attrs={"source": "benchmarks/measure.py: analytic phases of the artefact's spheres"})
     write_store(path, ds)
-    return float(valid.mean())
+    rows, cols = np.divmod(np.flatnonzero(valid), w)
+    return float(valid.mean()), cam.image_mm(np.stack([cols, rows], axis=-1).astype(float)), prj.image_mm(tau[valid])
 
 
-def make_inputs(root: Path, width: int) -> tuple[Path, list[Path], dict]:
+def make_inputs(root: Path, width: int, regions: bool = True) -> tuple[Path, list[Path], dict]:
     rig = scaled_rig(load_rig(THESIS / "sensors_refined_table6-8.csv"), width)
     art = load_artefact(THESIS / "artefact_cmm2.csv")
     poses = frames_from_rows(pd.read_csv(THESIS / "poses_scanner1_table6-1.csv"))
     rng = np.random.default_rng(24)
-    folders, fractions = [], {}
+    folders, fractions, seen = [], {}, {s.name: [] for s in rig.sensors}
     for m, T in poses.items():
         folder = root / f"pose{int(m):02d}"
         folder.mkdir()
         centres = T.to_world(art.centres)
         for scanner in rig.scanners:
-            fractions[f"{m}-{scanner.name}"] = make_store(scanner, centres, art.diameters / 2,
-                                                          folder / f"{scanner.name}.zarr", rng)
+            fraction, cam_mm, prj_mm = make_store(scanner, centres, art.diameters / 2,
+                                                  folder / f"{scanner.name}.zarr", rng)
+            fractions[f"{m}-{scanner.name}"] = fraction
+            seen[scanner.camera.name].append(cam_mm)
+            seen[scanner.projector.name].append(prj_mm)
         folders.append(folder)
     n = 14 * len(rig.sensors)
     cov = np.diag(np.tile(_STD, len(rig.sensors)) ** 2)
     covariances = ParameterCovariances(cov, np.zeros((n, n)), np.zeros(n), 0.0)
-    cal = write_calibration_json(rig, root / "calibration.json", {"source": "benchmarks/measure.py"}, covariances)
+    observed = {s.name: ObservedRegion.from_observations(np.concatenate(seen[s.name]), s.format.width_mm,
+                                                         s.format.height_mm) for s in rig.sensors} if regions else None
+    doc = rig_to_dict(rig, {"source": "benchmarks/measure.py"}, covariances, observed_regions=observed)
+    cal = root / "calibration.json"
+    cal.write_text(json.dumps(doc))
     return cal, folders, fractions
 
 
@@ -124,6 +137,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--width", type=int, default=2048)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--without-regions", action="store_true",
+                    help="a calibration file without observed regions (no point is tested)")
     args = add_options(ap).parse_args(argv)
     if args.smoke:
         args.width, args.repeats = 64, 1
@@ -135,7 +150,7 @@ def main(argv=None) -> dict:
     root = Path(tempfile.mkdtemp(prefix="fringecal-bench-measure-"))
     try:
         t = time.perf_counter()
-        cal, folders, fractions = make_inputs(root, args.width)
+        cal, folders, fractions = make_inputs(root, args.width, not args.without_regions)
         setup = time.perf_counter() - t
         cmd = [sys.executable, "-m", "fringecal.flows.cli", "measure", "--calibration", str(cal),
                *[a for f in folders for a in ("--stores", str(f))], "--out", str(root / "cloud.ply"), "--json"]
@@ -153,7 +168,8 @@ def main(argv=None) -> dict:
         doc = {**head,
                "timed_command": "fringecal measure --calibration CAL " + " ".join(f"--stores {f.name}" for f in folders)
                + " --out cloud.ply --json",
-               "width_px": args.width, "stores": 2 * len(folders), "valid_fraction_mean": float(np.mean(list(fractions.values()))),
+               "width_px": args.width, "stores": 2 * len(folders), "observed_regions": not args.without_regions,
+               "points_outside_observed_region": summary["observed_region"]["points_outside"], "valid_fraction_mean": float(np.mean(list(fractions.values()))),
                "points": runs[-1]["points"], "ply_bytes": (root / "cloud.ply").stat().st_size,
                "numba_cache": "cold for the first repeat" if cold else "warm",
                "median_wall_s": float(np.median(walls if not cold or len(walls) < 2 else walls[1:])),

