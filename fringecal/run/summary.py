@@ -100,6 +100,10 @@ def ballbar_summary(v: dict) -> dict:
         # each with its numbers (a verification.json from before they were written: the names)
         "monte_carlo_disagreements": [] if budget.get("monte_carlo") is None else
         budget["monte_carlo"].get("disagreements", budget["monte_carlo"]["disagree"]),
+        # position -> share of its sphere fits' pixels outside the calibration's observed
+        # region (None: a calibration without regions)
+        "outside_observed_region": None if cal.get("observed_region") is None else
+        {p: e["fraction"] for p, e in cal["observed_region"].items()},
         "mean_length": {"what": "GUM statement of the mean of the lengths (type A over the positions, type B "
                                 "from the certificate): the U of the mean, not of any one length",
                         "length_mm": mean, "error_mm": mean - cal["reference_length_mm"],
