@@ -164,8 +164,8 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
             rows.append(("  [red]not covered by the budget[/]", ", ".join(v["not_covered"])))
         outside = {p: f for p, f in (v.get("outside_observed_region") or {}).items() if f > 0}
         if outside:
-            rows.append(("  outside the observed region", f"{len(outside)} of {v['n_lengths']} positions "
-                                                          f"(up to {100 * max(outside.values()):.0f} % of their pixels)"))
+            rows.append(("  outside the observed region",
+                         f"{len(outside)} of {v['n_lengths']} positions, up to {100 * max(outside.values()):.0f} %"))
         if v.get("monte_carlo_disagreements"):
             rows.append(("  [yellow]Monte Carlo disagrees (JCGM 101)[/]",
                          f"{len(v['monte_carlo_disagreements'])} of {len(measured)} lengths, below"))
