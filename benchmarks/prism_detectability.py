@@ -11,7 +11,15 @@ the script records:
   its fitted s1, s3 (what a Wald test of the term could see at best; below about 3 no
   statistic can flag it without also flagging noise);
 * ``error_over_u``: the fitted terms' errors over their stated u (does the richer model
-  recover the term within its u?).
+  recover the term within its u?);
+* ``wald_W``, ``wald_p``: the Wald test of the fitted s1, s3 against zero
+  (:func:`fringecal.calibration.models.prism_wald`, chi-square, 8 degrees of freedom).
+
+Then (``dense``) the Wald test alone on control points every ``DENSE_SPACING_PX`` px,
+``--seeds`` seeds (noise and the terms' directions) without a term and with a 0.2 px one:
+how often it flags at each of ``ALPHAS``. ``--runs RUN_DIR=CONFIG ...``: the test on the
+control points of rendered runs too (``fringecal run -c CONFIG --out RUN_DIR --until
+bundle`` first).
 
 Prints one JSON object::
 
@@ -20,7 +28,8 @@ Prints one JSON object::
 
 Simulation profile: ideal otherwise (thesis rig, 12 poses, control points every 20 px at
 2048 px with the thesis's epsilon-1 noise, ``simulate_control_points``), as in
-``tests/test_sensor_models.py``. ``--smoke``: the 3 px term on control points every 60 px.
+``tests/test_sensor_models.py``. ``--smoke``: the 3 px term on control points every 60 px,
+and two seeds at that spacing for the dense section.
 """
 
 from __future__ import annotations
@@ -38,50 +47,106 @@ sys.path.insert(0, str(ROOT))
 from _common import add_options, conditions, finish  # noqa: E402
 
 CORNERS_PX = (0.2, 0.5, 1.0, 2.0, 3.0)
+#: control-point spacing of the Wald test over seeds (about 78,600 points, half the
+#: 1024 px rendered run's)
+DENSE_SPACING_PX = 4
+#: significance levels at which the dense section counts flags
+ALPHAS = (1e-3, 1e-4, 1e-5)
 
 
-def prism_world(corner_px: float, spacing_px: int):
+def prism_world(corner_px: float, spacing_px: int, seed: int = 1):
     """The thesis rig's control points with a thin-prism term of ``corner_px`` at every
-    sensor's corner, and the true terms (n_sensors, 4) in OpenCV's order."""
+    sensor's corner, and the true terms (n_sensors, 4) in OpenCV's order (``seed``: the
+    control points' noise; the terms' directions from ``seed - 1``)."""
     from fringecal.calibration.model import BundleProblem
     from fringecal.simulate.control_points import simulate_control_points, thesis_truth
     from fringecal.simulate.unmodelled import thin_prism
 
     rig, art, poses = thesis_truth()
-    angles = np.random.default_rng(0).uniform(0, 2 * np.pi, len(rig.sensors))
+    angles = np.random.default_rng(seed - 1).uniform(0, 2 * np.pi, len(rig.sensors))
     truth = np.zeros((len(rig.sensors), 4))
     truth[:, [0, 2]] = [[*thin_prism(s.format, corner_px, a)] for s, a in zip(rig.sensors, angles)]
-    sim = simulate_control_points(rig.with_params(rig.params, prism=truth), art, poses, spacing_px=spacing_px, rng=1)
+    sim = simulate_control_points(rig.with_params(rig.params, prism=truth), art, poses, spacing_px=spacing_px, rng=seed)
     return BundleProblem.from_tables(rig, art, sim.control_points, poses), truth
 
 
 def measure(corner_px: float, spacing_px: int) -> dict:
     from fringecal.calibration.adequacy import residual_pattern
     from fringecal.calibration.bundle import BundleOptions
-    from fringecal.calibration.models import fit_model
+    from fringecal.calibration.models import fit_model, prism_wald
 
     options = BundleOptions(bootstrap_draws=0, start="given")
     problem, truth = prism_world(corner_px, spacing_px)
     first = fit_model(problem, options, "brown14")
     richer = fit_model(problem.with_start(first.rig, first.poses), options, "thin_prism")
     u = richer.rig.prism_uncertainty[:, [0, 2]]
+    wald = prism_wald(first, options)
     return {"corner_px": corner_px, "n_control_points": int(problem.n_points),
             "z_max": float(residual_pattern(first.problem, first.residuals).z_max),
+            "wald_W": wald["W"], "wald_dof": wald["dof"], "wald_p": wald["p"],
             "term_over_u": (np.hypot(truth[:, 0], truth[:, 2]) / u.max(axis=1)).tolist(),
             "error_over_u": ((richer.rig.prism[:, [0, 2]] - truth[:, [0, 2]]) / u).ravel().tolist()}
 
 
+def wald_over_seeds(corner_px: float, spacing_px: int, seeds) -> list[dict]:
+    """The Wald test of the thin-prism terms (:func:`fringecal.calibration.models.prism_wald`)
+    on control points of ``seeds`` (their noise and the terms' directions)."""
+    from fringecal.calibration.bundle import BundleOptions
+    from fringecal.calibration.models import fit_model, prism_wald
+
+    options = BundleOptions(bootstrap_draws=0, start="given")
+    out = []
+    for seed in seeds:
+        problem, _ = prism_world(corner_px, spacing_px, seed)
+        w = prism_wald(fit_model(problem, options, "brown14"), options)
+        out.append({"seed": seed, "n_control_points": int(problem.n_points), "W": w["W"], "p": w["p"]})
+    return out
+
+
+def wald_of_run(run_dir: str, config: str) -> dict:
+    """The Wald test on a finished run's control points (its bundle step's inputs), as
+    the run's bundle options adjust them: ``fringecal run -c CONFIG --out RUN_DIR
+    --until bundle`` first."""
+    from fringecal.calibration.models import fit_model, prism_wald
+    from fringecal.run.config import load_run_config
+    from fringecal.rundir import RunDir
+    from fringecal.steps.bundle import load_problem
+
+    cfg = load_run_config(config)
+    b = cfg.bundle
+    problem = load_problem(RunDir(run_dir), cfg.reference_scanner, b.gamma1, b.gamma2)
+    w = prism_wald(fit_model(problem, b, "brown14"), b)
+    errors = cfg.simulate.errors if cfg.simulate is not None else None
+    return {"run": run_dir, "config": config, "n_control_points": int(problem.n_points),
+            "camera_width_px": cfg.simulate.acquisition.camera_width_px if cfg.simulate is not None else None,
+            "profile": errors.profile_name if errors is not None else None,
+            "thin_prism_corner_px": errors.thin_prism_corner_px if errors is not None else None,
+            "W": w["W"], "dof": w["dof"], "p": w["p"], "per_sensor": w["per_sensor"]}
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=20, help="seeds of the dense Wald section")
+    ap.add_argument("--runs", nargs="*", default=[], metavar="RUN_DIR=CONFIG",
+                    help="finished runs (to the bundle step) whose control points get the Wald test too")
     args = add_options(ap).parse_args(argv)
     doc = conditions("prism_detectability", argv, args.smoke)
     t0 = time.perf_counter()
     corners, spacing = ((3.0,), 60) if args.smoke else (CORNERS_PX, 20)
     rows = [measure(c, spacing) for c in corners]
+    dense_spacing, seeds = (60, range(1, 3)) if args.smoke else (DENSE_SPACING_PX, range(1, args.seeds + 1))
+    dense = {str(c): wald_over_seeds(c, dense_spacing, seeds) for c in (0.0, 0.2)}
+    flagged = {c: {str(a): int(sum(r["p"] < a for r in rows_)) for a in ALPHAS} for c, rows_ in dense.items()}
     doc.update({"what": "thin-prism terms of growing size on the thesis rig's simulated control points (ideal "
-                        "profile otherwise): the 14-parameter fit's residual-pattern Z (flag above 5), each "
-                        "sensor's true term over its stated u, and the thin-prism fit's errors over their u",
-                "spacing_px": spacing, "sizes": rows, "wall_seconds": time.perf_counter() - t0})
+                        "profile otherwise): the 14-parameter fit's residual-pattern Z (flag above 5), the Wald "
+                        "test of the thin-prism terms against zero, each sensor's true term over its stated u, "
+                        "and the thin-prism fit's errors over their u; then the Wald test on denser control "
+                        "points over seeds, without a term and with a 0.2 px one",
+                "spacing_px": spacing, "sizes": rows,
+                "dense": {"spacing_px": dense_spacing, "seeds": len(seeds), "wald": dense,
+                          "flagged_at_alpha": flagged},
+                "rendered_runs": [wald_of_run(*r.split("=", 1)) for r in args.runs],
+                "wall_seconds": time.perf_counter() - t0})
     return finish(doc, args.out)
 
 

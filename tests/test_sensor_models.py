@@ -82,3 +82,19 @@ def test_held_out_measurements_choose_the_thin_prism_model_only_where_it_helps(p
     screened, record = choose_sensor_model(ideal, OPTIONS, pair)  # no residual pattern: no cross-validation
     assert record["model"] == "brown14" and "cross-validation not run" in record["chosen_by"]
     np.testing.assert_array_equal(screened.x, result.x)
+
+
+def test_the_wald_test_of_the_thin_prism_terms_sees_a_term_that_noise_does_not_give(prism_fits):
+    """prism_wald on the 3 px term: W far beyond any chi-square(8) tail, with the terms the
+    thin-prism fit states; on the same rig without a term W is a plausible chi-square(8)
+    draw (p above 1e-3, as 998 in 1,000 clean rigs would give)."""
+    from fringecal.calibration.models import prism_wald
+
+    _, _, first, richer = prism_fits
+    w = prism_wald(first, OPTIONS)
+    assert w["dof"] == 8 and w["p"] < 1e-12 and w["W"] > 100, w
+    assert set(w["per_sensor"]) == {s.name for s in first.rig.sensors}
+    assert all(s["p"] < 1e-3 for s in w["per_sensor"].values()), w["per_sensor"]
+    ideal, _ = _data(0.0)
+    clean = prism_wald(fit_model(ideal, OPTIONS, "brown14"), OPTIONS)
+    assert clean["dof"] == 8 and clean["p"] > 1e-3, clean

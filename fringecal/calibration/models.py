@@ -97,6 +97,7 @@ from fringecal.calibration.crossval import split_measurements, subproblem
 from fringecal.calibration.model import BundleProblem, Evaluator
 
 __all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "ONE_SE", "SCREEN_Z", "FIELD_PRIOR_MM", "prism_free_of", "held_out_error",
+           "prism_wald",
            "choose_by_held_out",
            "choose_sensor_model", "fit_model"]
 
@@ -136,6 +137,46 @@ def _with_model(problem: BundleProblem, model: str) -> BundleProblem:
         s0 = e.cost / max(2 * int(e.ok.sum()), 1)
         out = replace(out, field_prior_weight=float(s0 / FIELD_PRIOR_MM ** 2))
     return out
+
+
+def prism_wald(first: BundleResult, options: BundleOptions) -> dict:
+    """Wald test of the first-order thin-prism terms (s1, s3 of every sensor) against
+    zero, from the 14-parameter solution ``first``: the ``thin_prism`` model adjusted
+    from it, ``W = a^T C^-1 a`` over its terms ``a`` with their covariance ``C`` (the
+    adjustment's, ``options.covariance``), chi-square with one degree of freedom per
+    term when the 14 parameters describe the images and the stated covariance holds.
+
+    It asks what cross-validation and the residual pattern cannot resolve for a term the
+    14 parameters nearly absorb (about 95 % of a thin-prism term, module notes): is the
+    remainder there at all? Held-out prediction gains nothing measurable from it and the
+    pattern statistic spreads it over every bin, while W gathers it into two numbers per
+    sensor. Returns ``W``, ``dof``, ``p`` (the chi-square tail) and, per sensor, its own
+    ``W`` and ``p`` (two degrees of freedom).
+    """
+    from scipy.stats import chi2
+
+    t0 = time.perf_counter()
+    start = first.problem.with_start(first.rig, first.poses)
+    try:
+        fit = fit_model(start, options.model_copy(update={"start": "given"}), "thin_prism")
+        lay = fit.layout
+        idx = lay.prism_index[lay.prism_index >= 0]
+        if not len(idx):
+            raise ValueError("no thin-prism term can be adjusted")
+        np.linalg.cholesky(fit.uncertainty.covariance[np.ix_(idx, idx)])
+    except (ValueError, np.linalg.LinAlgError) as err:  # DegenerateCalibrationError is a ValueError
+        return {"model": "thin_prism", "skipped": str(err), "seconds": time.perf_counter() - t0}
+    a = fit.x[idx]
+    C = fit.uncertainty.covariance[np.ix_(idx, idx)]
+    W = float(a @ np.linalg.solve(C, a))
+    per = {}
+    for i, sensor in enumerate(fit.rig.sensors):
+        mine = lay.prism_index[i][lay.prism_index[i] >= 0]
+        if len(mine):
+            w = float(fit.x[mine] @ np.linalg.solve(fit.uncertainty.covariance[np.ix_(mine, mine)], fit.x[mine]))
+            per[sensor.name] = {"W": w, "p": float(chi2.sf(w, len(mine)))}
+    return {"model": "thin_prism", "W": W, "dof": int(len(idx)), "p": float(chi2.sf(W, len(idx))),
+            "covariance": options.covariance, "per_sensor": per, "seconds": time.perf_counter() - t0}
 
 
 def fit_model(problem: BundleProblem, options: BundleOptions, model: str) -> BundleResult:
