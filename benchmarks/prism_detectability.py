@@ -17,9 +17,10 @@ the script records:
 
 Then (``dense``) the Wald test alone on control points every ``DENSE_SPACING_PX`` px,
 ``--seeds`` seeds (noise and the terms' directions) without a term and with a 0.2 px one:
-how often it flags at each of ``ALPHAS``. ``--runs RUN_DIR=CONFIG ...``: the test on the
-control points of rendered runs too (``fringecal run -c CONFIG --out RUN_DIR --until
-bundle`` first).
+how often it flags at each of ``ALPHAS``; the first ``--dispersed-seeds`` of them also
+with the jackknife's dispersion factor (``kappa``, ``W_dispersed``). ``--runs
+RUN_DIR=CONFIG ...``: the test, with the dispersion factor, on the control points of
+rendered runs too (``fringecal run -c CONFIG --out RUN_DIR --until bundle`` first).
 
 Prints one JSON object::
 
@@ -88,7 +89,12 @@ def measure(corner_px: float, spacing_px: int) -> dict:
             "error_over_u": ((richer.rig.prism[:, [0, 2]] - truth[:, [0, 2]]) / u).ravel().tolist()}
 
 
-def wald_over_seeds(corner_px: float, spacing_px: int, seeds) -> list[dict]:
+def _wald_record(w: dict) -> dict:
+    keys = ("W", "dof", "p", "kappa", "W_dispersed", "p_dispersed", "seconds")
+    return {k: w[k] for k in keys if k in w}
+
+
+def wald_over_seeds(corner_px: float, spacing_px: int, seeds, dispersion: bool = False) -> list[dict]:
     """The Wald test of the thin-prism terms (:func:`fringecal.calibration.models.prism_wald`)
     on control points of ``seeds`` (their noise and the terms' directions)."""
     from fringecal.calibration.bundle import BundleOptions
@@ -98,8 +104,8 @@ def wald_over_seeds(corner_px: float, spacing_px: int, seeds) -> list[dict]:
     out = []
     for seed in seeds:
         problem, _ = prism_world(corner_px, spacing_px, seed)
-        w = prism_wald(fit_model(problem, options, "brown14"), options)
-        out.append({"seed": seed, "n_control_points": int(problem.n_points), "W": w["W"], "p": w["p"]})
+        w = prism_wald(fit_model(problem, options, "brown14"), options, dispersion=dispersion)
+        out.append({"seed": seed, "n_control_points": int(problem.n_points), **_wald_record(w)})
     return out
 
 
@@ -115,18 +121,20 @@ def wald_of_run(run_dir: str, config: str) -> dict:
     cfg = load_run_config(config)
     b = cfg.bundle
     problem = load_problem(RunDir(run_dir), cfg.reference_scanner, b.gamma1, b.gamma2)
-    w = prism_wald(fit_model(problem, b, "brown14"), b)
+    w = prism_wald(fit_model(problem, b, "brown14"), b, dispersion=True)
     errors = cfg.simulate.errors if cfg.simulate is not None else None
     return {"run": run_dir, "config": config, "n_control_points": int(problem.n_points),
             "camera_width_px": cfg.simulate.acquisition.camera_width_px if cfg.simulate is not None else None,
             "profile": errors.profile_name if errors is not None else None,
             "thin_prism_corner_px": errors.thin_prism_corner_px if errors is not None else None,
-            "W": w["W"], "dof": w["dof"], "p": w["p"], "per_sensor": w["per_sensor"]}
+            **_wald_record(w), "per_sensor": w["per_sensor"]}
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="seeds of the dense Wald section")
+    ap.add_argument("--dispersed-seeds", type=int, default=5,
+                    help="of them, the first seeds with the jackknife's dispersion factor too")
     ap.add_argument("--runs", nargs="*", default=[], metavar="RUN_DIR=CONFIG",
                     help="finished runs (to the bundle step) whose control points get the Wald test too")
     args = add_options(ap).parse_args(argv)
@@ -136,6 +144,8 @@ def main(argv=None) -> dict:
     rows = [measure(c, spacing) for c in corners]
     dense_spacing, seeds = (60, range(1, 3)) if args.smoke else (DENSE_SPACING_PX, range(1, args.seeds + 1))
     dense = {str(c): wald_over_seeds(c, dense_spacing, seeds) for c in (0.0, 0.2)}
+    few = range(1, 2) if args.smoke else range(1, args.dispersed_seeds + 1)
+    dispersed = {str(c): wald_over_seeds(c, dense_spacing, few, dispersion=True) for c in (0.0, 0.2)}
     flagged = {c: {str(a): int(sum(r["p"] < a for r in rows_)) for a in ALPHAS} for c, rows_ in dense.items()}
     doc.update({"what": "thin-prism terms of growing size on the thesis rig's simulated control points (ideal "
                         "profile otherwise): the 14-parameter fit's residual-pattern Z (flag above 5), the Wald "
@@ -144,7 +154,7 @@ def main(argv=None) -> dict:
                         "points over seeds, without a term and with a 0.2 px one",
                 "spacing_px": spacing, "sizes": rows,
                 "dense": {"spacing_px": dense_spacing, "seeds": len(seeds), "wald": dense,
-                          "flagged_at_alpha": flagged},
+                          "flagged_at_alpha": flagged, "with_dispersion": dispersed},
                 "rendered_runs": [wald_of_run(*r.split("=", 1)) for r in args.runs],
                 "wall_seconds": time.perf_counter() - t0})
     return finish(doc, args.out)
