@@ -94,6 +94,7 @@ import numpy as np
 from fringecal.calibration.adequacy import residual_pattern
 from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adjust, minimise
 from fringecal.calibration.crossval import split_measurements, subproblem
+from fringecal.calibration.jackknife import noise_worlds
 from fringecal.calibration.model import BundleProblem, Evaluator
 
 __all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "ONE_SE", "SCREEN_Z", "FIELD_PRIOR_MM", "prism_free_of", "held_out_error",
@@ -186,8 +187,6 @@ def prism_wald(first: BundleResult, options: BundleOptions, dispersion: bool = F
     upward, so the correction errs towards keeping W).
     """
     from scipy.stats import chi2
-
-    from fringecal.calibration.jackknife import noise_worlds
 
     t0 = time.perf_counter()
     start = first.problem.with_start(first.rig, first.poses)
