@@ -118,7 +118,8 @@ CHECKS = {
     "noise_calibration": lambda d: d["measurements"][0]["n_pixels"] > 0 and d["unwrap"]["unwrap_errors"]["x"] == 0,
     # a 3 px term stands out of its u (4.0-4.7 u) even on control points every 60 px
     "prism_detectability": lambda d: len(d["sizes"]) == 1 and min(d["sizes"][0]["term_over_u"]) > 3
-    and d["sizes"][0]["wald_p"] < 1e-6 and len(d["dense"]["wald"]["0.2"]) == 2,
+    and d["sizes"][0]["wald_p"] < 1e-6 and len(d["dense"]["wald"]["0.2"]) == 1
+    and d["dense"]["with_dispersion"]["0.0"][0]["kappa"] > 0,
     "probing_size_bias": lambda d: d["far_positions"] == 1 and abs(d["noise_free_P_S_along_rays_mm"]) < 0.5,
     "pointcloud": lambda d: d["labelling"]["labelled_groups"] == d["labelling"]["groups"] == 24,
     "render": lambda d: d["render_64"]["wall_s"] > 0 and d["frames_bytes"] == 98 * 64 * 64 * 2,

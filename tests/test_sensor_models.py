@@ -104,10 +104,10 @@ def test_the_dispersion_factor_holds_the_wald_test_where_each_measurement_has_it
     """A thin-prism-like error that changes sign and size from measurement to measurement
     (mean zero; a smooth phase error of each measurement's own): the points' covariance
     calls the fitted terms significant, the jackknife sees the measurements scatter them
-    far beyond the noise (kappa 31 here) and the test with it does not flag; on the clean
-    rig kappa stays a few (an estimate from 12 replicas, noisy: 3.1 here, 1.0-8.1 over
-    seeds 1-8 of this rig with ``benchmarks/prism_detectability.py``'s ``wald_over_seeds(0.0,
-    20, range(1, 9), dispersion=True)``) and the test does not flag either."""
+    far beyond the noise (kappa 31 here) and the test with it does not flag. (On the
+    clean rig kappa is a noisy estimate from 12 replicas: 1.0-8.1 over seeds 1-8 of this
+    rig with ``benchmarks/prism_detectability.py``'s ``wald_over_seeds(0.0, 20, range(1, 9),
+    dispersion=True)``; the benchmark's smoke check runs the factor on a clean world.)"""
     from dataclasses import replace
 
     from fringecal.calibration.models import prism_wald
@@ -119,5 +119,3 @@ def test_the_dispersion_factor_holds_the_wald_test_where_each_measurement_has_it
     shared = replace(clean, prj_mm=clean.prj_mm + np.stack([scale * r2, -0.5 * scale * r2], axis=1))
     w = prism_wald(fit_model(shared, OPTIONS, "brown14"), OPTIONS, dispersion=True)
     assert w["p"] < 1e-6 and w["kappa"] > 10 and w["p_dispersed"] > 1e-3, w
-    plain = prism_wald(fit_model(clean, OPTIONS, "brown14"), OPTIONS, dispersion=True)
-    assert plain["kappa"] < 10 and plain["p_dispersed"] > 1e-3, plain
