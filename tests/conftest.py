@@ -188,3 +188,26 @@ def small_dataset(small_config, tmp_path_factory) -> tuple[Path, Path]:
 
     d = shared_folder(tmp_path_factory, "small-dataset", make)
     return d / "small", d / "small-truth"
+
+
+@pytest.fixture(scope="session")
+def small_dataset_run(small_dataset, tmp_path_factory):
+    """The small data set run through every step (in this process, without Prefect),
+    made once per session for all workers: its run directory (read only) and the step
+    records of that first run (tests/test_steps.py copies both, tests/test_opencv_interop.py
+    reads its calibration)."""
+    import json
+
+    from fringecal.run.config import load_run_config
+    from fringecal.run.summary import manifest
+    from fringecal.rundir import RunDir
+    from fringecal.steps import run_pipeline
+
+    def make(folder: Path) -> None:
+        cfg = load_run_config(dataset=small_dataset[0])
+        rd = RunDir(folder / "run").create()
+        rd.manifest.save(manifest(cfg))
+        (folder / "records.json").write_text(json.dumps(run_pipeline(rd, cfg, workers=2)))
+
+    folder = shared_folder(tmp_path_factory, "small-dataset-run", make)
+    return RunDir(folder / "run"), json.loads((folder / "records.json").read_text())
