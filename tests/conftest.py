@@ -82,6 +82,26 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: (item.nodeid.split("::")[0] not in slow, order[item]))
 
 
+def pytest_xdist_make_scheduler(config, log):
+    """Under ``--dist loadfile``: the test modules that use the Prefect test server
+    (``prefect_harness``) go to one worker as if they were one module, so that one
+    server serves them all (starting one, with its database, costs about 7 s of CPU,
+    and it keeps polling while the session lasts) instead of one in each worker."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    here = Path(__file__).parent
+    flows = {f"{here.name}/{p.name}" for p in here.glob("test_*.py") if "prefect_harness" in p.read_text()}
+
+    class OnePrefectServer(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "prefect_harness" if module in flows else module
+
+    return OnePrefectServer(config, log)
+
+
 @pytest.fixture(scope="session")
 def thesis_dir() -> Path:
     return THESIS
