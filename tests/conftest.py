@@ -87,6 +87,26 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: (item.nodeid.split("::")[0] not in slow, order[item]))
 
 
+def pytest_xdist_make_scheduler(config, log):
+    """Under ``--dist loadfile``: the test modules that use the Prefect test server
+    (``prefect_harness``) go to one worker as if they were one module, so that one
+    server serves them all (starting one, with its database, costs about 7 s of CPU,
+    and it keeps polling while the session lasts) instead of one in each worker."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    here = Path(__file__).parent
+    flows = {f"{here.name}/{p.name}" for p in here.glob("test_*.py") if "prefect_harness" in p.read_text()}
+
+    class OnePrefectServer(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "prefect_harness" if module in flows else module
+
+    return OnePrefectServer(config, log)
+
+
 @pytest.fixture(scope="session")
 def thesis_dir() -> Path:
     return THESIS
@@ -204,3 +224,26 @@ def small_dataset(small_config, tmp_path_factory) -> tuple[Path, Path]:
 
     d = shared_folder(tmp_path_factory, "small-dataset", make)
     return d / "small", d / "small-truth"
+
+
+@pytest.fixture(scope="session")
+def small_dataset_run(small_dataset, tmp_path_factory):
+    """The small data set run through every step (in this process, without Prefect),
+    made once per session for all workers: its run directory (read only) and the step
+    records of that first run (tests/test_steps.py copies both, tests/test_opencv_interop.py
+    reads its calibration)."""
+    import json
+
+    from fringecal.run.config import load_run_config
+    from fringecal.run.summary import manifest
+    from fringecal.rundir import RunDir
+    from fringecal.steps import run_pipeline
+
+    def make(folder: Path) -> None:
+        cfg = load_run_config(dataset=small_dataset[0])
+        rd = RunDir(folder / "run").create()
+        rd.manifest.save(manifest(cfg))
+        (folder / "records.json").write_text(json.dumps(run_pipeline(rd, cfg, workers=2)))
+
+    folder = shared_folder(tmp_path_factory, "small-dataset-run", make)
+    return RunDir(folder / "run"), json.loads((folder / "records.json").read_text())

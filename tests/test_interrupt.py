@@ -6,8 +6,9 @@ command: no process of the command
 outlives it (Prefect's temporary server, the kernel warm-up, the lifeline), the
 interrupted writes' temporaries are gone after the next run, which says what it
 reused, and the summary numbers are those of an uninterrupted run. SIGINT (a
-terminal's Ctrl-C, sent to the whole process group) and SIGTERM end a run within
-seconds with one line and status 130 / 143.
+terminal's Ctrl-C, sent to the whole process group; here while the ball-bar is
+rendered, on a run whose progress lines go to a pipe and are checked too) and SIGTERM
+end a run within seconds with one line and status 130 / 143.
 
 The runs are subprocesses in sessions of their own, with a token in their
 environment that every process they start inherits: a process still carrying it
@@ -18,10 +19,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -30,6 +33,7 @@ import pytest
 from typer.testing import CliRunner
 
 from fringecal import lifeline
+from fringecal.flows import progress
 from fringecal.flows.cli import app
 from fringecal.run.resume import begin, finish, leftovers, remove_leftovers
 from fringecal.rundir import RunDir
@@ -173,30 +177,55 @@ def test_sigterm_then_kill_9_then_the_same_command_resumes_to_the_same_numbers(r
     assert _no_orphans(run.token) == []
 
 
+#: the progress line after which the Ctrl-C test interrupts the run: the ball-bar is rendered next
+RENDERED = r"render measurements 8/8 done \(\d+ s\)"
+
+
 @pytest.mark.flow
-@pytest.mark.parametrize("sig", [signal.SIGINT], ids=["SIGINT"])  # SIGTERM: the test above
 @pytest.mark.slow
-def test_a_signal_stops_the_run_within_seconds_with_one_line(sig, small_config, tmp_path):
-    out = tmp_path / "run"
-    run = Run(small_config, out, tmp_path, json_out=False)
-    run.start()
-    run.wait_for("rendering", _stores(out))
+def test_ctrl_c_stops_a_run_into_a_pipe_within_seconds_with_one_line(small_config, tmp_path):
+    """Ctrl-C in a terminal (SIGINT to the whole process group) while the ball-bar is
+    rendered: status 130 within seconds, one line, no orphans; the run knows it was
+    interrupted. (SIGTERM: the test above.)
+
+    Its output goes to a pipe, as in CI or under nohup, with PYTHONUNBUFFERED and
+    FRINGECAL_PROGRESS unset: up to the interruption its lines are those
+    tests/test_progress.py asks of a run into a pipe (checked here, on this run, which
+    saves a command's start-up and its rendering)."""
+    from test_progress import assert_a_run_into_a_pipe_says_what_it_does
+
+    out, token = tmp_path / "run", uuid.uuid4().hex
+    env = {k: v for k, v in os.environ.items() if k not in (progress.ENV, "PYTHONUNBUFFERED")}
+    cmd = [sys.executable, "-m", "fringecal.flows.cli", "run", "-c", str(small_config), "--out", str(out)]
     t0 = time.monotonic()
-    if sig == signal.SIGINT:
-        os.killpg(run.proc.pid, sig)  # Ctrl-C in a terminal: the whole foreground process group
-    else:
-        os.kill(run.proc.pid, sig)
-    run.proc.wait(60)
-    seconds = time.monotonic() - t0
-    assert run.proc.returncode == 128 + sig, run.errors()
+    with open(tmp_path / "stderr", "wb") as err:
+        proc = subprocess.Popen(cmd, cwd=ROOT, env={**env, TAG: token}, stdout=subprocess.PIPE, stderr=err,
+                                stdin=subprocess.DEVNULL, text=True, start_new_session=True)
+    lines = []
+    reader = threading.Thread(target=lambda: lines.extend((time.monotonic() - t0, ln) for ln in proc.stdout))
+    reader.start()
+    stderr = (tmp_path / "stderr").read_text
+    deadline = time.monotonic() + 240
+    while not any(re.search(RENDERED, ln) for _, ln in list(lines)):
+        assert proc.poll() is None, f"the run ended before its stores were rendered: {stderr()[-3000:]}"
+        assert time.monotonic() < deadline, "no stores rendered within 240 s"
+        time.sleep(0.02)
+    said = list(lines)
+    t1 = time.monotonic()
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in a terminal: the whole foreground process group
+    proc.wait(60)
+    seconds = time.monotonic() - t1
+    reader.join()
+    assert proc.returncode == 128 + signal.SIGINT, stderr()
     assert seconds < STOP_SECONDS, seconds
-    lines = [line for line in run.stderr.read_text().splitlines() if line.strip()]
-    assert len(lines) == 1, lines
-    assert lines[0].startswith("interrupted: ") and lines[0].endswith(
-        f"finished and kept in {out}; rerun the same command to resume"), lines[0]
-    assert "Traceback" not in run.stdout.read_text()
-    assert _no_orphans(run.token, timeout=5.0) == []
+    errors = [line for line in stderr().splitlines() if line.strip()]
+    assert len(errors) == 1, errors
+    assert errors[0].startswith("interrupted: ") and errors[0].endswith(
+        f"finished and kept in {out}; rerun the same command to resume"), errors[0]
+    assert "Traceback" not in "".join(ln for _, ln in lines)
+    assert _no_orphans(token, timeout=5.0) == []
     assert RunDir(out).in_progress.exists()
+    assert_a_run_into_a_pipe_says_what_it_does(said, RENDERED)
 
 
 # -- the parts -------------------------------------------------------------------------------
@@ -204,6 +233,7 @@ def test_a_signal_stops_the_run_within_seconds_with_one_line(sig, small_config, 
 PARENT = """
 import subprocess, sys, time
 from fringecal import lifeline
+from fringecal.flows import progress
 from fringecal.run import warmup as kernel_warmup
 kernel_warmup.cache_is_cold = lambda: True
 (warm,) = kernel_warmup.start()

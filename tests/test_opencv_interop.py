@@ -224,28 +224,26 @@ def test_bad_values_and_bad_calibration_give_one_message(tmp_path, thesis_dir):
 
 
 @pytest.mark.slow
-def test_imported_opencv_prior_calibrates_like_the_native_prior(tmp_path):
-    """(d) The small simulated thesis data set (320 px cameras, poses 1, 5, 9, 12) is
-    calibrated up to the bundle step twice: with its own sensors_prior.csv, and with a
-    copy whose sensors_prior.csv was exported to OpenCV files (``fringecal export
-    opencv``) and imported back (``fringecal import opencv``). Both runs are made, rather
-    than only comparing the tables, so that the whole path -- the table as the data set
-    reads it, the point clouds, the start values and the adjustment -- is exercised.
+def test_imported_opencv_prior_calibrates_like_the_native_prior(small_dataset, small_dataset_run, tmp_path):
+    """(d) The small simulated thesis data set (320 px cameras, poses 1, 5, 9, 12;
+    tests/conftest.py) is calibrated twice: with its own sensors_prior.csv (the session's
+    run of it, every step), and up to the bundle step with a copy whose
+    sensors_prior.csv was exported to OpenCV files (``fringecal export opencv``) and
+    imported back (``fringecal import opencv``). Both runs are made, rather than only
+    comparing the tables, so that the whole path -- the table as the data set reads it,
+    the point clouds, the start values and the adjustment -- is exercised.
 
     Measured: the imported table equals the native one to 0 (the round trip is exact to
     ~1e-13 and the table keeps 10 significant digits), and the calibrated parameters agree
     to 0 as well; asserted: the tables to 1e-9 (relative), every calibrated parameter to
     1e-3 of its standard uncertainty, the ball-bar-free figure of merit (F RMS) to 1e-9 mm.
-    20-35 s on 2 cores (data set 5 s, two runs of 8-15 s)."""
+    5-12 s on 2 cores (the imported run; the native run is the session's)."""
     from fringecal.run.config import load_run_config
     from fringecal.run.summary import manifest
     from fringecal.rundir import RunDir
-    from fringecal.simulate.export import write_dataset
-    from fringecal.simulate.small_thesis import write_small_thesis_config
     from fringecal.steps import run_pipeline
 
-    config = write_small_thesis_config(tmp_path, width=320, poses=(1, 5, 9, 12), positions=(1,))
-    native = write_dataset(load_run_config(config), tmp_path / "native", tmp_path / "native-truth", "png")
+    native = small_dataset[0]
     imported = tmp_path / "imported"
     shutil.copytree(native, imported)
     (imported / "sensors_prior.csv").unlink()
@@ -259,14 +257,12 @@ def test_imported_opencv_prior_calibrates_like_the_native_prior(tmp_path):
     assert np.array_equal(a.free, b.free) and [s.format for s in a.sensors] == [s.format for s in b.sensors]
     assert np.all(np.abs(a.params - b.params) <= 1e-9 * np.maximum(np.abs(a.params), 1e-3))
 
-    results = {}
-    for name, data in (("native", native), ("imported", imported)):
-        cfg = load_run_config(config, dataset=data)
-        rd = RunDir(tmp_path / f"run-{name}").create()
-        rd.manifest.save(manifest(cfg))
-        run_pipeline(rd, cfg, workers=2, until="bundle")
-        results[name] = (rd.calibration.load(), rd.bundle_summary.load())
-    (rig_a, sum_a), (rig_b, sum_b) = results["native"], results["imported"]
+    cfg = load_run_config(dataset=imported)
+    rd = RunDir(tmp_path / "run-imported").create()
+    rd.manifest.save(manifest(cfg))
+    run_pipeline(rd, cfg, workers=2, until="bundle")
+    (rig_a, sum_a), (rig_b, sum_b) = [(r.calibration.load(), r.bundle_summary.load())
+                                      for r in (small_dataset_run[0], rd)]
     u = rig_a.uncertainty
     free = rig_a.free
     assert np.all(u[free] > 0)

@@ -12,7 +12,6 @@ import pytest
 from fringecal import digests
 from fringecal.digests import DigestCache, digest_path, module_files, source_digest
 from fringecal.run.config import RunConfig, load_run_config
-from fringecal.run.summary import manifest
 from fringecal.rundir import RunDir
 from fringecal.steps import STEPS, current_record, get_step, pipeline, run_pipeline, run_step, step_key
 
@@ -29,13 +28,16 @@ def steps_that_ran(records: dict) -> set[str]:
 
 
 @pytest.fixture(scope="module")
-def data_run(small_dataset, tmp_path_factory):
-    """A run of a private copy of the small data set (the tests edit it)."""
+def data_run(small_dataset, small_dataset_run, tmp_path_factory):
+    """A private copy of the small data set (the tests edit it), a private copy of the
+    session's run of it (tests/conftest.py) and the step records of that run. The copied
+    run is current for the copied data set: outside files count by content, not by where
+    they lie (the first test's second run finds nothing to do; the last test moves the
+    data set again). Its manifest, which step commands read their settings from, names
+    the session's data set: the same files."""
     data = shutil.copytree(small_dataset[0], tmp_path_factory.mktemp("data") / "small")
-    rd = RunDir(tmp_path_factory.mktemp("run") / "run").create()
-    cfg = load_run_config(dataset=data)
-    rd.manifest.save(manifest(cfg))  # as the flow does: step commands take their settings from it
-    first = run_pipeline(rd, cfg, workers=2)
+    shared, first = small_dataset_run
+    rd = RunDir(shutil.copytree(shared.root, tmp_path_factory.mktemp("run") / "run", symlinks=True))
     return data, rd, first
 
 
