@@ -211,7 +211,35 @@ def _resolve(module: str, is_package: bool, node: ast.ImportFrom | ast.Import) -
 #: recursion depth per interpreter, so two threads parsing at once (the step instances a
 #: pool keys together) can fail with "SystemError: AST constructor recursion depth
 #: mismatch" (python/cpython gh-106905)
-_PARSING = threading.Lock()
+_PARSING = threading.RLock()
+
+
+def serialise_ast_parse() -> bool:
+    """On CPython 3.11 before 3.11.8, make every ``ast.parse`` of this process take
+    :data:`_PARSING`, the parses of other libraries included: a scheduled flow run
+    failed once in five test commands with gh-106905's SystemError after fringecal's own
+    parses were already serialised, Prefect parsing flow and task sources in other
+    threads (prefect/flows.py, prefect/utilities/callables). Returns whether the parse
+    is serialised (always False on interpreters without the race)."""
+    import sys
+
+    if sys.version_info[:2] != (3, 11) or sys.version_info >= (3, 11, 8):
+        return False
+    if getattr(ast.parse, "fringecal_serialised", False):
+        return True
+    original = ast.parse
+
+    def parse(*args, **kwargs):
+        with _PARSING:
+            return original(*args, **kwargs)
+
+    parse.fringecal_serialised = True
+    parse.__doc__ = original.__doc__
+    ast.parse = parse
+    return True
+
+
+serialise_ast_parse()
 
 
 @lru_cache(maxsize=None)

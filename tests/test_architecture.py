@@ -227,3 +227,26 @@ def test_the_checks_catch_an_upward_import_a_circle_and_an_unexplained_local_imp
     assert circles(found) == [["fringecal.steps.base", "fringecal.steps.keys"]]
     assert unexplained_local(found) == ["fringecal.rig:2 imports fringecal.steps.base inside a function without "
                                         "a reason"]
+
+
+def test_every_ast_parse_is_serialised_where_the_interpreter_races():
+    """CPython 3.11 before 3.11.8 (gh-106905): two threads in ast.parse at once can fail;
+    once fringecal.digests is imported, every parse of the process takes one lock there,
+    and two threads parsing at once both get their trees."""
+    import ast
+    import sys
+    import threading
+
+    import fringecal.digests as digests
+
+    racy = sys.version_info[:2] == (3, 11) and sys.version_info < (3, 11, 8)
+    assert getattr(ast.parse, "fringecal_serialised", False) is racy
+    assert digests.serialise_ast_parse() is racy  # a second call changes nothing
+    source = "\n".join(f"def f{i}(x):\n    return [y for y in range(x) if y % {i + 2}]" for i in range(300))
+    trees = []
+    threads = [threading.Thread(target=lambda: trees.append(ast.parse(source))) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(trees) == 4 and all(len(t.body) == 300 for t in trees)
