@@ -65,7 +65,7 @@ from fringecal.calibration.bootstrap import predicted_projector_mm
 from fringecal.calibration.bundle import BundleOptions, BundleResult, StartValueError, minimise
 from fringecal.calibration.crossval import subproblem
 from fringecal.calibration.diagnostics import DegenerateCalibrationError, check_rank, check_structure
-from fringecal.calibration.model import BundleProblem, Evaluator
+from fringecal.calibration.model import BundleProblem, Evaluator, ParameterLayout
 from fringecal.calibration.keyed import keyed_signs, row_keys
 from fringecal.threads import numba_threads
 
@@ -123,8 +123,15 @@ def noise_worlds(result: BundleResult, draws: int, seed: int = 0) -> list[Bundle
 
 
 def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
-    """Sensor parameters (n_sensors, 14) of ``problem`` adjusted from its start values:
-    the adjustment's own minimisation (:func:`.bundle.minimise`, stopping as a bootstrap
+    """Sensor parameters (n_sensors, 14) of ``problem`` adjusted from its start values
+    (:func:`readjusted_solution`)."""
+    layout, x = readjusted_solution(problem, options)
+    return layout.sensor_rows(x, problem.rig, problem.poses)
+
+
+def readjusted_solution(problem: BundleProblem, options: BundleOptions) -> tuple[ParameterLayout, np.ndarray]:
+    """The layout and unknowns x of ``problem`` adjusted from its start values: the
+    adjustment's own minimisation (:func:`.bundle.minimise`, stopping as a bootstrap
     replica does), after the checks that refuse a degenerate problem (its structure, the
     rank at the start), without what a replica does not need (the noise-floor test, the
     uncertainty, the diagnoses at the solution)."""
@@ -140,7 +147,7 @@ def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
     if any(d.severity == "error" for d in rank):
         raise DegenerateCalibrationError(found + rank)
     report, _, _ = minimise(ev, x0, e0, options, coarse=False, replica=True)
-    return ev.layout.sensor_rows(report.x, problem.rig, problem.poses)
+    return ev.layout, report.x
 
 
 def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,

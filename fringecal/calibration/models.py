@@ -92,9 +92,10 @@ from dataclasses import replace
 import numpy as np
 
 from fringecal.calibration.adequacy import residual_pattern
-from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adjust, minimise
+from fringecal.calibration.bundle import BundleOptions, BundleResult, StartValueError, bundle_adjust, minimise
 from fringecal.calibration.crossval import split_measurements, subproblem
-from fringecal.calibration.jackknife import noise_worlds
+from fringecal.calibration.diagnostics import DegenerateCalibrationError
+from fringecal.calibration.jackknife import noise_worlds, readjusted_solution
 from fringecal.calibration.model import BundleProblem, Evaluator
 
 __all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "ONE_SE", "SCREEN_Z", "FIELD_PRIOR_MM", "prism_free_of", "held_out_error",
@@ -140,17 +141,18 @@ def _with_model(problem: BundleProblem, model: str) -> BundleProblem:
     return out
 
 
-def _prism_replicas(problem: BundleProblem, names: list[str], options: BundleOptions) -> np.ndarray:
-    """The thin-prism terms (R, n_free) of ``problem`` re-adjusted without each of the
-    measurements ``names`` in turn, from its start values (a jackknife replica's stop)."""
-    out = []
+def _prism_replicas(problem: BundleProblem, names: list[str], options: BundleOptions) -> dict[str, np.ndarray]:
+    """Measurement -> the thin-prism terms (n_free,) of ``problem`` re-adjusted without it
+    (:func:`.jackknife.readjusted_solution`); a measurement whose removal leaves a problem
+    that cannot be calibrated gets none, as in the jackknife of the sensors."""
+    out = {}
     for m in names:
-        sub = subproblem(problem, [x for x in names if x != m])
-        ev = Evaluator(sub, chunk_size=options.chunk_size)
-        x0 = ev.layout.pack_rig(sub.rig, sub.poses)
-        report, _, _ = minimise(ev, x0, ev.evaluate(x0, True), options, coarse=False, replica=True)
-        out.append(report.x[ev.layout.prism_index[ev.layout.prism_index >= 0]])
-    return np.array(out)
+        try:
+            layout, x = readjusted_solution(subproblem(problem, [n for n in names if n != m]), options)
+        except (DegenerateCalibrationError, StartValueError):
+            continue
+        out[m] = x[layout.prism_index[layout.prism_index >= 0]]
+    return out
 
 
 def _jackknife_covariance(replicas: np.ndarray) -> np.ndarray:
@@ -197,11 +199,11 @@ def prism_wald(first: BundleResult, options: BundleOptions, dispersion: bool = F
         idx = lay.prism_index[lay.prism_index >= 0]
         if not len(idx):
             raise ValueError("no thin-prism term can be adjusted")
-        np.linalg.cholesky(fit.uncertainty.covariance[np.ix_(idx, idx)])
+        C = fit.uncertainty.covariance[np.ix_(idx, idx)]
+        np.linalg.cholesky(C)
     except (ValueError, np.linalg.LinAlgError) as err:  # DegenerateCalibrationError is a ValueError
         return {"model": "thin_prism", "skipped": str(err), "seconds": time.perf_counter() - t0}
     a = fit.x[idx]
-    C = fit.uncertainty.covariance[np.ix_(idx, idx)]
     W = float(a @ np.linalg.solve(C, a))
     per = {}
     for i, sensor in enumerate(fit.rig.sensors):
@@ -213,10 +215,11 @@ def prism_wald(first: BundleResult, options: BundleOptions, dispersion: bool = F
            "covariance": options.covariance, "per_sensor": per}
     if dispersion:
         names = [str(m) for m in fit.problem.measurements]
-        solution = fit.problem.with_start(fit.rig, fit.poses)
-        CJ = _jackknife_covariance(_prism_replicas(solution, names, given))
-        CN = np.mean([_jackknife_covariance(_prism_replicas(w, names, given))
-                      for w in noise_worlds(fit, noise_draws, seed)], axis=0)
+        data = _prism_replicas(fit.problem.with_start(fit.rig, fit.poses), names, given)
+        noise = [_prism_replicas(w, names, given) for w in noise_worlds(fit, noise_draws, seed)]
+        kept = [m for m in data if all(m in n for n in noise)]
+        CJ = _jackknife_covariance(np.array([data[m] for m in kept]))
+        CN = np.mean([_jackknife_covariance(np.array([n[m] for m in kept])) for n in noise], axis=0)
         kappa = float(np.trace(np.linalg.solve(CN, CJ)) / len(idx))
         Wd = W / max(1.0, kappa)
         out.update({"kappa": kappa, "W_dispersed": Wd, "p_dispersed": float(chi2.sf(Wd, len(idx))),

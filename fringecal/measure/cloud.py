@@ -204,9 +204,12 @@ def scanner_points(scanner: Scanner, index: int, store, settings: MeasureSetting
     pts["eps1"] = maps.eps1[rows, cols]
     mod = np.minimum(np.asarray(store["modulation_x"])[rows, cols], np.asarray(store["modulation_y"])[rows, cols])
     pts["modulation"] = mod
-    cam_mm = scanner.camera.image_mm(np.stack([cols, rows], axis=-1))
-    prj_mm = scanner.projector.image_mm(np.stack([tau_x[rows, cols], tau_y[rows, cols]], axis=-1))
-    pts[OUTSIDE] = outside_observed_region(scanner, regions, cam_mm, prj_mm)
+    if regions:  # a calibration without regions flags nothing: no image-plane coordinates needed
+        cam_mm = scanner.camera.image_mm(np.stack([cols, rows], axis=-1))
+        prj_mm = scanner.projector.image_mm(np.stack([tau_x[rows, cols], tau_y[rows, cols]], axis=-1))
+        pts[OUTSIDE] = outside_observed_region(scanner, regions, cam_mm, prj_mm)
+    else:
+        pts[OUTSIDE] = 0
     if cov28 is None or not settings.uncertainty:
         pts["u_mm"] = np.nan
     else:

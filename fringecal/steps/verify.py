@@ -70,12 +70,12 @@ class Verify(Step):
             return
         halves = rd.crossval_halves.load() if rd.crossval_halves.exists() else None
         points_verdict = rd.crossval.load().get("verdict") if rd.crossval.exists() else None
-        regions = read_calibration(rd.calibration.path).observed_regions
-        centres, failures, result, budget = verify_ballbar(ballbar_stores(rd), rd.calibration.load(), rd.ballbar.load(),
+        cal = read_calibration(rd.calibration.path)  # the rig and its observed regions, in one read
+        centres, failures, result, budget = verify_ballbar(ballbar_stores(rd), cal.rig, rd.ballbar.load(),
                                                            cfg.extraction.rejection, cfg.verification, diagonal,
                                                            rd.covariance.load(), halves, points_verdict,
                                                            fit_factors(rd.bundle_summary.load(), cfg.verification),
-                                                           regions)
+                                                           cal.observed_regions)
         outside = {p: e for p, e in (result.observed_region or {}).items() if e["outside"]}
         if outside:
             log.warning("ball-bar measured partly where the calibration extrapolates, outside the region of the "

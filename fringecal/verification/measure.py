@@ -244,8 +244,12 @@ def positions_outside(stores: dict, rig: Rig, pixels: dict, regions) -> dict:
     position -> {"points", "outside", "fraction", "scanners": scanner -> {"points", "outside"}}
     """
     out: dict = {}
-    for (position, name, _), (rows, cols) in sorted(pixels.items()):
-        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+    by_store: dict = {}
+    for (position, name, _), rc in sorted(pixels.items()):
+        by_store.setdefault((position, name), []).append(np.asarray(rc, np.int64))
+    for (position, name), kept in by_store.items():   # each store read once, for all its spheres
+        rows = np.concatenate([k[0] for k in kept])
+        cols = np.concatenate([k[1] for k in kept])
         with open_store(stores[position][name]) as ds:
             scanner = store_scanner(ds, rig.scanner(name))
             tau = np.stack([np.asarray(ds["tau_x"])[rows, cols], np.asarray(ds["tau_y"])[rows, cols]], axis=-1)
@@ -253,10 +257,9 @@ def positions_outside(stores: dict, rig: Rig, pixels: dict, regions) -> dict:
         flags = outside(regions, ((scanner.camera.name, cam_mm), (scanner.projector.name,
                                                                   scanner.projector.image_mm(tau))))
         entry = out.setdefault(position, {"points": 0, "outside": 0, "scanners": {}})
-        mine = entry["scanners"].setdefault(name, {"points": 0, "outside": 0})
-        for e in (entry, mine):
-            e["points"] += int(len(flags))
-            e["outside"] += int(flags.sum())
+        entry["scanners"][name] = {"points": int(len(flags)), "outside": int(flags.sum())}
+        entry["points"] += int(len(flags))
+        entry["outside"] += int(flags.sum())
     for entry in out.values():
         entry["fraction"] = entry["outside"] / entry["points"] if entry["points"] else 0.0
     return out
