@@ -107,7 +107,8 @@ def _without_fields(rig):
 def measure(rms_um: float, spacing_px: int, repeat: int) -> dict:
     from fringecal.calibration.adequacy import residual_pattern
     from fringecal.calibration.bundle import BundleOptions
-    from fringecal.calibration.models import choose_sensor_model, fit_model
+    from fringecal.calibration.candidates import fit_model
+    from fringecal.calibration.models import choose_sensor_model
 
     options = BundleOptions(bootstrap_draws=0, start="given")
     problem, truth = lens_world(rms_um, spacing_px)
@@ -147,7 +148,7 @@ def main(argv=None) -> dict:
     sizes, spacing, repeat = ((3.0,), 80, 1) if args.smoke else (SIZES_UM, 20, args.repeat)
     if not args.smoke:
         from fringecal.calibration.bundle import BundleOptions
-        from fringecal.calibration.models import fit_model
+        from fringecal.calibration.candidates import fit_model
 
         warm, _ = lens_world(1.0, 80)  # compile both kernels' variants before timing
         fit_model(warm, BundleOptions(bootstrap_draws=0, start="given"), "field")

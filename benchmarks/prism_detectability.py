@@ -13,7 +13,7 @@ the script records:
 * ``error_over_u``: the fitted terms' errors over their stated u (does the richer model
   recover the term within its u?);
 * ``wald_W``, ``wald_p``: the Wald test of the fitted s1, s3 against zero
-  (:func:`fringecal.calibration.models.prism_wald`, chi-square, 8 degrees of freedom).
+  (:func:`fringecal.calibration.wald.prism_wald`, chi-square, 8 degrees of freedom).
 
 Then (``dense``) the Wald test alone on control points every ``DENSE_SPACING_PX`` px,
 ``--seeds`` seeds (noise and the terms' directions) without a term and with a 0.2 px one:
@@ -75,7 +75,8 @@ def prism_world(corner_px: float, spacing_px: int, seed: int = 1):
 def measure(corner_px: float, spacing_px: int) -> dict:
     from fringecal.calibration.adequacy import residual_pattern
     from fringecal.calibration.bundle import BundleOptions
-    from fringecal.calibration.models import fit_model, prism_wald
+    from fringecal.calibration.candidates import fit_model
+    from fringecal.calibration.wald import prism_wald
 
     options = BundleOptions(bootstrap_draws=0, start="given")
     problem, truth = prism_world(corner_px, spacing_px)
@@ -96,10 +97,11 @@ def _wald_record(w: dict) -> dict:
 
 
 def wald_over_seeds(corner_px: float, spacing_px: int, seeds, dispersion: bool = False) -> list[dict]:
-    """The Wald test of the thin-prism terms (:func:`fringecal.calibration.models.prism_wald`)
+    """The Wald test of the thin-prism terms (:func:`fringecal.calibration.wald.prism_wald`)
     on control points of ``seeds`` (their noise and the terms' directions)."""
     from fringecal.calibration.bundle import BundleOptions
-    from fringecal.calibration.models import fit_model, prism_wald
+    from fringecal.calibration.candidates import fit_model
+    from fringecal.calibration.wald import prism_wald
 
     options = BundleOptions(bootstrap_draws=0, start="given")
     out = []
@@ -114,7 +116,8 @@ def wald_of_run(run_dir: str, config: str) -> dict:
     """The Wald test on a finished run's control points (its bundle step's inputs), as
     the run's bundle options adjust them: ``fringecal run -c CONFIG --out RUN_DIR
     --until bundle`` first."""
-    from fringecal.calibration.models import fit_model, prism_wald
+    from fringecal.calibration.candidates import fit_model
+    from fringecal.calibration.wald import prism_wald
     from fringecal.run.config import load_run_config
     from fringecal.rundir import RunDir
     from fringecal.steps.bundle import load_problem

@@ -137,9 +137,18 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
         how = "no residual pattern" if how == "residual pattern" else how
         rows.append(("sensor model (chosen by)", f"{sm['model']} ({how})"))
         if sm.get("residual_pattern_z") is not None:
-            flag = "[red]lens model too simple[/]" if sm["lens_model_too_simple"] else "no pattern"
+            flag = ("[red]lens model too simple[/]" if sm["residual_pattern_z"] > sm["residual_pattern_threshold"]
+                    else "no pattern")
             rows.append(("  residual pattern Z (threshold)",
                          f"{sm['residual_pattern_z']:.1f} ({sm['residual_pattern_threshold']:g}): {flag}"))
+        if sm.get("prism_wald_p") is not None:
+            flag = ("[red]present, not modelled[/]" if sm["lens_model_too_simple"] and sm["prism_present"]
+                    else "present, modelled" if sm["prism_present"]
+                    else "[yellow]not decided: too few measurements[/]" if sm["prism_verdict"] == "undecided"
+                    else "none")
+            kappa = "" if sm["prism_wald_kappa"] is None else f", kappa {sm['prism_wald_kappa']:.2g}"
+            rows.append(("  thin-prism terms: Wald p (threshold)",
+                         f"{sm['prism_wald_p']:.2g} ({sm['prism_wald_alpha']:g}{kappa}): {flag}"))
     dec = summary.get("decoding")
     if dec:
         fits = sum(d["phase_ripple"]["fits"] for d in dec)

@@ -16,7 +16,8 @@ import pytest
 from fringecal.calibration.bundle import BundleOptions
 from fringecal.calibration.file import CalibrationFileError, read_calibration_xml, rig_from_dict, rig_to_dict, xml_text
 from fringecal.calibration.model import BundleProblem, Evaluator
-from fringecal.calibration.models import choose_sensor_model, fit_model
+from fringecal.calibration.candidates import fit_model
+from fringecal.calibration.models import choose_sensor_model
 from fringecal.lens.field import CorrectionField, _absorbed, _monomials, field_terms, format_grid
 from fringecal.pointcloud import triangulate_image_points
 from fringecal.rig import Rig, Scanner

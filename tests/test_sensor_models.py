@@ -13,7 +13,8 @@ import pytest
 from fringecal.calibration.adequacy import Z_MAX, residual_pattern
 from fringecal.calibration.bundle import BundleOptions
 from fringecal.calibration.model import BundleProblem
-from fringecal.calibration.models import choose_sensor_model, fit_model
+from fringecal.calibration.candidates import fit_model
+from fringecal.calibration.models import choose_sensor_model
 from fringecal.simulate.control_points import simulate_control_points, thesis_truth
 from fringecal.simulate.unmodelled import thin_prism
 
@@ -85,19 +86,28 @@ def test_held_out_measurements_choose_the_thin_prism_model_only_where_it_helps(p
 
 
 def test_the_wald_test_of_the_thin_prism_terms_sees_a_term_that_noise_does_not_give(prism_fits):
-    """prism_wald on the 3 px term: W far beyond any chi-square(8) tail, with the terms the
-    thin-prism fit states; on the same rig without a term W is a plausible chi-square(8)
-    draw (p above 1e-3, as 998 in 1,000 clean rigs would give)."""
-    from fringecal.calibration.models import prism_wald
+    """prism_check on the 3 px term: W far beyond any chi-square(8) tail, still after the
+    jackknife's dispersion factor (which is computed because W alone flags), and the
+    14-parameter model gets the warning a thin-prism model does not; on the same rig
+    without a term W is a plausible chi-square(8) draw (p above 1e-3, as 999 in 1,000
+    clean rigs would give), the factor is not computed and nothing is flagged."""
+    from fringecal.calibration.wald import PRISM_ALPHA, prism_check, prism_diagnosis
 
     _, _, first, richer = prism_fits
-    w = prism_wald(first, OPTIONS)
+    w = prism_check(first, OPTIONS)
     assert w["dof"] == 8 and w["p"] < 1e-12 and w["W"] > 100, w
     assert set(w["per_sensor"]) == {s.name for s in first.rig.sensors}
     assert all(s["p"] < 1e-3 for s in w["per_sensor"].values()), w["per_sensor"]
+    assert w["kappa"] < 10 and w["p_dispersed"] < 1e-6 and w["present"], w  # a lens term: common to all
+    assert "the lenses carry a thin-prism term" in w["message"], w["message"]
+    d = prism_diagnosis(w, "brown14")
+    assert d.kind == "lens_model_too_simple" and d.severity == "warning" and w["message"] in d.message
+    assert prism_diagnosis(w, "thin_prism") is None and prism_diagnosis(w, "field") is None
     ideal, _ = _data(0.0)
-    clean = prism_wald(fit_model(ideal, OPTIONS, "brown14"), OPTIONS)
-    assert clean["dof"] == 8 and clean["p"] > 1e-3, clean
+    clean = prism_check(fit_model(ideal, OPTIONS, "brown14"), OPTIONS)
+    assert clean["dof"] == 8 and clean["p"] > PRISM_ALPHA and not clean["present"], clean
+    assert "kappa" not in clean and prism_diagnosis(clean, "brown14") is None
+    assert "no thin-prism term" in clean["message"], clean["message"]
 
 
 def test_the_dispersion_factor_holds_the_wald_test_where_each_measurement_has_its_own_term():
@@ -110,12 +120,44 @@ def test_the_dispersion_factor_holds_the_wald_test_where_each_measurement_has_it
     dispersion=True)``; the benchmark's smoke check runs the factor on a clean world.)"""
     from dataclasses import replace
 
-    from fringecal.calibration.models import prism_wald
+    from fringecal.calibration.wald import prism_check
 
     clean, _ = _data(0.0)
     rng = np.random.default_rng(5)
     scale = rng.normal(0.0, 4e-4, len(clean.measurements))[clean.meas_idx]  # per measurement, 1/mm
     r2 = np.sum(clean.prj_mm ** 2, axis=1)
     shared = replace(clean, prj_mm=clean.prj_mm + np.stack([scale * r2, -0.5 * scale * r2], axis=1))
-    w = prism_wald(fit_model(shared, OPTIONS, "brown14"), OPTIONS, dispersion=True)
-    assert w["p"] < 1e-6 and w["kappa"] > 10 and w["p_dispersed"] > 1e-3, w
+    w = prism_check(fit_model(shared, OPTIONS, "brown14"), OPTIONS)
+    assert w["p"] < 1e-6 and w["kappa"] > 10 and w["p_dispersed"] > 1e-3 and not w["present"], w
+    assert "no thin-prism term beyond what errors shared by a measurement's points give" in w["message"]
+
+
+def test_a_run_records_the_thin_prism_test_and_its_verdict_where_users_read_them(small_run):
+    """The bundle step of a run (the small rig, ideal profile: no thin-prism term) tests
+    the thin-prism terms, and bundle_summary.json, calibration.json and the run's summary
+    carry the same W, p and verdict: not present on this clean rig. Its 4 measurements
+    are too few for the dispersion factor, so a significant W alone leaves it undecided."""
+    import json
+
+    from scipy.stats import chi2
+
+    from fringecal.calibration.wald import MIN_REPLICAS
+
+    rd, summary = small_run
+    rec = rd.bundle_summary.load()["sensor_model"]
+    w = rec["prism_wald"]
+    n_sensors = sum(len(s["sensors"]) for s in json.loads(rd.calibration.path.read_text())["scanners"])
+    assert w["dof"] == 2 * n_sensors and w["alpha"] == 1e-3, w
+    assert w["p"] == pytest.approx(chi2.sf(w["W"], w["dof"]), rel=1e-9)
+    assert w["present"] is False, w
+    if w["p"] < w["alpha"]:
+        adjusted = rd.poses_calibrated.load()["measurement"].nunique()  # measurements with control points
+        assert w["verdict"] == "undecided" and w["kappa"] is None and adjusted < MIN_REPLICAS, (w, adjusted)
+        assert "too few" in w["message"]
+    else:
+        assert w["verdict"] == "absent" and "kappa" not in w, w
+    assert json.loads(rd.calibration.path.read_text())["sensor_model"]["prism_wald"] == w
+    sm = summary["sensor_model"]
+    assert sm["prism_wald_p"] == w.get("p_dispersed", w["p"]) and sm["prism_present"] is False
+    assert sm["prism_verdict"] == w["verdict"]
+    assert sm["lens_model_too_simple"] is False and sm["prism_message"] == w["message"]

@@ -70,9 +70,14 @@ Screening (``bundle.model_selection``). Cross-validation costs four half-adjustm
 four pose-only fits per candidate (the bundle step of the demo run: about 1.7 s alone,
 10-13 s with it on the loaded 2-core machine). With ``screened`` (default) it runs only
 when the 14-parameter residuals keep a pattern over the images, residual-pattern
-``Z > SCREEN_Z`` (3; :mod:`.adequacy`, whose verdict threshold is 5): without one there
-is nothing fixed to the image for a richer image model to absorb, and the 14 parameters
-stay (the record says so, with Z). ``always`` cross-validates every run.
+``Z > SCREEN_Z`` (3; :mod:`.adequacy`, whose verdict threshold is 5), or when the Wald
+test of the thin-prism terms finds them (:func:`.wald.prism_check`, run on every
+14-parameter solution the run may keep: about 1 s, 10-24 s more when W alone is
+significant): without either there is nothing fixed to the image for a richer image
+model to absorb, and the 14 parameters stay (the record says so, with Z and W).
+``always`` cross-validates every run. The record's ``prism_wald`` holds the test; a
+chosen model without thin-prism terms (or a field, which spans them) gets the warning
+``lens_model_too_simple`` when they are present.
 
 The result carries the choice and its evidence (``record``): every candidate's held-out
 RMS, per-measurement sums, the gain and t statistic, how much the richer model inflates
@@ -92,22 +97,14 @@ from dataclasses import replace
 import numpy as np
 
 from fringecal.calibration.adequacy import residual_pattern
-from fringecal.calibration.bundle import BundleOptions, BundleResult, StartValueError, bundle_adjust, minimise
+from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adjust, minimise
+from fringecal.calibration.candidates import CANDIDATES, fit_model, with_model
 from fringecal.calibration.crossval import split_measurements, subproblem
-from fringecal.calibration.diagnostics import DegenerateCalibrationError
-from fringecal.calibration.jackknife import noise_worlds, readjusted_solution
 from fringecal.calibration.model import BundleProblem, Evaluator
+from fringecal.calibration.wald import prism_check, prism_diagnosis
 
-__all__ = ["SENSOR_MODELS", "CANDIDATES", "MIN_GAIN", "T_MIN", "ONE_SE", "SCREEN_Z", "FIELD_PRIOR_MM", "prism_free_of", "held_out_error",
-           "prism_wald",
-           "choose_by_held_out",
-           "choose_sensor_model", "fit_model"]
+__all__ = ["MIN_GAIN", "T_MIN", "ONE_SE", "SCREEN_Z", "held_out_error", "choose_by_held_out", "choose_sensor_model"]
 
-#: the candidates in order of size, with the thin-prism terms each frees (s1, s2, s3, s4)
-#: and whether it frees a correction field
-CANDIDATES = {"brown14": ((False, False, False, False), False), "thin_prism": ((True, False, True, False), False),
-              "thin_prism4": ((True, True, True, True), False), "field": ((False, False, False, False), True)}
-SENSOR_MODELS = ("auto", *CANDIDATES)
 #: smallest relative drop of the held-out sum of squares that chooses a richer model
 MIN_GAIN = 0.005
 #: smallest t statistic of the per-measurement held-out differences that chooses it
@@ -117,122 +114,6 @@ ONE_SE = 1.0
 #: residual-pattern Z of the 14-parameter fit below which ``model_selection: screened``
 #: keeps the 14 parameters without cross-validation
 SCREEN_Z = 3.0
-#: prior standard deviation of each correction-field coefficient (mm): lens errors beyond
-#: Brown's terms of a micrometre RMS over the image plane per term
-FIELD_PRIOR_MM = 1e-3
-
-
-def prism_free_of(model: str, n_sensors: int) -> np.ndarray:
-    """Thin-prism free flags (n_sensors, 4) of a candidate model."""
-    if model not in CANDIDATES:
-        raise ValueError(f"unknown sensor model {model!r}; choose one of {', '.join(SENSOR_MODELS)}")
-    return np.tile(np.array(CANDIDATES[model][0], bool), (n_sensors, 1))
-
-
-def _with_model(problem: BundleProblem, model: str) -> BundleProblem:
-    rig = problem.rig.with_prism_free(prism_free_of(model, len(problem.rig.sensors)))
-    rig = rig.with_field_free(CANDIDATES[model][1])
-    out = problem.with_start(rig=rig)
-    if CANDIDATES[model][1]:
-        ev = Evaluator(problem)
-        e = ev.evaluate(ev.layout.pack_rig(problem.rig, problem.poses), False)
-        s0 = e.cost / max(2 * int(e.ok.sum()), 1)
-        out = replace(out, field_prior_weight=float(s0 / FIELD_PRIOR_MM ** 2))
-    return out
-
-
-def _prism_replicas(problem: BundleProblem, names: list[str], options: BundleOptions) -> dict[str, np.ndarray]:
-    """Measurement -> the thin-prism terms (n_free,) of ``problem`` re-adjusted without it
-    (:func:`.jackknife.readjusted_solution`); a measurement whose removal leaves a problem
-    that cannot be calibrated gets none, as in the jackknife of the sensors."""
-    out = {}
-    for m in names:
-        try:
-            layout, x = readjusted_solution(subproblem(problem, [n for n in names if n != m]), options)
-        except (DegenerateCalibrationError, StartValueError):
-            continue
-        out[m] = x[layout.prism_index[layout.prism_index >= 0]]
-    return out
-
-
-def _jackknife_covariance(replicas: np.ndarray) -> np.ndarray:
-    n = len(replicas)
-    d = replicas - replicas.mean(axis=0)
-    return (n - 1) / n * d.T @ d
-
-
-def prism_wald(first: BundleResult, options: BundleOptions, dispersion: bool = False,
-               noise_draws: int = 4, seed: int = 0) -> dict:
-    """Wald test of the first-order thin-prism terms (s1, s3 of every sensor) against
-    zero, from the 14-parameter solution ``first``: the ``thin_prism`` model adjusted
-    from it, ``W = a^T C^-1 a`` over its terms ``a`` with their covariance ``C`` (the
-    adjustment's, ``options.covariance``), chi-square with one degree of freedom per
-    term when the 14 parameters describe the images and the stated covariance holds.
-
-    It asks what cross-validation and the residual pattern cannot resolve for a term the
-    14 parameters nearly absorb (about 95 % of a thin-prism term, module notes): is the
-    remainder there at all? Held-out prediction gains nothing measurable from it and the
-    pattern statistic spreads it over every bin, while W gathers it into two numbers per
-    sensor. Returns ``W``, ``dof``, ``p`` (the chi-square tail) and, per sensor, its own
-    ``W`` and ``p`` (two degrees of freedom).
-
-    ``C`` takes every control point's error as independent. Errors shared by the points
-    of one measurement (a smooth phase error over its image) move the terms from
-    measurement to measurement far more than ``C`` says, and W grows with them. With
-    ``dispersion`` the terms are jackknifed (each measurement left out in turn, as
-    :mod:`.jackknife` does for the sensors), in the data and in ``noise_draws`` worlds
-    holding only the noise ``C`` assumes (:func:`.jackknife.noise_worlds`); their ratio
-    ``kappa = tr(C_J,noise^-1 C_J) / dof`` says how much more the measurements scatter
-    the terms than the noise does, and ``W_dispersed = W / max(1, kappa)`` with its
-    ``p_dispersed`` is the test that holds then (``kappa`` is about 1.6 in worlds of
-    noise alone: the inverse of a covariance estimated from few replicas is biased
-    upward, so the correction errs towards keeping W).
-    """
-    from scipy.stats import chi2
-
-    t0 = time.perf_counter()
-    start = first.problem.with_start(first.rig, first.poses)
-    given = options.model_copy(update={"start": "given"})
-    try:
-        fit = fit_model(start, given, "thin_prism")
-        lay = fit.layout
-        idx = lay.prism_index[lay.prism_index >= 0]
-        if not len(idx):
-            raise ValueError("no thin-prism term can be adjusted")
-        C = fit.uncertainty.covariance[np.ix_(idx, idx)]
-        np.linalg.cholesky(C)
-    except (ValueError, np.linalg.LinAlgError) as err:  # DegenerateCalibrationError is a ValueError
-        return {"model": "thin_prism", "skipped": str(err), "seconds": time.perf_counter() - t0}
-    a = fit.x[idx]
-    W = float(a @ np.linalg.solve(C, a))
-    per = {}
-    for i, sensor in enumerate(fit.rig.sensors):
-        mine = lay.prism_index[i][lay.prism_index[i] >= 0]
-        if len(mine):
-            w = float(fit.x[mine] @ np.linalg.solve(fit.uncertainty.covariance[np.ix_(mine, mine)], fit.x[mine]))
-            per[sensor.name] = {"W": w, "p": float(chi2.sf(w, len(mine)))}
-    out = {"model": "thin_prism", "W": W, "dof": int(len(idx)), "p": float(chi2.sf(W, len(idx))),
-           "covariance": options.covariance, "per_sensor": per}
-    if dispersion:
-        names = [str(m) for m in fit.problem.measurements]
-        data = _prism_replicas(fit.problem.with_start(fit.rig, fit.poses), names, given)
-        noise = [_prism_replicas(w, names, given) for w in noise_worlds(fit, noise_draws, seed)]
-        kept = [m for m in data if all(m in n for n in noise)]
-        CJ = _jackknife_covariance(np.array([data[m] for m in kept]))
-        CN = np.mean([_jackknife_covariance(np.array([n[m] for m in kept])) for n in noise], axis=0)
-        kappa = float(np.trace(np.linalg.solve(CN, CJ)) / len(idx))
-        Wd = W / max(1.0, kappa)
-        out.update({"kappa": kappa, "W_dispersed": Wd, "p_dispersed": float(chi2.sf(Wd, len(idx))),
-                    "noise_draws": noise_draws})
-    out["seconds"] = time.perf_counter() - t0
-    return out
-
-
-def fit_model(problem: BundleProblem, options: BundleOptions, model: str) -> BundleResult:
-    """:func:`.bundle.bundle_adjust` of ``problem`` with the sensors of ``model``."""
-    return bundle_adjust(_with_model(problem, model), options)
-
-
 def _predict(fit: BundleResult, problem: BundleProblem, options: BundleOptions) -> np.ndarray:
     """Residuals (n, 2) of ``problem`` (other measurements) predicted by the sensors of
     ``fit``: only the poses adjusted, from ``problem``'s start values."""
@@ -255,7 +136,7 @@ def held_out_error(problem: BundleProblem, options: BundleOptions, model: str, h
     and the held-out RMS of F and of epsilon-1 and epsilon-2 (mm).
     """
     opts = options.model_copy(update={"start": "given", "bootstrap_draws": 0})
-    full = _with_model(problem, model)
+    full = with_model(problem, model)
     g1, g2 = problem.gamma1, problem.gamma2
     ss = {}
     count = {}
@@ -321,10 +202,11 @@ def choose_by_held_out(errors: dict) -> dict:
 
 
 def choose_sensor_model(problem: BundleProblem, options: BundleOptions, candidates=tuple(CANDIDATES),
-                        first: BundleResult | None = None) -> tuple[BundleResult, dict]:
+                        first: BundleResult | None = None, workers: int = 1) -> tuple[BundleResult, dict]:
     """The adjustment with the sensor model ``options.sensor_model`` (``auto``: chosen by
     held-out measurements among ``candidates``, see the module notes) and the record of
-    that choice. ``first``: the 14-parameter adjustment of ``problem`` if already done."""
+    that choice. ``first``: the 14-parameter adjustment of ``problem`` if already done;
+    ``workers``: re-adjustments at once in the Wald test's jackknife."""
     t0 = time.perf_counter()
     wanted = options.sensor_model
     # the 14 parameters first, whatever the model: the thin-prism terms are degenerate with
@@ -332,6 +214,8 @@ def choose_sensor_model(problem: BundleProblem, options: BundleOptions, candidat
     # notes), so a richer model is adjusted from the 14-parameter solution
     first = fit_model(problem, options, "brown14") if first is None else first
     pattern_first = residual_pattern(first.problem, first.residuals, "brown14")
+    prism = prism_check(first, options, workers=workers) if wanted in ("auto", "brown14") else None
+    evidence = {} if prism is None else {"prism_wald": prism}
     if wanted != "auto":
         result, pattern = first, pattern_first
         if wanted != "brown14":
@@ -340,21 +224,22 @@ def choose_sensor_model(problem: BundleProblem, options: BundleOptions, candidat
             pattern = residual_pattern(result.problem, result.residuals, wanted)
         record = {"model": wanted, "chosen_by": "configuration (bundle.sensor_model)",
                   "residual_pattern_brown14": pattern_first.to_dict(), "residual_pattern": pattern.to_dict(),
-                  "seconds": time.perf_counter() - t0}
-        return _with_pattern(result, pattern), record
-    if options.model_selection == "screened" and not pattern_first.z_max > SCREEN_Z:
+                  **evidence, "seconds": time.perf_counter() - t0}
+        return _with_verdicts(result, pattern, prism, wanted), record
+    if options.model_selection == "screened" and not pattern_first.z_max > SCREEN_Z and not prism["present"]:
         record = {"model": "brown14",
                   "chosen_by": f"residual pattern (Z = {pattern_first.z_max:.1f} <= {SCREEN_Z:g}: no pattern over "
-                               "the images for a richer model to absorb; cross-validation not run)",
-                  "screen_z": SCREEN_Z, "residual_pattern": pattern_first.to_dict(),
+                               "the images for a richer model to absorb, and no thin-prism term; cross-validation "
+                               "not run)",
+                  "screen_z": SCREEN_Z, "residual_pattern": pattern_first.to_dict(), **evidence,
                   "seconds": time.perf_counter() - t0}
-        return _with_pattern(first, pattern_first), record
+        return _with_verdicts(first, pattern_first, prism, "brown14"), record
     try:
         halves = split_measurements(problem)
     except ValueError as err:  # too few measurements per scanner for two halves
         record = {"model": "brown14", "chosen_by": f"default: no cross-validation possible ({err})",
-                  "residual_pattern": pattern_first.to_dict(), "seconds": time.perf_counter() - t0}
-        return _with_pattern(first, pattern_first), record
+                  "residual_pattern": pattern_first.to_dict(), **evidence, "seconds": time.perf_counter() - t0}
+        return _with_verdicts(first, pattern_first, prism, "brown14"), record
     start = problem.with_start(first.rig, first.poses)
     errors = {"brown14": held_out_error(start, options, "brown14", halves)}
     for model in [m for m in CANDIDATES if m in candidates and m != "brown14"]:
@@ -370,8 +255,16 @@ def choose_sensor_model(problem: BundleProblem, options: BundleOptions, candidat
               "held_out": errors, "comparisons": choice["comparisons"], "eligible": choice["eligible"],
               "lowest_held_out": choice["lowest_held_out"], "t_against_lowest": choice["t_against_lowest"],
               "residual_pattern_brown14": pattern_first.to_dict(), "residual_pattern": pattern.to_dict(),
-              "seconds": time.perf_counter() - t0}
-    return _with_pattern(result, pattern), record
+              **evidence, "seconds": time.perf_counter() - t0}
+    return _with_verdicts(result, pattern, prism, best), record
+
+
+def _with_verdicts(result: BundleResult, pattern, prism: dict | None, model: str) -> BundleResult:
+    """``result`` with the residual pattern's and the thin-prism test's warnings among its
+    diagnostics when they flag ``model``."""
+    result = _with_pattern(result, pattern)
+    d = None if prism is None else prism_diagnosis(prism, model)
+    return result if d is None else replace(result, diagnostics=tuple(result.diagnostics) + (d,))
 
 
 def _with_pattern(result: BundleResult, pattern) -> BundleResult:

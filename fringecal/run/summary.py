@@ -117,10 +117,18 @@ def _sensor_model(record: dict | None) -> dict | None:
     if record is None:
         return None
     pattern = record.get("residual_pattern") or {}
+    prism = record.get("prism_wald") or {}
+    # the chosen model is too simple when its residual pattern says so, or when the
+    # thin-prism terms are present and it adjusts none (the field spans them)
+    prism_unmodelled = bool(prism.get("present")) and record["model"] not in ("thin_prism", "thin_prism4", "field")
     return {"model": record["model"], "chosen_by": record["chosen_by"],
             "held_out_rms_f_mm": {m: e["rms_f_mm"] for m, e in (record.get("held_out") or {}).items()},
             "residual_pattern_z": pattern.get("z_max"), "residual_pattern_threshold": pattern.get("threshold"),
-            "lens_model_too_simple": pattern.get("too_simple"), "message": pattern.get("message")}
+            "prism_wald_p": prism.get("p_dispersed", prism.get("p")), "prism_wald_kappa": prism.get("kappa"),
+            "prism_wald_alpha": prism.get("alpha"), "prism_present": prism.get("present"),
+            "prism_verdict": prism.get("verdict"),
+            "lens_model_too_simple": None if not pattern else bool(pattern.get("too_simple")) or prism_unmodelled,
+            "message": pattern.get("message"), "prism_message": prism.get("message")}
 
 
 def run_summary(rd: RunDir, cfg) -> dict:

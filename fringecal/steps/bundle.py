@@ -94,7 +94,7 @@ class Bundle(Step):
             return self.run_black_boxes_only(rd, cfg)
         problem = load_problem(rd, cfg.reference_scanner, b.gamma1, b.gamma2)
         t0, c0 = time.perf_counter(), compile_clock.thread_seconds()
-        result, model = choose_sensor_model(problem, b)
+        result, model = choose_sensor_model(problem, b, workers=threads.granted())
         compile_seconds = compile_clock.thread_seconds() - c0
         seconds = time.perf_counter() - t0 - compile_seconds  # the adjustment's own time, as on any later run
         for d in result.diagnostics:
@@ -102,6 +102,8 @@ class Bundle(Step):
         log.info("F RMS %.4f -> %.4f mm in %d iterations (start: %s)", result.before.rms_f_mm, result.after.rms_f_mm,
                  result.iterations, result.extra.get("start"))
         log.info("sensor model %s (%s); %s", model["model"], model["chosen_by"], model["residual_pattern"]["message"])
+        if "prism_wald" in model:
+            log.info("%s", model["prism_wald"]["message"])
         t1 = time.perf_counter()
         bootstrap = bootstrap_calibrations(result, b.bootstrap_draws, b.bootstrap_seed, workers=threads.granted())
         timing = {"bundle_seconds": seconds, "bundle_compile_seconds": compile_seconds,

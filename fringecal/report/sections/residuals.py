@@ -53,8 +53,9 @@ def decoding(run: RunData) -> dict:
 
 
 def sensor_model(run: RunData) -> dict:
-    """The model used, how it was chosen, every candidate's held-out error and the
-    residual-pattern statistic per sensor image (its value and threshold)."""
+    """The model used, how it was chosen, every candidate's held-out error, the
+    residual-pattern statistic per sensor image (its value and threshold) and the Wald
+    test of the thin-prism terms (``prism_wald``; absent in runs before it)."""
     rec = run.json(run.rd.bundle_summary).get("sensor_model")
     if rec is None:
         raise Missing("this run's bundle_summary.json has no sensor_model (a run before issue 29)")
@@ -77,7 +78,13 @@ def sensor_model(run: RunData) -> dict:
     stats = table(["Scanner", "Sensor", "Residual", "Z", "Pattern RMS", "Bins"],
                   [[s["scanner"], s["sensor"], s["residual"], f"{s['z']:.1f}", f"{s['systematic_um']:.1f} um",
                     s["n_bins"]] for s in pattern["statistics"]], left=3)
-    return {"model": rec["model"], "chosen_by": rec["chosen_by"], "min_gain": rec.get("min_gain"),
+    prism = rec.get("prism_wald")
+    wald = None
+    if prism is not None and "W" in prism:
+        wald = table(["Sensor", "W (2 terms)", "p"], [[name, f"{w['W']:.1f}", f"{w['p']:.2g}"]
+                                                      for name, w in prism["per_sensor"].items()], left=1)
+    return {"prism": prism, "prism_table": wald, "model": rec["model"], "chosen_by": rec["chosen_by"],
+            "min_gain": rec.get("min_gain"),
             "t_min": rec.get("t_min"), "one_se": rec.get("one_se", "-"), "candidates": candidates, "message": pattern["message"],
             "too_simple": pattern["too_simple"], "z_max": pattern["z_max"], "threshold": pattern["threshold"],
             "statistics": stats}
