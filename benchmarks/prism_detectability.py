@@ -22,6 +22,12 @@ with the jackknife's dispersion factor (``kappa``, ``W_dispersed``). ``--runs
 RUN_DIR=CONFIG ...``: the test, with the dispersion factor, on the control points of
 rendered runs too (``fringecal run -c CONFIG --out RUN_DIR --until bundle`` first).
 
+``--sweep NAME:WIDTH:CORNER:SEED ...`` instead: rendered runs of ``configs/run_thesis.yaml``
+at WIDTH px and seed SEED with a thin-prism term of CORNER px (``R``: the realistic
+profile), made to the bundle step in ``--sweep-dir`` (or reused from there), with the
+run's own check of the terms (how often it flags, with and without a term) and the test
+with the dispersion factor always.
+
 Prints one JSON object::
 
     PYTHONPATH=. python benchmarks/prism_detectability.py \\
@@ -92,7 +98,7 @@ def measure(corner_px: float, spacing_px: int) -> dict:
 
 
 def _wald_record(w: dict) -> dict:
-    keys = ("W", "dof", "p", "kappa", "W_dispersed", "p_dispersed", "seconds")
+    keys = ("W", "dof", "p", "kappa", "W_dispersed", "p_dispersed", "n_replicas", "seconds")
     return {k: w[k] for k in keys if k in w}
 
 
@@ -134,6 +140,62 @@ def wald_of_run(run_dir: str, config: str) -> dict:
             **_wald_record(w), "per_sensor": w["per_sensor"]}
 
 
+def sweep_config(base: dict, width: int, corner: str, seed: int) -> dict:
+    """``base`` (configs/run_thesis.yaml) at ``width`` px, seed ``seed`` (acquisition and
+    errors), with a thin-prism term of ``corner`` px at the corner (``R``: the realistic
+    profile instead), no bootstrap or jackknife, the rig by its absolute path."""
+    import copy
+
+    cfg = copy.deepcopy(base)
+    sim = cfg["simulate"]
+    sim["rig"] = str(ROOT / "configs" / sim["rig"])
+    sim["acquisition"].update({"camera_width_px": width, "seed": seed})
+    sim["errors"] = ({"profile": "realistic", "seed": seed} if corner == "R"
+                     else {"thin_prism_corner_px": float(corner), "seed": seed})
+    cfg["bundle"].update({"bootstrap_draws": 0, "jackknife": False})
+    return cfg
+
+
+def sweep_run(spec: str, folder: Path) -> dict:
+    """One rendered run of the sweep, ``NAME:WIDTH:CORNER:SEED`` (:func:`sweep_config`),
+    made by ``fringecal run -c CONFIG --out RUN --until bundle`` unless ``folder`` holds
+    it already: the run's own check of the thin-prism terms (its bundle_summary.json's
+    ``prism_wald``: the dispersion factor only where W alone was significant) and the
+    test with the factor always (:func:`wald_of_run`)."""
+    import json
+    import subprocess
+
+    import yaml
+
+    name, width, corner, seed = spec.split(":")
+    base = yaml.safe_load((ROOT / "configs" / "run_thesis.yaml").read_text())
+    run = folder / f"{name}_{seed}"
+    config = folder / f"{name}_{seed}.yaml"
+    config.write_text(yaml.safe_dump(sweep_config(base, int(width), corner, int(seed))))
+    t0 = time.perf_counter()
+    if not (run / "bundle_summary.json").exists():
+        subprocess.run([str(Path(sys.executable).parent / "fringecal"), "run", "-c", str(config), "--out", str(run),
+                        "--until", "bundle"], cwd=ROOT, check=True, capture_output=True, text=True)
+    made = time.perf_counter() - t0
+    check = json.loads((run / "bundle_summary.json").read_text())["sensor_model"]["prism_wald"]
+    return {"name": name, "seed": int(seed), "run_seconds": made,
+            "check": {k: check.get(k) for k in ("W", "p", "kappa", "p_dispersed", "verdict", "seconds")},
+            **wald_of_run(str(run), str(config))}
+
+
+def _sweep_summary(rows: list[dict]) -> dict:
+    out = {}
+    for name in dict.fromkeys(r["name"] for r in rows):
+        mine = [r for r in rows if r["name"] == name]
+        kappa = [r["kappa"] for r in mine if r.get("kappa") is not None]
+        out[name] = {"runs": len(mine), "flagged": sum(r["check"]["verdict"] == "present" for r in mine),
+                     "W": [min(r["W"] for r in mine), max(r["W"] for r in mine)],
+                     "p_dispersed": [min(r["p_dispersed"] for r in mine if "p_dispersed" in r),
+                                     max(r["p_dispersed"] for r in mine if "p_dispersed" in r)] if kappa else None,
+                     "kappa": [min(kappa), max(kappa)] if kappa else None}
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="seeds of the dense Wald section")
@@ -141,9 +203,25 @@ def main(argv=None) -> dict:
                     help="of them, the first seeds with the jackknife's dispersion factor too")
     ap.add_argument("--runs", nargs="*", default=[], metavar="RUN_DIR=CONFIG",
                     help="finished runs (to the bundle step) whose control points get the Wald test too")
+    ap.add_argument("--sweep", nargs="*", default=[], metavar="NAME:WIDTH:CORNER:SEED",
+                    help="rendered runs to make (or reuse) in --sweep-dir and test: thin-prism CORNER px (R: the "
+                         "realistic profile) at WIDTH px, seed SEED; only these when given")
+    ap.add_argument("--sweep-dir", type=Path, default=Path("prism-sweep"), help="where the sweep's runs live")
     args = add_options(ap).parse_args(argv)
     doc = conditions("prism_detectability", argv, args.smoke)
     t0 = time.perf_counter()
+    if args.sweep:
+        from fringecal.calibration.wald import PRISM_ALPHA
+
+        args.sweep_dir.mkdir(parents=True, exist_ok=True)
+        rows = [sweep_run(spec, args.sweep_dir) for spec in args.sweep]
+        doc.update({"what": "the run's check of the thin-prism terms (the Wald test, the dispersion factor where W "
+                            "alone is significant) over rendered runs of the thesis rig (configs/run_thesis.yaml "
+                            "at the size and seed named, ideal profile with the term named or the realistic "
+                            "profile, to the bundle step), and the test with the factor always",
+                    "alpha": PRISM_ALPHA, "sweep": rows, "by_variant": _sweep_summary(rows),
+                    "wall_seconds": time.perf_counter() - t0})
+        return finish(doc, args.out)
     corners, spacing = ((3.0,), 60) if args.smoke else (CORNERS_PX, 20)
     rows = [measure(c, spacing) for c in corners]
     dense_spacing, seeds = (60, range(1, 2)) if args.smoke else (DENSE_SPACING_PX, range(1, args.seeds + 1))
