@@ -287,7 +287,7 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
         if black_boxes is not None:
             calibration["black_boxes"] = black_boxes
         tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")
-        tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta))
+        tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta, regions))
         for f, df in tables.items():
             df.to_csv(tmp[f.rel], index=False, float_format="%.10g")
         for f, png in figures.items():
