@@ -93,14 +93,22 @@ def objects_outside(stores: dict, rig: Rig | None, kept: dict, regions: dict | N
 
 
 def partly_outside(doc: dict | None, tests=MEASURED_TESTS) -> list[str]:
-    """``"<test> <position> <share> %"`` of every object of ``tests`` with pixels outside
-    the observed region, from an ``observed_region`` document (:func:`objects_outside`).
+    """Per test of ``tests`` with any position partly outside the observed region,
+    ``"<test>: <k> of <n> positions, up to <share> %"``, from an ``observed_region``
+    document (:func:`objects_outside`); empty when none is (or none is known).
 
     >>> partly_outside({"objects": [{"test": "sphere", "position": "s1", "outside": 3, "fraction": 0.125},
+    ...                             {"test": "sphere", "position": "s2", "outside": 1, "fraction": 0.02},
     ...                             {"test": "flat", "position": "f1", "outside": 0, "fraction": 0.0},
     ...                             {"test": "ballbar", "position": "bb1", "outside": 9, "fraction": 0.5},
     ...                             {"test": "dumbbell", "position": "d1", "outside": None, "fraction": None}]})
-    ['sphere s1 12 %']
+    ['sphere: 2 of 2 positions, up to 12 %']
     """
-    return [f"{o['test']} {o['position']} {100 * o['fraction']:.0f} %" for o in (doc or {}).get("objects", [])
-            if o["test"] in tests and o.get("outside")]
+    out = []
+    for test in tests:
+        mine = [o for o in (doc or {}).get("objects", []) if o["test"] == test]
+        hit = [o for o in mine if o.get("outside")]
+        if hit:
+            out.append(f"{test}: {len(hit)} of {len(mine)} positions, up to "
+                       f"{100 * max(o['fraction'] for o in hit):.0f} %")
+    return out

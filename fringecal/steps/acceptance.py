@@ -93,7 +93,9 @@ class Acceptance(Step):
         outside = partly_outside(doc["observed_region"])
         if outside:
             log.warning("acceptance objects measured partly where the calibration extrapolates, outside the region "
-                        "of the images its control points covered (share of the fits' pixels): %s", ", ".join(outside))
+                        "of the images its control points covered (share of the fits' pixels): %s; per position in "
+                        "%s (observed_region) and the report's acceptance values", "; ".join(outside),
+                        rd.acceptance.rel)
         for f in doc["failures"]:
             log.warning("acceptance %s position %s, scanner %s: %s", f["test"], f["position"], f["scanner"],
                         f["reason"])
