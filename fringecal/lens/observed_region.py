@@ -56,9 +56,9 @@ MIN_POINTS_PER_CELL = 5
 #: share of its format below which a sensor's region is too small to leave unremarked:
 #: the calibration saw about as little of that image as one artefact pose at the far
 #: stand-off shows a projector. On the default run (``fringecal run``) one pose alone
-#: covers 35-50 % of each camera's format and 17-24 % of each projector's (19 % and less
-#: at the four far poses); all twelve cover 62 % and 36-37 %, the tests' four poses
-#: (1, 5, 9, 12) 57-59 % and 25-26 % (docs/measure.md)
+#: covers 34-50 % of each camera's format and 17-24 % of each projector's (17-19 % at the
+#: six farthest poses); all twelve cover 62 % and 36-37 %, the tests' four poses
+#: (1, 5, 9, 12) 57-59 % and 25-26 % (docs/measure.md, with the recount's snippet)
 MIN_FRACTION = 0.20
 #: what the recorded grid's coordinates are (the ``unit`` of :meth:`ObservedRegion.to_dict`)
 UNIT = "measured image-plane mm from the format's centre (camera pixels, projector phases)"
