@@ -50,11 +50,6 @@ def camera_depths(rig: Rig, scanner: str, points) -> np.ndarray:
 def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict], list[dict], dict]:
     """The value rows and failures of one sphere or flat store, and the camera pixels its
     fit kept: {(position, scanner, kind): (rows, cols)} (empty when it failed)."""
-    rows, failures, m = _measure(kind, job, rig, standards, config, rejection)
-    return rows, failures, ({} if m is None else {(job[0], job[1], kind): m.pixels})
-
-
-def _measure(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict], list[dict], object]:
     position, scanner, store = job
     k = config.coverage_factor
     try:
@@ -68,15 +63,16 @@ def _measure(kind: str, job, rig, standards, config, rejection) -> tuple[list[di
                      "n_excluded": m.n_excluded, "depth_mm": depth},
                     {"test": kind, "parameter": "P_S", "position": position, "scanner": scanner,
                      "value_mm": m.size_mm, "U_mm": k * float(np.hypot(s.diameter_u_mm, m.diameter_u_fit_mm)),
-                     "n_points": m.n_points, "n_excluded": m.n_excluded, "depth_mm": depth}], [], m
+                     "n_points": m.n_points, "n_excluded": m.n_excluded, "depth_mm": depth}], [], \
+                {(position, scanner, kind): m.pixels}
         f = standards.flat
         m = measure_flat_store(store, rig.scanner(scanner), f, config.exclude_fraction, config.max_incidence_deg)
         return [{"test": kind, "parameter": "F", "position": position, "scanner": scanner,
                  "value_mm": m.flatness_mm, "U_mm": k * float(np.hypot(form_u(f.flatness_mm), f.flatness_u_mm)),
                  "n_points": m.n_points, "n_excluded": m.n_excluded,
-                 "depth_mm": float(camera_depths(rig, scanner, m.point)[0])}], [], m
+                 "depth_mm": float(camera_depths(rig, scanner, m.point)[0])}], [], {(position, scanner, kind): m.pixels}
     except AcceptanceMeasurementError as err:
-        return [], [{"test": kind, "position": position, "scanner": scanner, "reason": str(err)}], None
+        return [], [{"test": kind, "position": position, "scanner": scanner, "reason": str(err)}], {}
 
 
 def outside_volume(values: pd.DataFrame, specification: ScannerSpecification) -> tuple[pd.DataFrame, list[dict]]:
