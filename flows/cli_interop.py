@@ -28,19 +28,23 @@ def _opencv_errors():
 
 
 def _read_rig(path: Path, option: str):
-    from fringecal.calibration.file import read_calibration_json, read_calibration_xml
+    """The rig of a calibration file or sensor table, and its sensors' observed regions
+    (none from a table)."""
+    from fringecal.calibration.file import read_calibration
     from fringecal.flows.validate import calibration_file
     from fringecal.rig import load_rig
 
     path = calibration_file(path, option)
     if not path.is_file():
         raise UserInputError(f"{path}: no such file")
-    readers = {".json": read_calibration_json, ".xml": read_calibration_xml, ".csv": load_rig}
-    reader = readers.get(path.suffix.lower())
-    if reader is None:
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        return load_rig(path), {}
+    if suffix not in (".json", ".xml"):
         raise UserInputError(f"{path}: expected a calibration .json or .xml (a run's calibration file) or a "
                              f"sensor-parameter .csv (e.g. a data set's sensors_prior.csv)")
-    return reader(path)
+    cal = read_calibration(path)
+    return cal.rig, cal.observed_regions
 
 
 def _size(text: Optional[str], option: str) -> Optional[tuple[int, int]]:
@@ -82,7 +86,8 @@ def export_opencv(
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """One OpenCV FileStorage YAML per scanner (cv2.stereoCalibrate layout: cameraMatrix1/2,
-    distCoeffs1/2, R, T, plus each sensor's world pose); prints each sensor's model
+    distCoeffs1/2, R, T, plus each sensor's world pose and, from a run's calibration, its
+    observed region as a hull in pixels); prints each sensor's model
     difference to fringecal's projection in pixels. A sensor with a correction field gets
     OpenCV's 14-coefficient model fitted by least squares, and the worst difference says
     whether it fits (at most 0.01 px) or approximates."""
@@ -98,9 +103,9 @@ def _export(run: Optional[Path], calibration: Optional[Path], out: Path, as_json
         raise UserInputError("give the calibration as --run RUN_DIR or as --calibration FILE (not both, not none)")
     output_folder(out, "--out")
     option, calibration = ("--run", run) if run is not None else ("--calibration", calibration)
-    rig = _read_rig(calibration, option)
+    rig, regions = _read_rig(calibration, option)
     try:
-        written = write_rig(rig, out)
+        written = write_rig(rig, out, regions=regions)
     except ValueError as err:  # a lens model that folds over inside the format
         raise UserInputError(f"{calibration}: {err}") from None
     models = [(name, path, m) for name, (path, cam, prj) in written.items() for m in (cam, prj)]

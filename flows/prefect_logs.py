@@ -9,9 +9,13 @@ configured its logging, :func:`to_file` moves every handler that writes to the
 terminal (Prefect's console handler on the root logger, the stream handlers of
 ``uvicorn`` and ``prefect._internal``) to one file handler on the run's log file
 (``RUN_DIR/fringecal.log``, :attr:`fringecal.rundir.RunDir.log`), which keeps the
-full detail: every traceback, every warning. fringecal's own warnings (a sphere not
-fitted, a file recomputed) still reach the terminal, one line each and without a
-traceback. ``--verbose`` leaves Prefect's logging as it is.
+full detail: every traceback, every warning, and fringecal's own info lines (what each
+step found: the bundle adjustment's F RMS, its sensor model, each sensor's share of its
+format the control points covered; each store's valid share), which Prefect's level
+(``PREFECT_LOGGING_LEVEL``, WARNING for a quiet run) would otherwise drop. fringecal's own
+warnings (a sphere not fitted, a file recomputed) still reach the terminal, one line
+each and without a traceback; its info lines do not. ``--verbose`` leaves Prefect's
+logging as it is.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ __all__ = ["to_file", "restore"]
 _FORMAT = "%(asctime)s | %(levelname)-7s | %(name)s - %(message)s"
 _moved: list[tuple[logging.Logger, logging.Handler]] = []
 _added: list[tuple[logging.Logger, logging.Handler]] = []
+_levels: list[tuple[logging.Logger, int]] = []
 
 
 class _OneLine(logging.Formatter):
@@ -63,6 +68,8 @@ def to_file(log_path: Path) -> Path:
             lg.addHandler(file_handler)
             _added.append((lg, file_handler))
     ours = logging.getLogger("fringecal")
+    _levels.append((ours, ours.level))
+    ours.setLevel(logging.INFO)  # the file keeps fringecal's info lines, the terminal only its warnings
     console = logging.StreamHandler(sys.stderr)
     console.setLevel(logging.WARNING)
     console.setFormatter(_OneLine())
@@ -84,3 +91,6 @@ def restore() -> None:
     while _moved:
         lg, h = _moved.pop()
         lg.addHandler(h)
+    while _levels:
+        lg, level = _levels.pop()
+        lg.setLevel(level)

@@ -15,6 +15,7 @@ import pandas as pd
 from fringecal.acceptance.cloud import cloud_acceptance_values
 from fringecal.acceptance.evaluate import DEPTH_COLUMNS, VALUE_COLUMNS, certificate, form_u
 from fringecal.acceptance.measure import AcceptanceMeasurementError, measure_flat_store, measure_sphere_store
+from fringecal.acceptance.observed import objects_outside
 from fringecal.acceptance.standards import AcceptanceConfig, AcceptanceStandards, ScannerSpecification
 from fringecal.rig import Rig
 from fringecal.spheres.robust import RejectionConfig
@@ -46,7 +47,9 @@ def camera_depths(rig: Rig, scanner: str, points) -> np.ndarray:
     return rig.scanner(scanner).camera.to_sensor(np.atleast_2d(np.asarray(points, float)))[:, 2]
 
 
-def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict], list[dict]]:
+def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict], list[dict], dict]:
+    """The value rows and failures of one sphere or flat store, and the camera pixels its
+    fit kept: {(position, scanner, kind): (rows, cols)} (empty when it failed)."""
     position, scanner, store = job
     k = config.coverage_factor
     try:
@@ -60,15 +63,16 @@ def _probe(kind: str, job, rig, standards, config, rejection) -> tuple[list[dict
                      "n_excluded": m.n_excluded, "depth_mm": depth},
                     {"test": kind, "parameter": "P_S", "position": position, "scanner": scanner,
                      "value_mm": m.size_mm, "U_mm": k * float(np.hypot(s.diameter_u_mm, m.diameter_u_fit_mm)),
-                     "n_points": m.n_points, "n_excluded": m.n_excluded, "depth_mm": depth}], []
+                     "n_points": m.n_points, "n_excluded": m.n_excluded, "depth_mm": depth}], [], \
+                {(position, scanner, kind): m.pixels}
         f = standards.flat
         m = measure_flat_store(store, rig.scanner(scanner), f, config.exclude_fraction, config.max_incidence_deg)
         return [{"test": kind, "parameter": "F", "position": position, "scanner": scanner,
                  "value_mm": m.flatness_mm, "U_mm": k * float(np.hypot(form_u(f.flatness_mm), f.flatness_u_mm)),
                  "n_points": m.n_points, "n_excluded": m.n_excluded,
-                 "depth_mm": float(camera_depths(rig, scanner, m.point)[0])}], []
+                 "depth_mm": float(camera_depths(rig, scanner, m.point)[0])}], [], {(position, scanner, kind): m.pixels}
     except AcceptanceMeasurementError as err:
-        return [], [{"test": kind, "position": position, "scanner": scanner, "reason": str(err)}]
+        return [], [{"test": kind, "position": position, "scanner": scanner, "reason": str(err)}], {}
 
 
 def outside_volume(values: pd.DataFrame, specification: ScannerSpecification) -> tuple[pd.DataFrame, list[dict]]:
@@ -93,7 +97,7 @@ def outside_volume(values: pd.DataFrame, specification: ScannerSpecification) ->
 
 
 def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, length_config, covariance,
-                       workers: int = 2, fit_factors: dict | None = None) -> tuple[pd.DataFrame, list[dict]]:
+                       workers: int = 2, fit_factors: dict | None = None, pixels: bool = False):
     """The raw values of every sphere, flat and dumbbell position measured with ``rig``.
 
     Parameters
@@ -108,24 +112,31 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
     covariance : the run's ``calibration_covariance.npz`` arrays, or None
     fit_factors : scanner -> factor on its sphere fits' uncertainty in the dumbbell's
         budget (:func:`~fringecal.verification.uncertainty.ballbar_uncertainty`)
+    pixels : whether to return, third, the camera pixels each fit kept
 
     Returns
     -------
     values : DataFrame with :data:`fringecal.acceptance.evaluate.VALUE_COLUMNS`
     failures : list of dict (test, position, scanner, reason)
+    kept : with ``pixels``, kind -> {(position, scanner, sphere id or kind): (rows, cols)}
+        (:func:`fringecal.verification.measure.positions_outside` counts them)
     """
 
     rej = RejectionConfig(**rejection)
-    rows, failures = [], []
+    rows, failures, kept = [], [], {}
     jobs = [(kind, (pos, sc, path)) for kind in ("sphere", "flat") if getattr(standards, kind) is not None
             for pos, by_scanner in stores.get(kind, {}).items() for sc, path in by_scanner.items()]
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        for r, f in pool.map(lambda j: _probe(j[0], j[1], rig, standards, config, rej), jobs):
+        for (kind, _), (r, f, px) in zip(jobs, pool.map(lambda j: _probe(j[0], j[1], rig, standards, config, rej),
+                                                        jobs)):
             rows += r
             failures += f
+            kept.setdefault(kind, {}).update(px)
     bell = standards.dumbbell
     if bell is not None and stores.get("dumbbell"):
-        centres, fails, pixels = measure_positions(stores["dumbbell"], rig, bell.artefact(), rej, workers, pixels=True)
+        centres, fails, bell_pixels = measure_positions(stores["dumbbell"], rig, bell.artefact(), rej, workers,
+                                                        pixels=True)
+        kept["dumbbell"] = bell_pixels
         failures += [{"test": "dumbbell", "position": f.position, "scanner": f.scanner, "reason": f.reason}
                      for f in fails.itertuples()]
         lengths = ballbar_lengths(centres, "dumbbell centres")
@@ -133,7 +144,7 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
         budget = None
         if covariance is not None and len(lengths):
             cfg = length_config.model_copy(update={"monte_carlo_draws": 0, "coverage_factor": config.coverage_factor})
-            budget = ballbar_uncertainty(centres, pixels, stores["dumbbell"], rig, lengths, bell.length_mm,
+            budget = ballbar_uncertainty(centres, bell_pixels, stores["dumbbell"], rig, lengths, bell.length_mm,
                                          covariance, cfg, config.limits.SD, bell.length_u_mm, ("A", "B"), workers,
                                          fit_factors=fit_factors)
         sd = length_values(budget, lengths, "SD", "dumbbell", config.coverage_factor, cell=False)
@@ -142,7 +153,8 @@ def measure_acceptance(stores: dict, rig, standards, config, rejection: dict, le
             z = camera_depths(rig, row["scanner"].split("/")[0], ends[["x_mm", "y_mm", "z_mm"]].to_numpy(float))
             row["depth_near_mm"], row["depth_mm"] = float(z.min()), float(z.max())
         rows += sd
-    return pd.DataFrame(rows, columns=VALUE_COLUMNS + DEPTH_COLUMNS), failures
+    values = pd.DataFrame(rows, columns=VALUE_COLUMNS + DEPTH_COLUMNS)
+    return (values, failures, kept) if pixels else (values, failures)
 
 
 def _split(stores: dict, boxes: set) -> tuple[dict, dict]:
@@ -160,7 +172,8 @@ def _split(stores: dict, boxes: set) -> tuple[dict, dict]:
 def acceptance_document(rig: Rig | None, standards: AcceptanceStandards, config: AcceptanceConfig, rejection: dict,
                         length_config: LengthUncertaintyConfig, covariance: dict | None, stores: dict,
                         verification: dict | None = None, positions: list[dict] = (),
-                        black_boxes: dict | None = None, fit_factors: dict | None = None) -> tuple[dict, pd.DataFrame]:
+                        black_boxes: dict | None = None, fit_factors: dict | None = None,
+                        regions: dict | None = None) -> tuple[dict, pd.DataFrame]:
     """The acceptance document (:func:`.evaluate.certificate`) and its values for ``rig``.
 
     ``stores`` and ``rejection``, ``length_config``, ``covariance`` as for
@@ -170,12 +183,15 @@ def acceptance_document(rig: Rig | None, standards: AcceptanceStandards, config:
     ``black_boxes``: ``black_boxes.json`` when the rig has black-box scanners, whose
     positions in ``stores`` are clouds measured with their transforms
     (:func:`.cloud.cloud_acceptance_values`); ``rig`` None: a rig of black boxes only.
-    ``fit_factors`` as for :func:`measure_acceptance`."""
+    ``fit_factors`` as for :func:`measure_acceptance`. ``regions``: the calibration's
+    observed regions (sensor name -> region; None or empty: not known), against which
+    the document states per object the share of its fits' pixels outside
+    (``observed_region``, :func:`.observed.objects_outside`)."""
     boxes = {d["scanner"] for d in black_boxes["scanners"]} if black_boxes else set()
     modelled, clouds = _split(stores, boxes)
-    values, failures = measure_acceptance(modelled, rig, standards, config, rejection, length_config, covariance,
-                                          fit_factors=fit_factors) \
-        if rig is not None else (pd.DataFrame(columns=VALUE_COLUMNS + DEPTH_COLUMNS), [])
+    values, failures, kept = measure_acceptance(modelled, rig, standards, config, rejection, length_config,
+                                                covariance, fit_factors=fit_factors, pixels=True) \
+        if rig is not None else (pd.DataFrame(columns=VALUE_COLUMNS + DEPTH_COLUMNS), [], {})
     if any(clouds.values()):
         rows, fails = cloud_acceptance_values(clouds, black_boxes, standards, config, rejection)
         failures += fails
@@ -192,6 +208,7 @@ def acceptance_document(rig: Rig | None, standards: AcceptanceStandards, config:
     doc = certificate(values, config.limits, config.coverage_factor, config.exclude_fraction, scanners, failures,
                       list(positions), config.specification)
     doc["black_boxes"] = sorted(boxes)  # scanners whose values were measured in their clouds
+    doc["observed_region"] = objects_outside(modelled, rig, kept, regions, verification)
     return doc, values
 
 

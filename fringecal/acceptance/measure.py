@@ -48,7 +48,7 @@ points belong to the object is the evaluator's segmentation, stated here):
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
@@ -104,9 +104,13 @@ class SphereMeasurement:
     diameter_orthogonal_mm: float = float("nan")
     diameter_u_orthogonal_mm: float = float("nan")
     fit: str = "orthogonal"  # the fit P_S comes from: "orthogonal" or "along camera rays"
+    # (rows, cols) of the camera pixels of the points the fit kept (the exclusion applied);
+    # None: measured without pixels (a cloud)
+    pixels: tuple | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        d = asdict(replace(self, pixels=None))
+        del d["pixels"]
         d["centre"] = [float(c) for c in self.centre]
         return d
 
@@ -122,9 +126,12 @@ class FlatMeasurement:
     n_points: int
     n_excluded: int
     extent_mm: tuple[float, float]
+    # (rows, cols) of the camera pixels of the points the fit kept, as for a sphere
+    pixels: tuple | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        d = asdict(replace(self, pixels=None))
+        del d["pixels"]
         d["normal"] = [float(c) for c in self.normal]
         d["point"] = [float(c) for c in self.point]
         d["extent_mm"] = [float(e) for e in self.extent_mm]
@@ -225,10 +232,12 @@ def sphere_along_rays(points, origin, centre, radius: float) -> RaySphere:
 
 
 def probe_sphere(points, standard: SphereStandard, exclude_fraction: float = 0.003,
-                 origin=None) -> SphereMeasurement:
+                 origin=None, pixels=None) -> SphereMeasurement:
     """P_F and P_S of the points (n, 3) of one sphere measurement (mm); ``origin``: the
     projection centre of the camera that measured them (P_S then comes from the fit
-    along its rays, :func:`sphere_along_rays`; None: from the orthogonal fit).
+    along its rays, :func:`sphere_along_rays`; None: from the orthogonal fit);
+    ``pixels``: (rows, cols) of the points' camera pixels, of which the measurement
+    keeps those of the points the fit kept (:attr:`SphereMeasurement.pixels`).
 
     Examples
     --------
@@ -258,11 +267,22 @@ def probe_sphere(points, standard: SphereStandard, exclude_fraction: float = 0.0
         centre, diameter, u, how = rays.centre, 2 * rays.radius, 2 * rays.radius_u, "along camera rays"
     return SphereMeasurement(centre, diameter, float(r.max() - r.min()), diameter - standard.diameter_mm, u,
                              float(fit.rms), int(keep.sum()), int((~keep).sum()), orthogonal,
-                             2 * float(np.sqrt(fit.covariance[3, 3])), how)
+                             2 * float(np.sqrt(fit.covariance[3, 3])), how, _kept(pixels, keep))
 
 
-def probe_flat(points, exclude_fraction: float = 0.003, toward=None) -> FlatMeasurement:
-    """F of the points (n, 3) of one flat measurement (mm).
+def _kept(pixels, keep: np.ndarray) -> tuple | None:
+    """(rows, cols) of ``pixels`` where ``keep``; None without pixels."""
+    if pixels is None:
+        return None
+    rows, cols = (np.asarray(a, np.int64) for a in pixels)
+    if len(rows) != len(keep) or len(cols) != len(keep):
+        raise ValueError(f"{len(rows)} pixel rows and {len(cols)} columns for {len(keep)} points")
+    return rows[keep], cols[keep]
+
+
+def probe_flat(points, exclude_fraction: float = 0.003, toward=None, pixels=None) -> FlatMeasurement:
+    """F of the points (n, 3) of one flat measurement (mm); ``pixels`` as for
+    :func:`probe_sphere`.
 
     Examples
     --------
@@ -288,7 +308,7 @@ def probe_flat(points, exclude_fraction: float = 0.003, toward=None) -> FlatMeas
     inplane = (p[keep] - fit.point) @ fit.axes.T
     extent = tuple(float(e) for e in inplane.max(axis=0) - inplane.min(axis=0))
     return FlatMeasurement(np.asarray(fit.normal, float), np.asarray(fit.point, float), float(r.max() - r.min()),
-                           float(fit.rms), int(keep.sum()), int((~keep).sum()), extent)
+                           float(fit.rms), int(keep.sum()), int((~keep).sum()), extent, _kept(pixels, keep))
 
 
 # -- from a store -----------------------------------------------------------------------------
@@ -347,9 +367,9 @@ def measure_sphere_store(store, scanner: Scanner, standard: SphereStandard, excl
     if pixel_integration_px > 0:
         p, ok = correct_sphere_points(scanner, np.stack([cols, rows], axis=-1), p, s.centre, s.radius_mm,
                                       pixel_integration_px)
-        p = p[ok]
+        p, rows, cols = p[ok], rows[ok], cols[ok]
     try:
-        return probe_sphere(p, standard, exclude_fraction, origin=scanner.camera.pinhole)
+        return probe_sphere(p, standard, exclude_fraction, origin=scanner.camera.pinhole, pixels=(rows, cols))
     except (FitError, AcceptanceMeasurementError) as err:
         raise AcceptanceMeasurementError(f"{store}: sphere: {err}") from None
 
@@ -406,10 +426,12 @@ def measure_flat_store(store, scanner: Scanner, standard: FlatStandard, exclude_
             candidates &= ~region
             continue
         sel = ndimage.binary_erosion(region, np.ones((3, 3), bool), iterations=FLAT_RIM_PX) & inner
-        q = xyz[sel]
-        q = q[_incidence_ok(q, np.broadcast_to(plane.normal, q.shape), scanner, max_incidence_deg)]
+        rows, cols = np.nonzero(sel)  # the order of xyz[sel]
+        q = xyz[rows, cols]
+        seen = _incidence_ok(q, np.broadcast_to(plane.normal, q.shape), scanner, max_incidence_deg)
         try:
-            return probe_flat(q, exclude_fraction, toward=scanner.camera.pinhole)
+            return probe_flat(q[seen], exclude_fraction, toward=scanner.camera.pinhole,
+                              pixels=(rows[seen], cols[seen]))
         except (FitError, AcceptanceMeasurementError) as err:
             raise AcceptanceMeasurementError(f"{store}: flat: {err}") from None
     raise AcceptanceMeasurementError(f"{store}: no plane region of the flat's size ({standard.length_mm:g} x "

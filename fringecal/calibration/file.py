@@ -12,6 +12,11 @@ Layout::
           <distortion> k1 k2 k3 p1 p2 </distortion>
           <thin_prism> s1 s2 s3 s4 </thin_prism>   (only a model with thin-prism terms)
           <correction_field degree="4"> f01 .. f19 </correction_field>   (only a model with a field)
+          <observed_region unit=".." format_mm="w h" cells="nx ny" min_points_per_cell="5"
+                           fraction_observed="..">             (only where the calibration knows it)
+            <vertex x_mm=".." y_mm=".."/> ...                  the hull, counter-clockwise
+            <points_per_cell> ny lines of nx counts </points_per_cell>
+          </observed_region>
         </sensor>
         ...
       </scanner>
@@ -59,7 +64,10 @@ needs to state uncertainties and to trace it (the XML keeps the thesis layout on
   fraction of the format they cover (:class:`fringecal.lens.observed_region.ObservedRegion`);
   ``fringecal measure`` flags the points measured outside it. A file without it (one
   written before it existed, or by another program) reads as "not known":
-  :attr:`Calibration.observed_regions` has no entry for that sensor.
+  :attr:`Calibration.observed_regions` has no entry for that sensor. The XML carries it
+  too (``<observed_region>``, the layout above; :func:`read_calibration` reads it back),
+  and ``fringecal export opencv`` writes its hull in pixels
+  (:mod:`fringecal.interop.opencv_storage`).
 * ``provenance`` -- the digests of the adjustment's input files, its settings and their
   digest, the package versions. The run's whole configuration is in its
   ``manifest.json``; a calibration depends only on the settings listed here and on its
@@ -526,8 +534,9 @@ def read_calibration(path) -> Calibration:
     path = Path(path)
     if not path.is_file():
         raise CalibrationFileError(f"{path}: no such file" if not path.exists() else f"{path}: not a file")
-    if path.suffix.lower() == ".xml":
-        return Calibration(read_calibration_xml(path))
+    if path.suffix.lower() == ".xml":  # the thesis layout: sensors and their observed regions only
+        rig, regions = _read_xml(path)
+        return Calibration(rig, observed_regions=regions)
     d = _json_document(path)
     rig = rig_from_dict(d, str(path))
     cov = _covariances(d["covariance"], rig, str(path)) if "covariance" in d else None
@@ -560,13 +569,41 @@ def _observed_regions(d: dict, rig: Rig, source: str) -> dict:
     return out
 
 
-def write_calibration_xml(rig: Rig, path, metadata: dict | None = None) -> Path:
-    return write_text(Path(path), xml_text(rig, metadata))
+def write_calibration_xml(rig: Rig, path, metadata: dict | None = None, observed_regions: dict | None = None) -> Path:
+    return write_text(Path(path), xml_text(rig, metadata, observed_regions))
 
 
-def xml_text(rig: Rig, metadata: dict | None = None) -> str:
-    """The XML calibration document of ``rig`` (see the module's layout)."""
-    d = rig_to_dict(rig, metadata)
+def _xml_region(parent, region: dict) -> None:
+    """An ``observed_region`` entry (:meth:`ObservedRegion.to_dict`) as XML under ``parent``."""
+    e = ET.SubElement(parent, "observed_region", {
+        "unit": region["unit"], "format_mm": " ".join(map(repr, region["format_mm"])),
+        "cells": " ".join(map(str, region["cells"])), "min_points_per_cell": str(region["min_points_per_cell"]),
+        "fraction_observed": repr(region["fraction_observed"])})
+    for x, y in region["hull_mm"]:
+        ET.SubElement(e, "vertex", x_mm=repr(x), y_mm=repr(y))
+    ET.SubElement(e, "points_per_cell").text = "\n".join(" ".join(map(str, row)) for row in region["points_per_cell"])
+
+
+def _xml_region_entry(e, where: str) -> dict:
+    """The ``observed_region`` entry of an ``<observed_region>`` element (checked by
+    :func:`_observed_regions` as the JSON's)."""
+    try:
+        counts = [[int(v) for v in line.split()] for line in (e.findtext("points_per_cell") or "").split("\n")
+                  if line.strip()]
+        return {"format_mm": [float(v) for v in e.get("format_mm", "").split()],
+                "cells": [int(v) for v in e.get("cells", "").split()],
+                "min_points_per_cell": int(e.get("min_points_per_cell", "")),
+                "hull_mm": [[float(v.get("x_mm")), float(v.get("y_mm"))] for v in e.findall("vertex")],
+                "points_per_cell": counts}
+    except (TypeError, ValueError) as err:
+        raise CalibrationFileError(f"{where} <observed_region>: not numbers where numbers belong ({err})") from None
+
+
+def xml_text(rig: Rig, metadata: dict | None = None, observed_regions: dict | None = None) -> str:
+    """The XML calibration document of ``rig`` (see the module's layout), with each
+    sensor's ``observed_regions`` entry where it has one (sensor name ->
+    :class:`~fringecal.lens.observed_region.ObservedRegion`)."""
+    d = rig_to_dict(rig, metadata, observed_regions=observed_regions)
     root = ET.Element("calibration", software=d["software"], version=d["version"],
                       reference_scanner=d["reference_scanner"])
     for sc in d["scanners"]:
@@ -596,6 +633,8 @@ def xml_text(rig: Rig, metadata: dict | None = None) -> str:
                     if "u" in p:
                         attrs["u"] = repr(p["u"])
                     ET.SubElement(e_g, n, attrs).text = repr(p["value"])
+            if "observed_region" in se:
+                _xml_region(e_se, se["observed_region"])
     meta = ET.SubElement(root, "metadata")
     for k, v in d["metadata"].items():
         ET.SubElement(meta, "item", key=str(k)).text = json.dumps(v)
@@ -616,6 +655,11 @@ def _xml_leaves(element, where: str) -> dict:
 
 
 def read_calibration_xml(path) -> Rig:
+    return _read_xml(path)[0]
+
+
+def _read_xml(path) -> tuple[Rig, dict]:
+    """The rig of an XML calibration file and its sensors' observed regions."""
     path = Path(path)
     try:
         root = ET.parse(path).getroot()
@@ -661,6 +705,10 @@ def read_calibration_xml(path) -> Rig:
                     raise CalibrationFileError(f"{path}: {where} <correction_field degree={e_cf.get('degree')!r}>: "
                                                "not a whole number") from None
                 entry["correction_field"] = {"degree": degree, "coefficients": terms}
+            e_or = e_se.find("observed_region")
+            if e_or is not None:
+                entry["observed_region"] = _xml_region_entry(e_or, f"{path}: {where}")
             sc["sensors"].append(entry)
         d["scanners"].append(sc)
-    return rig_from_dict(d, str(path))
+    rig = rig_from_dict(d, str(path))
+    return rig, _observed_regions(d, rig, str(path))

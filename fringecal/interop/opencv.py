@@ -74,6 +74,8 @@ __all__ = [
     "from_opencv",
     "model_difference",
     "pixel_map",
+    "points_mm",
+    "points_px",
     "to_opencv",
 ]
 
@@ -191,6 +193,24 @@ def pixel_map(role: Role, fmt: SensorFormat) -> tuple[np.ndarray, np.ndarray]:
     n = np.array([fmt.width_px, fmt.height_px], float)
     a = ((n - 1) if role == "camera" else n) / fmt.size_mm
     return a, (n - 1) / 2
+
+
+def points_px(role: Role, fmt: SensorFormat, image_mm) -> np.ndarray:
+    """Image-plane points (m, 2) mm (e.g. an observed region's hull vertices) as OpenCV
+    pixels (m, 2) of that sensor (:func:`pixel_map`; a projector's over its SLM).
+
+    >>> px = points_px("camera", SensorFormat(2048, 2048, 15.1, 15.1), [[-7.55, 0.0], [7.55, 7.55]])
+    >>> (px.round(9) + 0.0).tolist()
+    [[0.0, 1023.5], [2047.0, 2047.0]]
+    """
+    a, b = pixel_map(role, fmt)
+    return np.asarray(image_mm, float).reshape(-1, 2) * a + b
+
+
+def points_mm(role: Role, fmt: SensorFormat, pixels) -> np.ndarray:
+    """Inverse of :func:`points_px`: OpenCV pixels (m, 2) -> image-plane mm (m, 2)."""
+    a, b = pixel_map(role, fmt)
+    return (np.asarray(pixels, float).reshape(-1, 2) - b) / a
 
 
 def to_opencv(sensor: Sensor, grid: int = GRID, depths=DEPTHS_MM) -> OpenCVCamera:

@@ -22,9 +22,19 @@ inverse camera over its SLM's pixel grid) the second::
                                       model is fitted (:func:`fringecal.interop.opencv.to_opencv`):
                                       "fits" (worst difference at most fitTolerancePx) or
                                       "approximates"; a comment at the top says the same in words
+    observedHullPx1, observedHullPx2  only where the calibration knows it: the sensor's observed
+                                      region (:mod:`fringecal.lens.observed_region`), the convex
+                                      hull of the control points the calibration used (outside it
+                                      the model extrapolates), m x 2 vertices (u, v) in that
+                                      sensor's OpenCV pixels (0 x 2: nothing observed); a comment
+                                      at the top says so
+    observedFraction1, observedFraction2   the share of the format inside that hull
 
-A scanner whose sensors have no correction field is written exactly as before the
-fitted export existed (no extra key, no extra comment).
+A scanner whose sensors have no correction field and no observed region is written
+exactly as before those existed (no extra key, no extra comment). The hull's vertices
+are exact in pixels: a camera's hull was measured in its pixels, a projector's in its
+phases, which map to its SLM's pixels linearly (:func:`fringecal.interop.opencv.points_px`);
+:meth:`StereoFile.hull_mm` turns them back into image-plane mm.
 
 Frames and pixel conventions: :mod:`fringecal.interop.opencv`.
 
@@ -55,6 +65,8 @@ from fringecal.interop.opencv import (
     ImportedSensor,
     OpenCVCamera,
     from_opencv,
+    points_mm,
+    points_px,
     to_opencv,
 )
 from fringecal.names import check_name, confined
@@ -107,10 +119,24 @@ class StereoFile:
     camera_name: str | None = None
     projector_name: str | None = None
     projector_angles: np.ndarray | None = None
+    hull_px1: np.ndarray | None = None  # the observed region's hull (m, 2), OpenCV pixels
+    hull_px2: np.ndarray | None = None
+
+    def hull_mm(self, i: int) -> np.ndarray | None:
+        """The observed region's hull (m, 2) of sensor ``i`` (1 camera, 2 projector) in
+        image-plane mm, as ``calibration.json`` holds it; None when the file has no hull
+        or not the image size and format in mm it needs."""
+        px, size, mm = getattr(self, f"hull_px{i}"), getattr(self, f"size{i}"), getattr(self, f"size_mm{i}")
+        if px is None or size is None or mm is None:
+            return None
+        return points_mm("camera" if i == 1 else "projector", SensorFormat(size[0], size[1], *mm), px)
 
 
-def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM) -> tuple[str, OpenCVCamera, OpenCVCamera]:
-    """The YAML document of ``scanner`` and its two verified OpenCV models."""
+def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM,
+                regions: dict | None = None) -> tuple[str, OpenCVCamera, OpenCVCamera]:
+    """The YAML document of ``scanner`` and its two verified OpenCV models; ``regions``
+    (sensor name -> :class:`~fringecal.lens.observed_region.ObservedRegion`) adds each
+    sensor's observed region it names, its hull in pixels."""
     cam, prj = to_opencv(scanner.camera, grid, depths), to_opencv(scanner.projector, grid, depths)
     R = prj.R @ cam.R.T
     T = prj.t - R @ cam.t
@@ -125,6 +151,13 @@ def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM) -> tuple[s
     for i, m in ((1, cam), (2, prj)):
         if m.fitted:  # a correction field: the model is fitted, and the file says how well
             fs.writeComment(f"{m.role} (distCoeffs{i}, cameraMatrix{i}): {m.statement}")
+    observed = [(i, s, regions[s.name]) for i, s in ((1, scanner.camera), (2, scanner.projector))
+                if s.name in (regions or {})]
+    if observed:
+        fs.writeComment("observedHullPx1/2: the region of the camera's (1) and the projector's (2) image the "
+                        "calibration observed, the convex hull of its control points (outside it the model "
+                        "extrapolates); vertices (u, v) in PIXELS of that sensor (the projector's over its SLM), "
+                        "pixel centres at integers; observedFraction1/2: the share of the format inside it")
     fs.write("scanner", scanner.name)
     fs.write("cameraName", cam.name)
     fs.write("projectorName", prj.name)
@@ -149,18 +182,23 @@ def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM) -> tuple[s
         if m.fitted:
             fs.write(f"modelFit{i}", m.verdict)
             fs.write(f"fitTolerancePx{i}", FIT_TOLERANCE_PX)
+    for i, sensor, region in observed:
+        fs.write(f"observedHullPx{i}", points_px(sensor.role, sensor.format, region.hull))
+        fs.write(f"observedFraction{i}", region.fraction)
     return fs.releaseAndGetString(), cam, prj
 
 
-def write_rig(rig: Rig, out_dir, grid: int = GRID, depths=DEPTHS_MM) -> dict[str, tuple[Path, OpenCVCamera, OpenCVCamera]]:
-    """Write ``<out_dir>/<scanner>.yml`` for every scanner (all converted before any is written).
+def write_rig(rig: Rig, out_dir, grid: int = GRID, depths=DEPTHS_MM,
+              regions: dict | None = None) -> dict[str, tuple[Path, OpenCVCamera, OpenCVCamera]]:
+    """Write ``<out_dir>/<scanner>.yml`` for every scanner (all converted before any is
+    written), with the observed regions of ``regions`` (sensor name -> region).
 
     Returns
     -------
     dict scanner -> (path, camera model, projector model)
     """
     out_dir = Path(out_dir)
-    docs = {s.name: stereo_text(s, grid, depths) for s in rig.scanners}
+    docs = {s.name: stereo_text(s, grid, depths, regions) for s in rig.scanners}
     paths = {name: confined(out_dir, f"{check_name(name, 'scanner')}.yml") for name in docs}  # all before any write
     out_dir.mkdir(parents=True, exist_ok=True)
     return {name: (write_text(paths[name], text), cam, prj) for name, (text, cam, prj) in docs.items()}
@@ -205,13 +243,14 @@ def read_stereo(path) -> StereoFile:
             if s is not None and not np.all(s > 0):
                 raise OpenCVFileError(f"{path}: key 'sensorSizeMm{i}' must be two positive numbers, found {s.tolist()}")
         names = [_string(fs, path, k) for k in ("scanner", "cameraName", "projectorName")]
+        hulls = [_hull(fs, path, f"observedHullPx{i}") for i in (1, 2)]
     finally:
         fs.release()
     return StereoFile(path, req["cameraMatrix1"], req["distCoeffs1"].ravel(), req["cameraMatrix2"],
                       req["distCoeffs2"].ravel(), req["R"], req["T"].ravel(),
                       *(None if s is None else (int(s[0]), int(s[1])) for s in sizes),
                       *(None if s is None else (float(s[0]), float(s[1])) for s in mms),
-                      *names, angles)
+                      *names, angles, *hulls)
 
 
 def prior_scanner(st: StereoFile, name: str, camera_name: str, projector_name: str, *,
@@ -334,6 +373,20 @@ def _numbers(fs, path: Path, key: str, n: int) -> np.ndarray | None:
     if not isinstance(v, np.ndarray) or v.size != n or not np.all(np.isfinite(v)):
         raise OpenCVFileError(f"{path}: key {key!r} must be a list of {n} numbers")
     return np.asarray(v, float).ravel()
+
+
+def _hull(fs, path: Path, key: str) -> np.ndarray | None:
+    """An observed region's hull: m x 2 vertices (m >= 3, or 0: nothing observed); None
+    when the file has none."""
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        return None
+    if node.isMap() and node.getNode("rows").real() == 0:  # a 0 x 2 matrix reads as no matrix
+        return np.zeros((0, 2))
+    m = _map_matrix(node) if node.isMap() else _seq_values(node)
+    if not isinstance(m, np.ndarray) or m.ndim != 2 or m.shape[1] != 2 or len(m) < 3 or not np.all(np.isfinite(m)):
+        raise OpenCVFileError(f"{path}: key {key!r} must be an m x 2 matrix of vertices (u, v), m >= 3 or 0")
+    return np.asarray(m, float)
 
 
 def _string(fs, path: Path, key: str) -> str | None:

@@ -46,12 +46,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ObservedRegion", "CELLS_ACROSS", "MIN_POINTS_PER_CELL", "grid_shape", "outside"]
+__all__ = ["ObservedRegion", "CELLS_ACROSS", "MIN_POINTS_PER_CELL", "MIN_FRACTION", "grid_shape", "outside",
+           "too_small"]
 
 #: cells across the format's width
 CELLS_ACROSS = 16
 #: control points a cell needs to count as observed
 MIN_POINTS_PER_CELL = 5
+#: share of its format below which a sensor's region is too small to leave unremarked:
+#: the calibration saw about as little of that image as one artefact pose at the far
+#: stand-off shows a projector. On the default run (``fringecal run``) one pose alone
+#: covers 34-50 % of each camera's format and 17-24 % of each projector's (17-19 % at the
+#: six farthest poses); all twelve cover 62 % and 36-37 %, the tests' four poses
+#: (1, 5, 9, 12) 57-59 % and 25-26 % (docs/measure.md, with the recount's snippet)
+MIN_FRACTION = 0.20
 #: what the recorded grid's coordinates are (the ``unit`` of :meth:`ObservedRegion.to_dict`)
 UNIT = "measured image-plane mm from the format's centre (camera pixels, projector phases)"
 
@@ -81,6 +89,18 @@ def outside(regions, sightings) -> np.ndarray:
         if region is not None:
             out |= ~region.contains(image_mm)
     return np.zeros(0, bool) if out is None else out
+
+
+def too_small(regions, min_fraction: float = MIN_FRACTION) -> dict:
+    """The regions (sensor name -> :class:`ObservedRegion`) covering less than
+    ``min_fraction`` of their format.
+
+    >>> full = ObservedRegion(2.0, 2.0, np.zeros((1, 1)), [[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    >>> corner = ObservedRegion(2.0, 2.0, np.zeros((1, 1)), [[-1, -1], [-0.2, -1], [-0.2, -0.2], [-1, -0.2]])
+    >>> {n: round(r.fraction, 2) for n, r in too_small({"C1": full, "P1": corner}).items()}
+    {'P1': 0.16}
+    """
+    return {name: r for name, r in (regions or {}).items() if r.fraction < min_fraction}
 
 
 def _convex_hull(points: np.ndarray) -> np.ndarray:

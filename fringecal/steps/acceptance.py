@@ -6,7 +6,9 @@ scanner's in its clouds, carried by its calibrated transform and scale:
 each quality parameter against its limit with its uncertainty and the ISO 14253-1
 verdict.
 
-Writes ``acceptance.json`` (:func:`fringecal.acceptance.evaluate.certificate`) and
+Writes ``acceptance.json`` (:func:`fringecal.acceptance.evaluate.certificate`, with per
+object the share of its fits' pixels outside the calibration's observed region:
+:mod:`fringecal.acceptance.observed`; one warning names the objects with any) and
 ``tables/acceptance_values.csv``. A run with neither acceptance objects nor a
 verified ball-bar, or with ``acceptance.enabled: false``, has no acceptance test:
 both files are then absent.
@@ -17,7 +19,9 @@ from __future__ import annotations
 import logging
 
 from fringecal.acceptance.document import acceptance_document
+from fringecal.acceptance.observed import partly_outside
 from fringecal.acceptance.standards import AcceptanceStandards
+from fringecal.calibration.file import read_calibration
 from fringecal.rundir import RunDir
 from fringecal.steps.base import Settings, Step, black_box_scanners, black_boxes_only, stores_of_kind
 from fringecal.steps.verify import fit_factors
@@ -78,12 +82,20 @@ class Acceptance(Step):
             log.warning("no acceptance test: %s", "acceptance.enabled is false" if not cfg.acceptance.enabled
                         else "no acceptance objects and no verified ball-bar")
             return
-        doc, values = acceptance_document(rd.calibration.load() if modelled else None, standards, cfg.acceptance,
+        cal = read_calibration(rd.calibration.path) if modelled else None  # the rig and its observed regions
+        doc, values = acceptance_document(cal.rig if modelled else None, standards, cfg.acceptance,
                                           cfg.extraction.rejection, cfg.verification.uncertainty,
                                           rd.covariance.load() if modelled else None, stores,
                                           rd.verification.load() if verified else None, _positions(rd),
                                           rd.black_boxes.load() if black_box_scanners(rd) else None,
-                                          fit_factors(rd.bundle_summary.load(), cfg.verification) if modelled else None)
+                                          fit_factors(rd.bundle_summary.load(), cfg.verification) if modelled else None,
+                                          cal.observed_regions if modelled else None)
+        outside = partly_outside(doc["observed_region"])
+        if outside:
+            log.warning("acceptance objects measured partly where the calibration extrapolates, outside the region "
+                        "of the images its control points covered (share of the fits' pixels): %s; per position in "
+                        "%s (observed_region) and the report's acceptance values", "; ".join(outside),
+                        rd.acceptance.rel)
         for f in doc["failures"]:
             log.warning("acceptance %s position %s, scanner %s: %s", f["test"], f["position"], f["scanner"],
                         f["reason"])

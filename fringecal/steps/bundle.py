@@ -31,6 +31,7 @@ from fringecal.calibration.results import (binned_residuals, covariance_arrays, 
 from fringecal.config import ConfigError
 from fringecal.digests import digest_path, digest_value
 from fringecal.frames import Frame
+from fringecal.lens.observed_region import MIN_FRACTION, too_small
 from fringecal.report.plotting import residual_histograms_png
 from fringecal.rundir import RunDir, package_versions
 from fringecal.schemas import validate_table
@@ -269,8 +270,13 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     model = doc.get("sensor_model")
     per_sphere, per_meas = residual_tables(result)
     regions = observed_regions(result.problem)
-    log.info("image plane observed by the control points: %s",
+    log.info("image plane observed by the control points (share of each format inside their hull): %s",
              ", ".join(f"{name} {100 * r.fraction:.0f} %" for name, r in regions.items()))
+    small = too_small(regions)
+    if small:
+        log.warning("the control points covered less than %.0f %% of the image of %s: the calibration extrapolates "
+                    "over the rest of it (more artefact poses, or poses filling that image, would extend it)",
+                    100 * MIN_FRACTION, ", ".join(f"{n} ({100 * r.fraction:.0f} %)" for n, r in small.items()))
     tables = {rd.sensors_calibrated: result.sensors_frame(), rd.poses_calibrated: result.poses_frame(),
               rd.residuals_per_sphere: per_sphere, rd.residuals_per_measurement: per_meas,
               rd.residuals_binned: binned_residuals(result)}
@@ -289,7 +295,7 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
         if black_boxes is not None:
             calibration["black_boxes"] = black_boxes
         tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")
-        tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta))
+        tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta, regions))
         for f, df in tables.items():
             df.to_csv(tmp[f.rel], index=False, float_format="%.10g")
         for f, png in figures.items():

@@ -67,15 +67,35 @@ def _decision(doc: dict, params: list) -> dict:
 
 
 def _values(doc: dict):
-    """The raw value of every position (None when none was measured)."""
+    """The raw value of every position (None when none was measured), with the share of
+    its fits' pixels outside the calibration's observed region when the document states
+    it (an acceptance.json written before it did has no such column)."""
     def count(n, parameter):
         return int(n) if finite(n) and (n > 0 or parameter not in ("SD", "E")) else "–"
 
+    region = doc.get("observed_region")
     rows = [[v.get("test"), v.get("parameter"), v.get("position"), v.get("scanner"), um(v.get("value_mm")),
              um(v.get("U_mm")), count(v.get("n_points"), v.get("parameter")),
-             count(v.get("n_excluded"), v.get("parameter"))] for v in doc.get("values") or []]
-    return table(["Test", "Parameter", "Position", "Scanner", "Value", "U", "Points", "Excluded"], rows,
-                 left=4) if rows else None
+             count(v.get("n_excluded"), v.get("parameter"))] + ([_outside(region, v)] if region is not None else [])
+            for v in doc.get("values") or []]
+    heads = ["Test", "Parameter", "Position", "Scanner", "Value", "U", "Points", "Excluded"]
+    heads += ["Outside observed region"] if region is not None else []
+    return table(heads, rows, left=4) if rows else None
+
+
+def _outside(region: dict, v: dict) -> str:
+    """The share of a value's fits' pixels outside the observed region: its scanner's for
+    a sphere or a flat (one scanner's store), its position's for a length; "not known"
+    where the calibration has no regions or the object was measured in a cloud."""
+    position = str(v.get("position"))
+    entry = next((o for o in region.get("objects") or [] if o.get("test") == v.get("test")
+                  and str(o.get("position")) in (position, position.split(":")[0])), None)
+    if entry is None or entry.get("outside") is None:
+        return "not known"
+    mine = (entry.get("scanners") or {}).get(str(v.get("scanner")))
+    if v.get("test") in ("sphere", "flat") and mine and mine.get("points"):
+        return f"{100 * mine['outside'] / mine['points']:.0f} %"
+    return f"{100 * entry['fraction']:.0f} %"
 
 
 def _failure(f: dict) -> str:
