@@ -3,6 +3,7 @@ a small simulated rig written as a data set (``fringecal simulate``: the accepta
 objects' stacks in ``verification/acceptance/``), then processed by ``run --dataset``
 up to the acceptance step, which finds every object and gives every parameter."""
 
+import shutil
 
 import pytest
 
@@ -16,7 +17,14 @@ from fringecal.steps import run_pipeline
 pytestmark = pytest.mark.slow  # whole runs: the fast tier (-m "not slow") leaves this module out
 
 
-def test_acceptance_of_a_data_set_from_its_verification_folder(tmp_path):
+def test_acceptance_of_a_data_set_from_its_verification_folder(small_dataset_run, tmp_path):
+    """The run directory starts as a copy of the session's run of the small data set
+    (tests/conftest.py): this data set is that rig with acceptance objects and two of
+    its three ball-bar positions, written alike, so its stacks decode to the same
+    stores and its spheres and adjustment have the same keys there and are reused (the
+    same files a run from nothing writes; a copied run stays current,
+    tests/test_steps.py); what this test is about, the acceptance objects' stacks and
+    the acceptance step, runs."""
     config = write_small_thesis_config(tmp_path, width=320, poses=(1, 5, 9, 12), positions=(1, 9),
                                        acceptance={"sphere": 1, "dumbbell": 1, "flat": 1})
     sim = load_run_config(config)
@@ -24,7 +32,7 @@ def test_acceptance_of_a_data_set_from_its_verification_folder(tmp_path):
     assert sorted(p.name for p in (data / "verification" / "acceptance").iterdir()) == \
         ["dumbbell", "flat", "sphere", "standards.yaml"]
     cfg = load_run_config(config, dataset=data)
-    rd = RunDir(tmp_path / "run").create()
+    rd = RunDir(shutil.copytree(small_dataset_run[0].root, tmp_path / "run", symlinks=True))
     rd.manifest.save(manifest(cfg))
     run_pipeline(rd, cfg, workers=2, until="acceptance")
     assert not rd.truth.acceptance_positions.exists()       # nothing but the data set

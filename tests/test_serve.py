@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -149,12 +150,17 @@ def test_serve_refuses_wrong_credentials(server, tmp_path):
     assert not (tmp_path / "nightly").exists()
 
 
-def test_a_scheduled_run_starts_and_finishes(server, tmp_path):
+def test_a_scheduled_run_starts_and_finishes(server, small_run, tmp_path):
+    """The served run goes into a copy of the session's run of the small rig
+    (tests/conftest.py), as a nightly run goes into last night's run directory: the
+    tiny rig is that rig with one ball-bar position, so its stores and its adjustment
+    are current there and the scheduled run renders nothing and adjusts nothing again
+    (about 12 CPU-s less); it verifies, judges and reports, and finishes as before."""
     # nobody without the password reads or triggers runs; the health probe answers anyone
     assert httpx.post(f"{server}/flow_runs/filter", json={}, timeout=10).status_code == 401
     assert httpx.get(f"{server}/health", timeout=10).status_code == 200
     config = _tiny_config(tmp_path / "config")
-    out = tmp_path / "nightly"
+    out = shutil.copytree(small_run[0].root, tmp_path / "nightly", symlinks=True)
     log = tmp_path / "serve.log"
     # a 2 s interval and the runner asking for due runs every second (Prefect's default: 10 s):
     # the first scheduled run starts about 3 s after serving starts instead of 10-20 s

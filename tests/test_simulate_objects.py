@@ -6,6 +6,7 @@ triangulated with the true sensors onto the true surfaces, and the data-set door
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -302,12 +303,17 @@ def test_view_threshold_skips_scanners_and_an_unseen_object_is_refused(rig256, a
 # -- the data-set door -------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_dataset_door_writes_objects_that_calibration_ignores(tmp_path):
+def test_dataset_door_writes_objects_that_calibration_ignores(small_dataset_run, tmp_path):
     """``fringecal simulate`` with a panel and the artefact at a new pose on the small
     rig (320 px): ``objects/<name>/<scanner>/`` for the scanners that see each, the
     truth in ``<truth>/objects/<name>.json``; the frames decode to exactly the stores
     :func:`render_object_stores` renders for the same object, seed and settings; the
-    data set opens and ``run --dataset`` calibrates it without reading ``objects/``."""
+    data set opens and ``run --dataset`` calibrates it without reading ``objects/``.
+
+    The run starts from a copy of the session's run of the small data set
+    (tests/conftest.py), the same rig without objects: its calibration stacks are
+    current for this data set (the same frames), so only what this data set adds or
+    changes runs -- an object read as a measurement would be a new item of every step."""
     from fringecal.artefact import load_rods
     from fringecal.dataset import DataSet
     from fringecal.fringe.measurement import decode_folder
@@ -354,7 +360,7 @@ def test_dataset_door_writes_objects_that_calibration_ignores(tmp_path):
     ds = DataSet.open(data)
     assert {s.kind for s in ds.stacks()} == {"artefact", "ballbar"} and len(ds.stacks()) == 10
     cfg = load_run_config(config, dataset=data)
-    rd = RunDir(tmp_path / "run").create()
+    rd = RunDir(shutil.copytree(small_dataset_run[0].root, tmp_path / "run", symlinks=True))
     rd.manifest.save(manifest(cfg))
     run_pipeline(rd, cfg, workers=2, until="bundle")
     assert not any("objects" in str(s) for s in rd.acquisition.load()["source"])
