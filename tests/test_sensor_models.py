@@ -99,7 +99,7 @@ def test_the_wald_test_of_the_thin_prism_terms_sees_a_term_that_noise_does_not_g
     assert set(w["per_sensor"]) == {s.name for s in first.rig.sensors}
     assert all(s["p"] < 1e-3 for s in w["per_sensor"].values()), w["per_sensor"]
     assert w["kappa"] < 10 and w["p_dispersed"] < 1e-6 and w["present"], w  # a lens term: common to all
-    assert "the lenses carry a thin-prism term" in w["message"], w["message"]
+    assert "thin-prism-shaped error common to the measurements" in w["message"], w["message"]
     d = prism_diagnosis(w, "brown14")
     assert d.kind == "lens_model_too_simple" and d.severity == "warning" and w["message"] in d.message
     assert prism_diagnosis(w, "thin_prism") is None and prism_diagnosis(w, "field") is None

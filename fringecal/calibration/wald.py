@@ -206,8 +206,8 @@ def _message(w: dict) -> str:
     dispersed = (f"{head}; the measurements scatter the terms {w['kappa']:.2g} times as much as their noise "
                  f"(kappa), W / max(1, kappa) = {w['W_dispersed']:.1f}, p = {w['p_dispersed']:.2g}")
     if w["present"]:
-        return (f"{dispersed} < {w['alpha']:g}: the lenses carry a thin-prism term the 14 parameters only "
-                "partly absorb")
+        return (f"{dispersed} < {w['alpha']:g}: the images carry a thin-prism-shaped error common to the "
+                "measurements that the 14 parameters leave (a lens term is the usual cause; see the residuals)")
     return (f"{dispersed} >= {w['alpha']:g}: no thin-prism term beyond what errors shared by a measurement's "
             "points give")
 
