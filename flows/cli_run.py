@@ -141,7 +141,10 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
                     else "no pattern")
             rows.append(("  residual pattern Z (threshold)",
                          f"{sm['residual_pattern_z']:.1f} ({sm['residual_pattern_threshold']:g}): {flag}"))
-        if sm.get("prism_wald_p") is not None:
+        if sm.get("prism_verdict") == "undecided" and sm.get("prism_wald_p") is None:
+            why = ": too few measurements" if "too few" in (sm.get("prism_message") or "") else " (fringecal.log)"
+            rows.append(("  thin-prism terms", f"[yellow]not tested{why}[/]"))
+        elif sm.get("prism_wald_p") is not None:
             flag = ("[red]present, not modelled[/]" if sm["lens_model_too_simple"] and sm["prism_present"]
                     else "present, modelled" if sm["prism_present"]
                     else "[yellow]not decided: too few measurements[/]" if sm["prism_verdict"] == "undecided"

@@ -27,7 +27,8 @@ test that holds then (a first-moment, Satterthwaite-type correction). Taken as a
 of traces it needs no inverse of a covariance estimated from one replica per
 measurement (12 replicas of 8 terms on the thesis rig; a 4-measurement rig's are of
 rank 3). Kappa still scatters with few measurements: with fewer than ``MIN_REPLICAS``
-the terms are not called present on W alone (``verdict`` "undecided").
+the check is not made (``verdict`` "undecided"), since it could never call the terms
+present there.
 
 Verdict (:func:`prism_check`, run by every bundle step that chooses its model): the
 terms are "present" when ``p(W / max(1, kappa)) < PRISM_ALPHA``. Kappa costs a
@@ -182,8 +183,16 @@ def prism_check(first: BundleResult, options: BundleOptions, alpha: float = PRIS
     """The verdict on the thin-prism terms of ``first`` (module notes): :func:`prism_wald`,
     with the dispersion factor only when ``W`` alone is below ``alpha``. Adds ``alpha``,
     ``present`` (the terms are there), ``verdict`` ("present", "absent", or "undecided":
-    W alone is significant but too few measurements give the factor) and a ``message``."""
+    fewer than ``MIN_REPLICAS`` measurements, where the factor cannot be taken and the
+    check could only ever say "absent", so it is not made; or W alone is significant but
+    too few measurements leave a replica) and a ``message``."""
     t0 = time.perf_counter()
+    n = len(first.problem.measurements)
+    if n < MIN_REPLICAS:
+        why = (f"{n} measurement(s) are too few (at least {MIN_REPLICAS}) to tell a thin-prism term from errors "
+               "each measurement has of its own")
+        return {"model": "thin_prism", "skipped": why, "alpha": alpha, "present": False, "verdict": "undecided",
+                "message": f"thin-prism terms not tested: {why}", "seconds": time.perf_counter() - t0}
     try:
         fit, idx, given = _thin_prism_fit(first, options)
     except (ValueError, np.linalg.LinAlgError) as err:
