@@ -14,7 +14,9 @@ step found: the bundle adjustment's F RMS, its sensor model, each sensor's share
 format the control points covered; each store's valid share), which Prefect's level
 (``PREFECT_LOGGING_LEVEL``, WARNING for a quiet run) would otherwise drop. fringecal's own
 warnings (a sphere not fitted, a file recomputed) still reach the terminal, one line
-each and without a traceback; its info lines do not. ``--verbose`` leaves Prefect's
+each and without a traceback; its info lines do not, nor the Prefect server: its API
+handler keeps the WARNING level it had, so a run posts no more lines than before the
+file kept the info lines (about a hundred a run). ``--verbose`` leaves Prefect's
 logging as it is.
 """
 
@@ -29,7 +31,7 @@ __all__ = ["to_file", "restore"]
 _FORMAT = "%(asctime)s | %(levelname)-7s | %(name)s - %(message)s"
 _moved: list[tuple[logging.Logger, logging.Handler]] = []
 _added: list[tuple[logging.Logger, logging.Handler]] = []
-_levels: list[tuple[logging.Logger, int]] = []
+_levels: list[tuple[logging.Logger | logging.Handler, int]] = []
 
 
 class _OneLine(logging.Formatter):
@@ -70,6 +72,10 @@ def to_file(log_path: Path) -> Path:
     ours = logging.getLogger("fringecal")
     _levels.append((ours, ours.level))
     ours.setLevel(logging.INFO)  # the file keeps fringecal's info lines, the terminal only its warnings
+    for h in ours.handlers:  # Prefect's API handler (an extra logger's) keeps the warnings it had
+        if type(h).__name__ == "APILogHandler" and h.level < logging.WARNING:
+            _levels.append((h, h.level))
+            h.setLevel(logging.WARNING)
     console = logging.StreamHandler(sys.stderr)
     console.setLevel(logging.WARNING)
     console.setFormatter(_OneLine())

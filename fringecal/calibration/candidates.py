@@ -13,13 +13,16 @@ import numpy as np
 from fringecal.calibration.bundle import BundleOptions, BundleResult, bundle_adjust
 from fringecal.calibration.model import BundleProblem, Evaluator
 
-__all__ = ["CANDIDATES", "SENSOR_MODELS", "FIELD_PRIOR_MM", "prism_free_of", "with_model", "fit_model"]
+__all__ = ["CANDIDATES", "SENSOR_MODELS", "SPANS_THIN_PRISM", "FIELD_PRIOR_MM", "prism_free_of", "with_model",
+           "fit_model"]
 
 #: the candidates in order of size, with the thin-prism terms each frees (s1, s2, s3, s4)
 #: and whether it frees a correction field
 CANDIDATES = {"brown14": ((False, False, False, False), False), "thin_prism": ((True, False, True, False), False),
               "thin_prism4": ((True, True, True, True), False), "field": ((False, False, False, False), True)}
 SENSOR_MODELS = ("auto", *CANDIDATES)
+#: the candidates that adjust the first-order thin-prism terms (the field spans them)
+SPANS_THIN_PRISM = ("thin_prism", "thin_prism4", "field")
 #: prior standard deviation of each correction-field coefficient (mm): lens errors beyond
 #: Brown's terms of a micrometre RMS over the image plane per term
 FIELD_PRIOR_MM = 1e-3

@@ -55,7 +55,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from fringecal.calibration.bundle import BundleOptions, BundleResult, StartValueError
-from fringecal.calibration.candidates import fit_model
+from fringecal.calibration.candidates import SPANS_THIN_PRISM, fit_model
 from fringecal.calibration.crossval import subproblem
 from fringecal.calibration.diagnostics import DegenerateCalibrationError, Diagnosis
 from fringecal.calibration.jackknife import noise_worlds, readjusted_solution
@@ -231,7 +231,7 @@ def _message(w: dict) -> str:
 def prism_diagnosis(w: dict, model: str) -> Diagnosis | None:
     """The warning ``lens_model_too_simple`` when the terms are present and ``model``
     (the run's) does not adjust them (the correction field spans them), else None."""
-    if not w.get("present") or model in ("thin_prism", "thin_prism4", "field"):
+    if not w.get("present") or model in SPANS_THIN_PRISM:
         return None
     return Diagnosis("lens_model_too_simple", "warning", "thin_prism",
                      f"the lens model is too simple ({model}): {w['message']}")

@@ -19,6 +19,7 @@ noise, the phase ripple it corrected; :func:`fringecal.fringe.measurement.decodi
 from __future__ import annotations
 
 from fringecal.acceptance.verdict import run_verdict
+from fringecal.calibration.candidates import SPANS_THIN_PRISM
 from fringecal.dataset import DataSet
 from fringecal.digests import code_digest, digest_path
 from fringecal.fringe.measurement import decoding_summary
@@ -119,8 +120,8 @@ def _sensor_model(record: dict | None) -> dict | None:
     pattern = record.get("residual_pattern") or {}
     prism = record.get("prism_wald") or {}
     # the chosen model is too simple when its residual pattern says so, or when the
-    # thin-prism terms are present and it adjusts none (the field spans them)
-    prism_unmodelled = bool(prism.get("present")) and record["model"] not in ("thin_prism", "thin_prism4", "field")
+    # thin-prism terms are present and it adjusts none
+    prism_unmodelled = bool(prism.get("present")) and record["model"] not in SPANS_THIN_PRISM
     return {"model": record["model"], "chosen_by": record["chosen_by"],
             "held_out_rms_f_mm": {m: e["rms_f_mm"] for m, e in (record.get("held_out") or {}).items()},
             "residual_pattern_z": pattern.get("z_max"), "residual_pattern_threshold": pattern.get("threshold"),
