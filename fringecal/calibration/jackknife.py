@@ -69,7 +69,8 @@ from fringecal.calibration.model import BundleProblem, Evaluator, ParameterLayou
 from fringecal.calibration.keyed import keyed_signs, row_keys
 from fringecal.threads import numba_threads
 
-__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations", "noise_worlds", "readjusted"]
+__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations", "leave_one_out", "noise_worlds",
+           "readjusted", "readjusted_solution"]
 
 log = logging.getLogger(__name__)
 
@@ -150,22 +151,17 @@ def readjusted_solution(problem: BundleProblem, options: BundleOptions) -> tuple
     return ev.layout, report.x
 
 
-def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,
-                           workers: int = 1) -> Jackknife:
-    """Re-adjust ``result``'s problem once without each of its measurements, and the same
-    in ``noise_draws`` noise-only worlds (:func:`noise_worlds`), with the result's options
-    from its solution (:func:`readjusted`); ``workers`` adjustments at once, each on one
-    numba thread."""
-    options = result.options.model_copy(update={"start": "given"})
-    problems = [result.problem.with_start(result.rig, result.poses)]
-    problems += noise_worlds(result, noise_draws, seed)
-    names = [str(m) for m in result.problem.measurements]
-    t0 = time.perf_counter()
+def leave_one_out(problems: list[BundleProblem], names: list[str], options: BundleOptions, adjust,
+                  workers: int = 1) -> list[tuple]:
+    """``adjust(subproblem, options)`` of every problem without each measurement of
+    ``names`` in turn, in the order (problem, measurement): ``(value, None)``, or
+    ``(None, why)`` where the problem left cannot be calibrated (degenerate, or no start
+    values); ``workers`` adjustments at once, each on one numba thread."""
 
     def replica(task):
         k, m = task
         try:
-            return readjusted(subproblem(problems[k], [x for x in names if x != m]), options), None
+            return adjust(subproblem(problems[k], [x for x in names if x != m]), options), None
         except DegenerateCalibrationError as err:
             return None, "degenerate: " + "; ".join(d.message for d in err.diagnoses if d.severity == "error")
         except StartValueError as err:
@@ -177,10 +173,24 @@ def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS,
 
     tasks = [(k, m) for k in range(len(problems)) for m in names]
     if workers <= 1:
-        done = [replica(t) for t in tasks]
-    else:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            done = list(pool.map(on_one_thread, tasks))
+        return [replica(t) for t in tasks]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(on_one_thread, tasks))
+
+
+def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,
+                           workers: int = 1) -> Jackknife:
+    """Re-adjust ``result``'s problem once without each of its measurements, and the same
+    in ``noise_draws`` noise-only worlds (:func:`noise_worlds`), with the result's options
+    from its solution (:func:`readjusted`); ``workers`` adjustments at once, each on one
+    numba thread."""
+    options = result.options.model_copy(update={"start": "given"})
+    problems = [result.problem.with_start(result.rig, result.poses)]
+    problems += noise_worlds(result, noise_draws, seed)
+    names = [str(m) for m in result.problem.measurements]
+    t0 = time.perf_counter()
+    done = leave_one_out(problems, names, options, readjusted, workers)
+    tasks = [(k, m) for k in range(len(problems)) for m in names]
     params = [[done[k * len(names) + j][0] for j in range(len(names))] for k in range(len(problems))]
     why = {m: w for (k, m), (_, w) in zip(tasks, done) if k == 0 and w is not None}
     keep = [j for j, m in enumerate(names) if m not in why]

@@ -48,19 +48,15 @@ parameters leave, of which a lens term is the usual cause, not a lens term for c
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 
 import numpy as np
 from scipy.stats import chi2
 
-from fringecal.calibration.bundle import BundleOptions, BundleResult, StartValueError
+from fringecal.calibration.bundle import BundleOptions, BundleResult
 from fringecal.calibration.candidates import SPANS_THIN_PRISM, fit_model
-from fringecal.calibration.crossval import subproblem
-from fringecal.calibration.diagnostics import DegenerateCalibrationError, Diagnosis
-from fringecal.calibration.jackknife import noise_worlds, readjusted_solution
+from fringecal.calibration.diagnostics import Diagnosis
+from fringecal.calibration.jackknife import leave_one_out, noise_worlds, readjusted_solution
 from fringecal.calibration.model import BundleProblem
-from fringecal.threads import numba_threads
 
 __all__ = ["PRISM_ALPHA", "MIN_REPLICAS", "prism_wald", "prism_check", "prism_diagnosis"]
 
@@ -72,30 +68,21 @@ PRISM_ALPHA = 1e-3
 MIN_REPLICAS = 6
 
 
+def _prism_terms(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
+    """The thin-prism terms (n_free,) of ``problem`` adjusted from its start values."""
+    layout, x = readjusted_solution(problem, options)
+    return x[layout.prism_index[layout.prism_index >= 0]]
+
+
 def _prism_replicas(problems: list[BundleProblem], names: list[str], options: BundleOptions,
                     workers: int = 1) -> list[dict[str, np.ndarray]]:
-    """Per problem, measurement -> its thin-prism terms (n_free,) re-adjusted without that
-    measurement (:func:`.jackknife.readjusted_solution`); a measurement whose removal
-    leaves a problem that cannot be calibrated gets none, as in the jackknife of the
-    sensors. ``workers`` adjustments at once, each on one numba thread."""
-
-    def replica(task):
-        k, m = task
-        try:
-            with numba_threads(1) if workers > 1 else nullcontext():
-                layout, x = readjusted_solution(subproblem(problems[k], [n for n in names if n != m]), options)
-        except (DegenerateCalibrationError, StartValueError):
-            return None
-        return x[layout.prism_index[layout.prism_index >= 0]]
-
+    """Per problem, measurement -> its thin-prism terms re-adjusted without that
+    measurement (:func:`.jackknife.leave_one_out`); a measurement whose removal leaves a
+    problem that cannot be calibrated gets none, as in the jackknife of the sensors."""
+    done = leave_one_out(problems, names, options, _prism_terms, workers)
     tasks = [(k, m) for k in range(len(problems)) for m in names]
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            done = list(pool.map(replica, tasks))
-    else:
-        done = [replica(t) for t in tasks]
     out = [{} for _ in problems]
-    for (k, m), terms in zip(tasks, done):
+    for (k, m), (terms, _) in zip(tasks, done):
         if terms is not None:
             out[k][m] = terms
     return out
