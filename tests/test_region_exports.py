@@ -112,3 +112,35 @@ def test_cli_export_of_a_run_calibration_writes_its_regions(thesis_rig, tmp_path
         assert res.exit_code == 0, res.output
         st = read_stereo(out / "scanner1.yml")
         np.testing.assert_allclose(st.hull_mm(2), regions[thesis_rig.scanners[0].projector.name].hull, atol=1e-12)
+
+
+def test_the_run_directory_s_one_save_path_keeps_the_regions(thesis_rig, small_run, tmp_path):
+    """``RunDir.calibration.save`` writes each sensor's region into the JSON and the XML
+    (both read back equal, hull bit for bit) and none when given none; the bundle step
+    writes through the same path (the session's small run: its XML's regions equal its
+    JSON's), and no other module makes a calibration's XML text."""
+    import re
+    from pathlib import Path
+
+    from fringecal.rundir import RunDir
+
+    regions = _regions(thesis_rig)
+    rd = RunDir(tmp_path / "run").create()
+    rd.calibration.save(thesis_rig, {"note": 1}, observed_regions=regions)
+    for path in (rd.calibration.path, rd.calibration.xml.path):
+        back = read_calibration(path)
+        assert back.observed_regions == regions
+        np.testing.assert_array_equal(back.rig.params, thesis_rig.params)
+    assert read_calibration(rd.calibration.path).metadata == {"note": 1}
+    rd.calibration.save(thesis_rig)
+    assert read_calibration(rd.calibration.path).observed_regions == {}
+    assert read_calibration(rd.calibration.xml.path).observed_regions == {}
+    run = small_run[0]
+    from_json = read_calibration(run.calibration.path).observed_regions
+    assert len(from_json) == 4 and read_calibration(run.calibration.xml.path).observed_regions == from_json
+    root = Path(__file__).resolve().parents[1]
+    makers = sorted(str(p.relative_to(root)) for folder in ("fringecal", "flows", "tasks") for p in
+                    (root / folder).rglob("*.py")
+                    if re.search(r"\b(xml_text|document_xml|calibration_texts|write_calibration_xml)\(", p.read_text())
+                    and p.name != "file.py")
+    assert makers == ["fringecal/rundir.py"]
