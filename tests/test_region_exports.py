@@ -144,3 +144,33 @@ def test_the_run_directory_s_one_save_path_keeps_the_regions(thesis_rig, small_r
                     if re.search(r"\b(xml_text|document_xml|calibration_texts|write_calibration_xml)\(", p.read_text())
                     and p.name != "file.py")
     assert makers == ["fringecal/rundir.py"]
+
+
+def test_import_opencv_keeps_each_sensor_s_region(thesis_rig, tmp_path):
+    """Export -> ``fringecal import opencv --out prior.json``: every sensor's region comes
+    back (hull within 1e-12 mm of the exported one, grid counts and threshold equal) in
+    the JSON and its XML twin; a sensor table cannot hold them and says so; a grid that
+    does not fit its hull's format is one message naming the file and key."""
+    regions = _regions(thesis_rig)
+    written = write_rig(thesis_rig, tmp_path / "cv", grid=9, regions=regions)
+    stereo = [str(written[s.name][0]) for s in thesis_rig.scanners]
+    args = ["import", "opencv", *[a for p in stereo for a in ("--stereo", p)]]
+    runner = CliRunner()
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "prior.json"), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["regions"] == "kept"
+    for path in (tmp_path / "prior.json", tmp_path / "prior.xml"):
+        back = read_calibration(path).observed_regions
+        assert set(back) == set(regions)
+        for name, r in regions.items():
+            np.testing.assert_allclose(back[name].hull, r.hull, rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(back[name].counts, r.counts)
+            assert back[name].min_points == r.min_points
+            assert back[name].fraction == pytest.approx(r.fraction, rel=1e-12)
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "prior.csv"), "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["regions"].startswith("not kept: a sensor table")
+    bad = tmp_path / "bad.yml"
+    bad.write_text(open(stereo[0]).read().replace("observedMinPoints1: 5", "observedMinPoints1: 0"))
+    res = runner.invoke(app, ["import", "opencv", "--stereo", str(bad), "--out", str(tmp_path / "bad.json")])
+    assert res.exit_code == 2 and f"{bad}: key 'observedMinPoints1' must be a whole number >= 1" in res.output
+    assert not (tmp_path / "bad.json").exists()
