@@ -128,7 +128,9 @@ def import_opencv(
                                       "cameraMatrix1 = camera, cameraMatrix2 = projector, R, T); one per scanner."),
     scanner: Optional[List[str]] = typer.Option(None, "--scanner", help="Scanner name of each --stereo, in order "
                                                 "(default: the file's 'scanner' key, else its stem)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Prior table to write (a data set's sensors_prior.csv)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Prior table to write (a data set's sensors_prior.csv), or a "
+                             "calibration file (.json, with its .xml twin) that also keeps each sensor's observed "
+                             "region (observedHullPx1/2)."),
     reference: Optional[str] = typer.Option(None, "--reference", help="Reference scanner (default: the first)."),
     camera_size: Optional[str] = typer.Option(None, "--camera-size", help="Camera WIDTHxHEIGHT px where a file "
                                               "has no imageSize1."),
@@ -141,7 +143,9 @@ def import_opencv(
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """Each scanner's prior calibration in its own frame (camera at the origin) from
-    OpenCV stereo calibrations, written as a data set's sensors_prior.csv."""
+    OpenCV stereo calibrations, written as a data set's sensors_prior.csv, or as a
+    calibration file (--out NAME.json, and NAME.xml) that keeps the observed region of
+    each sensor whose file has one (fringecal export opencv writes it)."""
     guarded(_import, extra=_opencv_errors())(stereo, scanner or [], out, reference, camera_size, projector_size,
                                              camera_width_mm, projector_width_mm, as_json)
 
@@ -150,7 +154,7 @@ def _import(stereo, names, out, reference, camera_size, projector_size, camera_w
             as_json) -> None:
     from fringecal.interop.opencv_storage import prior_scanner, read_stereo
     from fringecal.rig import Rig
-    from fringecal.rundir import RigFile
+    from fringecal.rundir import CalibrationFile, RigFile
 
     if names and len(names) != len(stereo):
         raise UserInputError(f"--scanner: {len(names)} name(s) for {len(stereo)} --stereo file(s); give one name per "
@@ -160,6 +164,9 @@ def _import(stereo, names, out, reference, camera_size, projector_size, camera_w
     for option, value in (("--camera-width-mm", camera_width_mm), ("--projector-width-mm", projector_width_mm)):
         positive(value, option, "mm")
     output_file(out, "--out")
+    if out.suffix.lower() not in (".csv", ".json", ".xml"):
+        raise UserInputError(f"--out {out}: expected a prior table .csv (a data set's sensors_prior.csv) or a "
+                             "calibration file .json or .xml (it keeps each sensor's observed region)")
     sizes = {"camera_size": _size(camera_size, "--camera-size"),
              "projector_size": _size(projector_size, "--projector-size")}
     files = [read_stereo(p) for p in stereo]
@@ -176,11 +183,12 @@ def _import(stereo, names, out, reference, camera_size, projector_size, camera_w
         if names.index(n) != i:
             raise UserInputError(f"scanner name {n!r} given twice ({stereo[names.index(n)]} and {stereo[i]}); "
                                  "name them with --scanner")
-    scanners, rows = [], []
+    scanners, rows, regions = [], [], {}
     for i, (f, name) in enumerate(zip(files, names), 1):
         sc, cam, prj = prior_scanner(f, name, f.camera_name or f"C{i}", f.projector_name or f"P{i}", **sizes,
                                      camera_width_mm=camera_width_mm, projector_width_mm=projector_width_mm)
         scanners.append(sc)
+        regions.update({s.name: r for k, s in ((1, sc.camera), (2, sc.projector)) if (r := f.region(k)) is not None})
         rows += [{"scanner": name, "sensor": imp.sensor.name, "role": imp.sensor.role, "worst_px": imp.worst_px,
                   "rms_px": imp.rms_px, "distortion": "fitted" if imp.fitted else "exact", "file": str(f.path)}
                  for imp in (cam, prj)]
@@ -189,8 +197,17 @@ def _import(stereo, names, out, reference, camera_size, projector_size, camera_w
         rig = Rig(tuple(scanners), reference)
     except ValueError as err:  # duplicate sensor names, unknown reference
         raise UserInputError(f"{err}") from None
-    RigFile(out.parent, out.name).save(rig)
+    if out.suffix.lower() == ".csv":
+        RigFile(out.parent, out.name).save(rig)
+        kept = "not kept: a sensor table has no place for them; give --out NAME.json to keep them" if regions else None
+    else:  # the run directory's writer of a calibration: the JSON and its XML twin, regions in both
+        out = CalibrationFile(out.parent, out.with_suffix(".json").name).save(
+            rig, {"source": "fringecal import opencv", "files": [str(f.path) for f in files],
+                  "frames": "each scanner in its own frame, its camera at the origin"}, observed_regions=regions)
+        kept = "kept" if regions else None
     _print(rows, "fringecal model vs OpenCV's projection (pixels), read from:", as_json,
-           {"out": str(out), "reference": reference})
+           {"out": str(out), "reference": reference, "observed_regions": sorted(regions), "regions": kept})
     if not as_json:
         console.print(f"prior calibration (reference {reference}): {out}", highlight=False, soft_wrap=True)
+        if regions:
+            console.print(f"observed regions of {', '.join(regions)}: {kept}", highlight=False, soft_wrap=True)

@@ -163,6 +163,8 @@ def plan(
         t.add_row(name, a.scanner, xyz(a), b.scanner, xyz(b))
     console.print(t)
     console.print(f"neighbouring pairs: {', '.join('-'.join(p) for p in result.pairs) or 'none'}; written to {', '.join(map(str, written))}")
+    for why in result.beyond_region:
+        console.print(f"warning: outside the observed region: {why}", style="yellow", highlight=False, soft_wrap=True)
     if result.uncovered:
         raise UserInputError(f"no ball-bar position fits {', '.join(result.uncovered)}: the bar is longer than "
                              "those measurement volumes allow")

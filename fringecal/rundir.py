@@ -275,7 +275,12 @@ class StoreFile(RunFile):
 
 @dataclass(frozen=True)
 class CalibrationFile(RunFile):
-    """The calibration as JSON (``rel``) with its XML twin (same name, ``.xml``)."""
+    """The calibration as JSON (``rel``) with its XML twin (same name, ``.xml``).
+
+    Every writer of a run's calibration goes through :meth:`save` (or, writing it with
+    other files all or nothing, :meth:`document` and :meth:`write`): both files are made
+    from one document, so the XML carries each sensor's observed region whenever the
+    JSON does, and a calibration saved with its regions never loses them."""
 
     @property
     def xml(self) -> RunFile:
@@ -286,12 +291,35 @@ class CalibrationFile(RunFile):
 
         return read_calibration_json(self.path)
 
-    def save(self, rig, metadata: dict | None = None) -> Path:
-        from fringecal.calibration.file import rig_to_dict, xml_text  # lazy: numba loads when a calibration is read
+    @staticmethod
+    def document(rig, metadata: dict | None = None, *, observed_regions: dict | None = None,
+                 black_boxes: dict | None = None, **blocks) -> dict:
+        """The calibration document of ``rig``: ``metadata``, each sensor's region of
+        ``observed_regions`` (sensor name -> ObservedRegion), ``black_boxes`` and the
+        blocks of :func:`fringecal.calibration.file.rig_to_dict` (covariances,
+        provenance, sensor_model, replicas, phase_ripple)."""
+        from fringecal.calibration.file import rig_to_dict  # lazy: numba loads when a calibration is read
 
+        doc = rig_to_dict(rig, metadata, observed_regions=observed_regions, **blocks)
+        if black_boxes is not None:
+            doc["black_boxes"] = black_boxes
+        return doc
+
+    @staticmethod
+    def write(doc: dict, json_path, xml_path) -> None:
+        """Write a :meth:`document` to ``json_path`` and its XML to ``xml_path`` (the
+        temporary paths of an all-or-nothing write)."""
+        from fringecal.calibration.file import calibration_texts  # lazy: numba loads when a calibration is read
+
+        for path, text in zip((json_path, xml_path), calibration_texts(doc)):
+            Path(path).write_text(text, encoding="utf-8")
+
+    def save(self, rig, metadata: dict | None = None, **kw) -> Path:
+        """Write the calibration of ``rig`` (JSON and XML, both or neither); ``kw`` as
+        :meth:`document`, ``observed_regions`` included."""
+        doc = self.document(rig, metadata, **kw)
         with atomic.atomic_paths([self.path, self.xml.path]) as (tmp_json, tmp_xml):
-            tmp_json.write_text(json.dumps(rig_to_dict(rig, metadata), indent=2) + "\n", encoding="utf-8")
-            tmp_xml.write_text(xml_text(rig, metadata), encoding="utf-8")
+            self.write(doc, tmp_json, tmp_xml)
         return self.path
 
 

@@ -137,3 +137,46 @@ def test_the_report_s_values_table_shows_each_share_or_not_known():
     assert [row[-1].text for row in _values({"values": values, "observed_region": unknown}).rows] == \
         ["not known"] * 3
     assert "Outside observed region" not in [c.text for c in _values({"values": values}).head]
+
+
+def test_summary_json_counts_per_test_the_positions_outside(small_run, small_config, tmp_path):
+    """``summary.json``'s acceptance block counts, per test, the positions partly and
+    wholly outside the observed region and the largest share, as ``acceptance.json``
+    states them; a calibration without regions: ``known`` false and every count None
+    (not known, never 0). The run directory is the session's small run (read through
+    links) with an ``acceptance.json`` written here."""
+    import pandas as pd
+
+    from fringecal.acceptance.evaluate import VALUE_COLUMNS, certificate
+    from fringecal.acceptance.standards import AcceptanceLimits
+    from fringecal.run.summary import run_summary
+
+    rd = RunDir(tmp_path / "run")
+    rd.root.mkdir()
+    for entry in small_run[0].root.iterdir():
+        (rd.root / entry.name).symlink_to(entry, entry.is_dir())
+    values = pd.DataFrame([("sphere", "P_S", f"sphere-1-0{i}", "scanner1", 0.01, 0.002, 900, 3) for i in (1, 2, 3)]
+                          + [("flat", "F", "flat-2-01", "scanner2", 0.02, 0.002, 900, 3)], columns=VALUE_COLUMNS)
+    doc = certificate(values, AcceptanceLimits(), 2.0, 0.003, ["scanner1", "scanner2"])
+
+    def obj(test, position, points, outside):
+        return {"test": test, "position": position, "points": points, "outside": outside,
+                "fraction": outside / points, "scanners": {}}
+
+    doc["observed_region"] = {"known": True, "objects": [
+        obj("sphere", "sphere-1-01", 500, 500), obj("sphere", "sphere-1-02", 400, 100),
+        obj("sphere", "sphere-1-03", 300, 0), obj("flat", "flat-2-01", 800, 0), obj("ballbar", "bb01", 250, 50)]}
+    rd.acceptance.save(doc)
+    cfg = load_run_config(small_config)
+    counts = run_summary(rd, cfg)["acceptance"]["outside_observed_region"]
+    assert counts == {"known": True, "tests": {
+        "sphere": {"positions": 3, "partly_outside": 2, "wholly_outside": 1, "max_fraction": 1.0},
+        "flat": {"positions": 1, "partly_outside": 0, "wholly_outside": 0, "max_fraction": 0.0},
+        "ballbar": {"positions": 1, "partly_outside": 1, "wholly_outside": 0, "max_fraction": 0.2}}}
+    doc["observed_region"] = {"known": False, "objects": [{**o, "outside": None, "fraction": None}
+                                                          for o in doc["observed_region"]["objects"]]}
+    rd.acceptance.save(doc)
+    unknown = run_summary(rd, cfg)["acceptance"]["outside_observed_region"]
+    assert unknown["known"] is False and {t: c["positions"] for t, c in unknown["tests"].items()} == \
+        {"sphere": 3, "flat": 1, "ballbar": 1}
+    assert all(v is None for c in unknown["tests"].values() for k, v in c.items() if k != "positions")

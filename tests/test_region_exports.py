@@ -112,3 +112,65 @@ def test_cli_export_of_a_run_calibration_writes_its_regions(thesis_rig, tmp_path
         assert res.exit_code == 0, res.output
         st = read_stereo(out / "scanner1.yml")
         np.testing.assert_allclose(st.hull_mm(2), regions[thesis_rig.scanners[0].projector.name].hull, atol=1e-12)
+
+
+def test_the_run_directory_s_one_save_path_keeps_the_regions(thesis_rig, small_run, tmp_path):
+    """``RunDir.calibration.save`` writes each sensor's region into the JSON and the XML
+    (both read back equal, hull bit for bit) and none when given none; the bundle step
+    writes through the same path (the session's small run: its XML's regions equal its
+    JSON's), and no other module makes a calibration's XML text."""
+    import re
+    from pathlib import Path
+
+    from fringecal.rundir import RunDir
+
+    regions = _regions(thesis_rig)
+    rd = RunDir(tmp_path / "run").create()
+    rd.calibration.save(thesis_rig, {"note": 1}, observed_regions=regions)
+    for path in (rd.calibration.path, rd.calibration.xml.path):
+        back = read_calibration(path)
+        assert back.observed_regions == regions
+        np.testing.assert_array_equal(back.rig.params, thesis_rig.params)
+    assert read_calibration(rd.calibration.path).metadata == {"note": 1}
+    rd.calibration.save(thesis_rig)
+    assert read_calibration(rd.calibration.path).observed_regions == {}
+    assert read_calibration(rd.calibration.xml.path).observed_regions == {}
+    run = small_run[0]
+    from_json = read_calibration(run.calibration.path).observed_regions
+    assert len(from_json) == 4 and read_calibration(run.calibration.xml.path).observed_regions == from_json
+    root = Path(__file__).resolve().parents[1]
+    makers = sorted(str(p.relative_to(root)) for folder in ("fringecal", "flows", "tasks") for p in
+                    (root / folder).rglob("*.py")
+                    if re.search(r"\b(xml_text|document_xml|calibration_texts|write_calibration_xml)\(", p.read_text())
+                    and p.name != "file.py")
+    assert makers == ["fringecal/rundir.py"]
+
+
+def test_import_opencv_keeps_each_sensor_s_region(thesis_rig, tmp_path):
+    """Export -> ``fringecal import opencv --out prior.json``: every sensor's region comes
+    back (hull within 1e-12 mm of the exported one, grid counts and threshold equal) in
+    the JSON and its XML twin; a sensor table cannot hold them and says so; a grid that
+    does not fit its hull's format is one message naming the file and key."""
+    regions = _regions(thesis_rig)
+    written = write_rig(thesis_rig, tmp_path / "cv", grid=9, regions=regions)
+    stereo = [str(written[s.name][0]) for s in thesis_rig.scanners]
+    args = ["import", "opencv", *[a for p in stereo for a in ("--stereo", p)]]
+    runner = CliRunner()
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "prior.json"), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["regions"] == "kept"
+    for path in (tmp_path / "prior.json", tmp_path / "prior.xml"):
+        back = read_calibration(path).observed_regions
+        assert set(back) == set(regions)
+        for name, r in regions.items():
+            np.testing.assert_allclose(back[name].hull, r.hull, rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(back[name].counts, r.counts)
+            assert back[name].min_points == r.min_points
+            assert back[name].fraction == pytest.approx(r.fraction, rel=1e-12)
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "prior.csv"), "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["regions"].startswith("not kept: a sensor table")
+    bad = tmp_path / "bad.yml"
+    bad.write_text(open(stereo[0]).read().replace("observedMinPoints1: 5", "observedMinPoints1: 0"))
+    res = runner.invoke(app, ["import", "opencv", "--stereo", str(bad), "--out", str(tmp_path / "bad.json")])
+    assert res.exit_code == 2 and f"{bad}: key 'observedMinPoints1' must be a whole number >= 1" in res.output
+    assert not (tmp_path / "bad.json").exists()

@@ -8,6 +8,7 @@ values chosen here, so every number and verdict on the page is known beforehand.
 """
 
 import base64
+import html
 import re
 from html.parser import HTMLParser
 
@@ -18,6 +19,7 @@ import pytest
 from fringecal.acceptance.evaluate import VALUE_COLUMNS, certificate
 from fringecal.acceptance.standards import AcceptanceLimits, AcceptanceStandards
 from fringecal.report import figures, render_report, write_report
+from fringecal.report.sections.certificate import observed_line
 from fringecal.report.sections.placements import placement
 from fringecal.rig import Rig, Scanner
 from fringecal.rundir import RunDir
@@ -277,3 +279,38 @@ def test_a_black_box_s_transform_and_acceptance_rows_are_shown(rd):
     assert f"{box.matrix()[0, 3]:.9g}" in part and f"{box.matrix()[0, 0]:.9g}" in part
     assert "Depths (its frame&#39;s z)" in part and "20.0 µm" in part and "Could not be shown" not in page
     assert rd.black_boxes.rel in {f.rel for f in report_inputs(rd)}
+
+
+def _certificate_page(page: str) -> str:
+    m = re.search(r'<header id="certificate".*?</header>', page, re.S)
+    assert m
+    return html.unescape(re.sub(r"<[^>]+>", "", m.group(0)))
+
+
+def test_the_certificate_counts_the_objects_outside_the_observed_region(rd):
+    """Per test, the positions partly outside the observed region, the wholly outside
+    among them and the largest share, as ``acceptance.json``'s ``observed_region``
+    states them (the summary's counts, :func:`fringecal.acceptance.observed.outside_counts`);
+    a calibration without regions: "not known", never 0."""
+    def obj(test, position, points, outside):
+        return {"test": test, "position": position, "points": points, "outside": outside,
+                "fraction": None if outside is None else outside / points, "scanners": {}}
+
+    doc = _doc()
+    doc["observed_region"] = {"known": True, "objects": [
+        obj("sphere", "sphere-1-01", 400, 400), obj("sphere", "sphere-1-02", 500, 60),
+        obj("flat", "flat-1-01", 900, 0), obj("dumbbell", "dumbbell-1-01", 300, 0),
+        obj("dumbbell", "dumbbell-1-02", 300, 0), obj("ballbar", "bb01", 200, 30), obj("ballbar", "bb02", 100, 100)]}
+    page = _certificate_page(_page(rd, doc))
+    assert ("Observed region: positions measured partly outside the region of the images the calibration observed, "
+            "where its model extrapolates (share of their fits' pixels): spheres 2 of 2 positions (1 wholly, up to "
+            "100 %); flats 0 of 1 position; dumbbells 0 of 2 positions; ball-bar (E) 2 of 2 positions (1 wholly, "
+            "up to 100 %).") in page
+    for o in doc["observed_region"]["objects"]:
+        o.update(outside=None, fraction=None)
+    doc["observed_region"]["known"] = False
+    assert observed_line(doc) == ("not known: the calibration records no region of its images (spheres: 2 "
+                                  "positions, flats: 1 position, dumbbells: 2 positions, ball-bar (E): 2 positions)")
+    del doc["observed_region"]  # an acceptance.json from before the regions: not known either
+    assert observed_line(doc).startswith("not known: acceptance.json does not count them")
+    assert observed_line(None) is None  # no acceptance test: no line

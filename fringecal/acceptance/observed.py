@@ -25,11 +25,14 @@ from __future__ import annotations
 from fringecal.rig import Rig
 from fringecal.verification.measure import positions_outside
 
-__all__ = ["objects_outside", "partly_outside", "MEASURED_TESTS"]
+__all__ = ["objects_outside", "partly_outside", "outside_counts", "MEASURED_TESTS", "COUNTED_TESTS"]
 
 #: The tests whose objects the acceptance step measures itself (the ball-bar's E comes
 #: from the verification, which counts and warns about its positions).
 MEASURED_TESTS = ("sphere", "flat", "dumbbell")
+#: The tests :func:`outside_counts` counts, in its order: the acceptance objects and E's
+#: ball-bar positions.
+COUNTED_TESTS = (*MEASURED_TESTS, "ballbar")
 
 WHAT = ("per object position, the camera pixels its fits kept and how many of them lie outside the calibration's "
         "observed region of the camera or the projector that saw them (calibration.json observed_region); "
@@ -112,3 +115,48 @@ def partly_outside(doc: dict | None, tests=MEASURED_TESTS) -> list[str]:
             out.append(f"{test}: {len(hit)} of {len(mine)} positions, up to "
                        f"{100 * max(o['fraction'] for o in hit):.0f} %")
     return out
+
+
+def outside_counts(doc: dict | None) -> dict:
+    """How many positions of each test lie outside the observed region: the counts of
+    ``summary.json`` (``acceptance.outside_observed_region``) and the certificate page.
+
+    Parameters
+    ----------
+    doc : an ``observed_region`` document (:func:`objects_outside`); None: an
+        ``acceptance.json`` written before it had one
+
+    Returns
+    -------
+    {"known": bool, "tests": test -> {"positions", "partly_outside", "wholly_outside",
+    "max_fraction"}} for each test of :data:`COUNTED_TESTS` with a position:
+    ``partly_outside`` counts positions with any pixel outside (the wholly outside
+    among them), ``wholly_outside`` those with every pixel outside, ``max_fraction`` the
+    largest share. Where the region is not known (no document, ``known: false``, or a
+    position without a count) the three are None: not known, never 0.
+
+    >>> outside_counts({"known": True, "objects": [
+    ...     {"test": "sphere", "position": "s1", "points": 40, "outside": 40, "fraction": 1.0},
+    ...     {"test": "sphere", "position": "s2", "points": 50, "outside": 5, "fraction": 0.1},
+    ...     {"test": "sphere", "position": "s3", "points": 30, "outside": 0, "fraction": 0.0},
+    ...     {"test": "ballbar", "position": "bb01", "points": None, "outside": None, "fraction": None}]})["tests"]
+    ... # doctest: +NORMALIZE_WHITESPACE
+    {'sphere': {'positions': 3, 'partly_outside': 2, 'wholly_outside': 1, 'max_fraction': 1.0},
+     'ballbar': {'positions': 1, 'partly_outside': None, 'wholly_outside': None, 'max_fraction': None}}
+    >>> outside_counts(None)
+    {'known': False, 'tests': {}}
+    """
+    known = bool((doc or {}).get("known"))
+    tests = {}
+    for test in COUNTED_TESTS:
+        mine = [o for o in (doc or {}).get("objects", []) if o.get("test") == test]
+        if not mine:
+            continue
+        if not known or any(o.get("outside") is None for o in mine):
+            tests[test] = {"positions": len(mine), "partly_outside": None, "wholly_outside": None,
+                           "max_fraction": None}
+            continue
+        tests[test] = {"positions": len(mine), "partly_outside": sum(o["outside"] > 0 for o in mine),
+                       "wholly_outside": sum(0 < o["points"] == o["outside"] for o in mine),
+                       "max_fraction": max(float(o["fraction"] or 0.0) for o in mine)}
+    return {"known": known, "tests": tests}

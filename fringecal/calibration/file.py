@@ -92,7 +92,7 @@ from fringecal.names import UnsafeNameError, check_name
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES, Sensor, SensorFormat
 
-__all__ = ["write_calibration_xml", "xml_text", "read_calibration_xml", "write_calibration_json",
+__all__ = ["write_calibration_xml", "xml_text", "document_xml", "calibration_texts", "read_calibration_xml", "write_calibration_json",
            "read_calibration_json", "rig_to_dict", "rig_from_dict", "CalibrationFileError", "Calibration",
            "read_calibration", "covariance_document", "parameter_names", "replicas_document", "REPLICA_KINDS"]
 
@@ -603,7 +603,20 @@ def xml_text(rig: Rig, metadata: dict | None = None, observed_regions: dict | No
     """The XML calibration document of ``rig`` (see the module's layout), with each
     sensor's ``observed_regions`` entry where it has one (sensor name ->
     :class:`~fringecal.lens.observed_region.ObservedRegion`)."""
-    d = rig_to_dict(rig, metadata, observed_regions=observed_regions)
+    return document_xml(rig_to_dict(rig, metadata, observed_regions=observed_regions))
+
+
+def calibration_texts(doc: dict) -> tuple[str, str]:
+    """The JSON and the XML text of one calibration document (:func:`rig_to_dict`): the
+    XML made from the same document, so it carries every sensor's observed region the
+    JSON does (and the thesis layout's parameters; the other blocks are the JSON's)."""
+    return json.dumps(doc, indent=2) + "\n", document_xml(doc)
+
+
+def document_xml(d: dict) -> str:
+    """The XML text of a calibration document (:func:`rig_to_dict`): sensors, their
+    thin-prism terms, correction fields and observed regions where it has them, and the
+    metadata."""
     root = ET.Element("calibration", software=d["software"], version=d["version"],
                       reference_scanner=d["reference_scanner"])
     for sc in d["scanners"]:

@@ -29,12 +29,18 @@ inverse camera over its SLM's pixel grid) the second::
                                       sensor's OpenCV pixels (0 x 2: nothing observed); a comment
                                       at the top says so
     observedFraction1, observedFraction2   the share of the format inside that hull
+    observedCellCounts1, observedCellCounts2   with the hull: the control points per cell of the
+                                      region's grid over the format (ny x nx; row 0 at the most
+                                      negative image-plane y, column 0 at the most negative x)
+    observedMinPoints1, observedMinPoints2     the points a cell needs to count as observed
 
 A scanner whose sensors have no correction field and no observed region is written
 exactly as before those existed (no extra key, no extra comment). The hull's vertices
 are exact in pixels: a camera's hull was measured in its pixels, a projector's in its
 phases, which map to its SLM's pixels linearly (:func:`fringecal.interop.opencv.points_px`);
-:meth:`StereoFile.hull_mm` turns them back into image-plane mm.
+:meth:`StereoFile.hull_mm` turns them back into image-plane mm and :meth:`StereoFile.region`
+into the sensor's :class:`~fringecal.lens.observed_region.ObservedRegion` (``fringecal
+import opencv`` keeps it).
 
 Frames and pixel conventions: :mod:`fringecal.interop.opencv`.
 
@@ -69,6 +75,7 @@ from fringecal.interop.opencv import (
     points_px,
     to_opencv,
 )
+from fringecal.lens.observed_region import MIN_POINTS_PER_CELL, ObservedRegion, grid_shape
 from fringecal.names import check_name, confined
 from fringecal.rig import Rig, Scanner
 from fringecal.sensor import SensorFormat, sensor_in_frame
@@ -121,6 +128,10 @@ class StereoFile:
     projector_angles: np.ndarray | None = None
     hull_px1: np.ndarray | None = None  # the observed region's hull (m, 2), OpenCV pixels
     hull_px2: np.ndarray | None = None
+    counts1: np.ndarray | None = None  # the observed region's grid counts (ny, nx)
+    counts2: np.ndarray | None = None
+    min_points1: int | None = None  # points a cell needs to count as observed
+    min_points2: int | None = None
 
     def hull_mm(self, i: int) -> np.ndarray | None:
         """The observed region's hull (m, 2) of sensor ``i`` (1 camera, 2 projector) in
@@ -130,6 +141,30 @@ class StereoFile:
         if px is None or size is None or mm is None:
             return None
         return points_mm("camera" if i == 1 else "projector", SensorFormat(size[0], size[1], *mm), px)
+
+    def region(self, i: int) -> ObservedRegion | None:
+        """The observed region of sensor ``i`` (1 camera, 2 projector): the hull in
+        image-plane mm (:meth:`hull_mm`) with the grid's counts and threshold; a file
+        with a hull but no counts gives a grid of zeros (only the hull is known). None
+        when the file has no hull (or not the sizes it needs).
+
+        Raises
+        ------
+        OpenCVFileError
+            A hull or grid that is no region of the sensor's format, naming the file and key.
+        """
+        hull = self.hull_mm(i)
+        if hull is None:
+            return None
+        w, h = getattr(self, f"size_mm{i}")
+        counts = getattr(self, f"counts{i}")
+        counts = np.zeros(grid_shape(w, h)) if counts is None else counts
+        threshold = getattr(self, f"min_points{i}") or MIN_POINTS_PER_CELL
+        try:
+            return ObservedRegion(w, h, counts, hull, threshold)
+        except ValueError as err:
+            raise OpenCVFileError(f"{self.path}: key 'observedHullPx{i}' (with observedCellCounts{i}): not an observed "
+                                  f"region of the {w} x {h} mm format ({err})") from None
 
 
 def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM,
@@ -185,6 +220,8 @@ def stereo_text(scanner: Scanner, grid: int = GRID, depths=DEPTHS_MM,
     for i, sensor, region in observed:
         fs.write(f"observedHullPx{i}", points_px(sensor.role, sensor.format, region.hull))
         fs.write(f"observedFraction{i}", region.fraction)
+        fs.write(f"observedCellCounts{i}", region.counts.astype(np.int32))
+        fs.write(f"observedMinPoints{i}", int(region.min_points))
     return fs.releaseAndGetString(), cam, prj
 
 
@@ -244,13 +281,15 @@ def read_stereo(path) -> StereoFile:
                 raise OpenCVFileError(f"{path}: key 'sensorSizeMm{i}' must be two positive numbers, found {s.tolist()}")
         names = [_string(fs, path, k) for k in ("scanner", "cameraName", "projectorName")]
         hulls = [_hull(fs, path, f"observedHullPx{i}") for i in (1, 2)]
+        counts = [_counts(fs, path, f"observedCellCounts{i}") for i in (1, 2)]
+        thresholds = [_whole(fs, path, f"observedMinPoints{i}") for i in (1, 2)]
     finally:
         fs.release()
     return StereoFile(path, req["cameraMatrix1"], req["distCoeffs1"].ravel(), req["cameraMatrix2"],
                       req["distCoeffs2"].ravel(), req["R"], req["T"].ravel(),
                       *(None if s is None else (int(s[0]), int(s[1])) for s in sizes),
                       *(None if s is None else (float(s[0]), float(s[1])) for s in mms),
-                      *names, angles, *hulls)
+                      *names, angles, *hulls, *counts, *thresholds)
 
 
 def prior_scanner(st: StereoFile, name: str, camera_name: str, projector_name: str, *,
@@ -387,6 +426,29 @@ def _hull(fs, path: Path, key: str) -> np.ndarray | None:
     if not isinstance(m, np.ndarray) or m.ndim != 2 or m.shape[1] != 2 or len(m) < 3 or not np.all(np.isfinite(m)):
         raise OpenCVFileError(f"{path}: key {key!r} must be an m x 2 matrix of vertices (u, v), m >= 3 or 0")
     return np.asarray(m, float)
+
+
+def _whole(fs, path: Path, key: str) -> int | None:
+    """A whole number >= 1; None when the file has none."""
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        return None
+    v = node.real() if node.isInt() or node.isReal() else float("nan")
+    if not (v >= 1 and v == round(v)):
+        raise OpenCVFileError(f"{path}: key {key!r} must be a whole number >= 1")
+    return int(v)
+
+
+def _counts(fs, path: Path, key: str) -> np.ndarray | None:
+    """An observed region's grid counts: ny x nx whole numbers >= 0; None when the file has none."""
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        return None
+    m = _map_matrix(node) if node.isMap() else _seq_values(node)
+    if not isinstance(m, np.ndarray) or m.ndim != 2 or not m.size or not np.all(np.isfinite(m)) \
+            or np.any(m < 0) or np.any(m != np.round(m)):
+        raise OpenCVFileError(f"{path}: key {key!r} must be an ny x nx matrix of whole numbers >= 0")
+    return np.asarray(m, np.int64)
 
 
 def _string(fs, path: Path, key: str) -> str | None:

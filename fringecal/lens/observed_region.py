@@ -258,6 +258,36 @@ class ObservedRegion:
             | (np.einsum("ij,ij->i", q, q) <= tol)        # the fan's own vertex
         return inside.reshape(m.shape[:-1])
 
+    def depth_inside(self, image_mm) -> np.ndarray:
+        """How far each point (n, 2) mm lies inside the hull -> (n,) mm: its least
+        distance inside an edge, negative outside (beyond the nearest edge's line), NaN
+        for NaN and -inf with no hull.
+
+        >>> square = ObservedRegion(4.0, 4.0, np.zeros((1, 1)), [[-1, -1], [1, -1], [1, 1], [-1, 1]])
+        >>> square.depth_inside([[0.0, 0.0], [0.5, 0.0], [1.5, 0.2]]).tolist()
+        [1.0, 0.5, -0.5]
+        """
+        c = np.asarray(image_mm, float).reshape(-1, 2)
+        h = self.hull
+        if not len(h):
+            return np.full(len(c), -np.inf)
+        e = np.roll(h, -1, axis=0) - h                          # edges, counter-clockwise
+        inward = (e[:, 0] * (c[:, None, 1] - h[:, 1]) - e[:, 1] * (c[:, None, 0] - h[:, 0])) / np.linalg.norm(e, axis=1)
+        return inward.min(axis=1)
+
+    def contains_disc(self, centres_mm, radii_mm) -> np.ndarray:
+        """Whether each disc (centres (n, 2) mm, radii (n,) or scalar mm) lies wholly in
+        the hull -> bool (n,): its centre at least its radius inside every edge (a
+        sphere's image inside what the calibration observed).
+
+        >>> square = ObservedRegion(4.0, 4.0, np.zeros((1, 1)), [[-1, -1], [1, -1], [1, 1], [-1, 1]])
+        >>> square.contains_disc([[0.0, 0.0], [0.5, 0.0], [0.5, 0.0], [np.nan, 0.0]], [1.0, 0.5, 0.6, 0.1]).tolist()
+        [True, True, False, False]
+        """
+        depth = self.depth_inside(centres_mm)
+        with np.errstate(invalid="ignore"):
+            return depth >= np.broadcast_to(np.asarray(radii_mm, float), depth.shape)  # False for NaN
+
     def to_dict(self) -> dict:
         """JSON-ready: the format, the hull's vertices, the grid's counts (rows of ``nx``
         values, ``ny`` rows), the threshold, and the covered fractions (for a reader;

@@ -14,10 +14,15 @@ and the sensor model the data chose (``sensor_model``: an outcome of the run, so
 summary, while the manifest holds the setting ``bundle.sensor_model`` that asked for it),
 and per scanner what the decoder found in its stacks (``decoding``: valid pixels, phase
 noise, the phase ripple it corrected; :func:`fringecal.fringe.measurement.decoding_summary`).
+The acceptance block counts, per test, the object positions measured partly and wholly
+outside the region of the images the calibration observed
+(``acceptance.outside_observed_region``, :func:`fringecal.acceptance.observed.outside_counts`;
+``known: false`` and None counts when the calibration carries no regions).
 """
 
 from __future__ import annotations
 
+from fringecal.acceptance.observed import outside_counts
 from fringecal.acceptance.verdict import run_verdict
 from fringecal.calibration.candidates import SPANS_THIN_PRISM
 from fringecal.dataset import DataSet
@@ -164,7 +169,10 @@ def run_summary(rd: RunDir, cfg) -> dict:
     if a is not None:
         out["acceptance"] = {"accepted": a["accepted"], "within_mpe": a["within_mpe"],
                              "coverage_factor": a["coverage_factor"], "n_parameters": len(a["parameters"]),
-                             "n_failures": len(a["failures"])}
+                             "n_failures": len(a["failures"]),
+                             # per test, the positions partly and wholly outside the calibration's
+                             # observed region (None: not known, never 0)
+                             "outside_observed_region": outside_counts(a.get("observed_region"))}
     out["verdict"] = run_verdict(v, a)
     if t is not None:
         out["truth"] = {

@@ -29,6 +29,7 @@ position asked for that does not fit is refused with a message, never dropped.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -41,6 +42,7 @@ from fringecal.acceptance.standards import load_standards
 from fringecal.artefact import Artefact, load_artefact, load_rods
 from fringecal.config import ConfigError
 from fringecal.frames import frames_from_rows
+from fringecal.lens.observed_region import ObservedRegion
 from fringecal.names import check_name
 from fringecal.rig import Rig, load_rig, scaled_rig
 from fringecal.rundir import measurement_id
@@ -56,8 +58,12 @@ from fringecal.verification.plan import plan_positions, volumes_from_observation
 if TYPE_CHECKING:
     from fringecal.acceptance.standards import AcceptanceStandards
 
+log = logging.getLogger(__name__)
+
 __all__ = ["acceptance_camera_width", "SimulatedRig", "load_simulated_rig", "input_files", "scanners_seeing",
-           "sphere_sightings", "acquisition_table", "true_volumes", "specified_volumes", "acceptance_plan",
+           "sphere_sightings", "acquisition_table", "true_volumes", "predicted_regions", "positions_outside",
+           "specified_volumes",
+           "acceptance_plan",
            "object_plans"]
 
 
@@ -148,24 +154,95 @@ def sphere_sightings(rig: Rig, artefact: Artefact, poses: dict) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["measurement", "scanner", "sphere_id"])
 
 
-def true_volumes(truth: Rig, artefact: Artefact, planned: dict) -> dict:
+def true_volumes(truth: Rig, artefact: Artefact, planned: dict, regions: dict | None = None) -> dict:
     """Each scanner's measurement volume (:class:`~fringecal.verification.plan.MeasurementVolume`)
-    from the true rig: the artefact spheres it sees in the planned poses."""
+    from the true rig: the artefact spheres it sees in the planned poses; with
+    ``regions`` (sensor name -> ObservedRegion, :func:`predicted_regions`) only where a
+    sphere's whole image lies inside them."""
 
-    return volumes_from_observations(truth, sphere_sightings(truth, artefact, planned), planned, artefact)
+    return volumes_from_observations(truth, sphere_sightings(truth, artefact, planned), planned, artefact,
+                                     regions=regions)
+
+
+#: Points drawn on each artefact sphere for :func:`predicted_regions`, and the largest
+#: angle between a point's normal and its line of sight to the camera that gives a
+#: control point (the default run's ``control_points.max_incidence_deg``).
+PREDICTION_POINTS, PREDICTION_INCIDENCE_DEG = 400, 60.0
+
+
+def predicted_regions(truth: Rig, artefact: Artefact, planned: dict, seed: int = 0) -> dict:
+    """The region of each sensor's image the calibration will observe, predicted before
+    anything is rendered: the :class:`~fringecal.lens.observed_region.ObservedRegion` of
+    points drawn on every artefact sphere its camera sees at the planned poses
+    (``measurement -> T_world_artefact``) with its whole image (1.5 image radii) inside
+    both formats, as the measurement volumes take them, on the cap facing the camera within
+    :data:`PREDICTION_INCIDENCE_DEG` and facing the projector, imaged in camera and
+    projector (occlusion by rods and other spheres ignored: the hull of the points).
+
+    Returns
+    -------
+    dict sensor name -> ObservedRegion
+    """
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(PREDICTION_POINTS, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)                          # unit normals (k, 3)
+    radii = np.asarray(artefact.diameters, float) / 2
+    cos_max = np.cos(np.radians(PREDICTION_INCIDENCE_DEG))
+    seen = {s.name: [] for s in truth.sensors}
+    for T in planned.values():
+        centres = T.to_world(artefact.centres)
+        for sc in truth.scanners:
+            mine = np.ones(len(centres), bool)
+            for sensor in sc.sensors:  # a sphere whose image the format cuts gives no control points
+                z = np.maximum(sensor.to_sensor(centres)[:, 2], radii)
+                mine &= sensor.in_view(centres, 1.5 * sensor.c * radii / z)
+            P = centres[mine, None, :] + radii[mine, None, None] * d          # (n, k, 3)
+            to_cam, to_prj = sc.camera.pinhole - P, sc.projector.pinhole - P
+            facing = (np.sum(d * to_cam, -1) >= cos_max * np.linalg.norm(to_cam, axis=-1)) \
+                & (np.sum(d * to_prj, -1) > 0)
+            for sensor in sc.sensors:
+                seen[sensor.name].append(sensor.project(P[facing]))
+    return {s.name: ObservedRegion.from_observations(np.concatenate(seen[s.name] or [np.zeros((0, 2))]),
+                                                     *s.format.size_mm) for s in truth.sensors}
+
+
+def positions_outside(truth: Rig, positions: list, ballbar: Artefact, regions: dict) -> list[str]:
+    """Each ball-bar sphere of ``positions`` whose image does not lie wholly inside the
+    ``regions`` (sensor name -> ObservedRegion, :func:`predicted_regions`) of the
+    scanner that measures it, with the numbers: where its image centre is, how far
+    inside (negative: beyond) the region's edge, and its image radius it needs there."""
+    radius = float(np.min(ballbar.diameters)) / 2
+    out = []
+    for p in positions:
+        X = p.T_world_ballbar.to_world(ballbar.centres[:2])
+        for sid, x in zip(ballbar.ids[:2], X):
+            if sid not in p.scanner_of:
+                continue
+            for sensor in truth.scanner(p.scanner_of[sid]).sensors:
+                m = sensor.project(x[None])
+                need = sensor.c * radius / sensor.to_sensor(x[None])[0, 2]
+                depth = float(regions[sensor.name].depth_inside(m)[0]) if sensor.name in regions else np.inf
+                if not depth >= need:
+                    out.append(f"{p.name} sphere {sid} in {sensor.name} (image at {m[0, 0]:.2f}, {m[0, 1]:.2f} mm: "
+                               f"{depth:.2f} mm inside the edge, its image radius {need:.2f} mm)")
+    return out
 
 
 def _planned_positions(sim, truth: Rig, artefact: Artefact, planned: dict, ballbar: Artefact):
     """Positions planned from the true rig's measurement volumes: the spheres each
-    scanner sees in the planned poses."""
+    scanner sees in the planned poses, each sphere's image inside the region of the
+    images the calibration will observe (:func:`predicted_regions`)."""
 
-    volumes = true_volumes(truth, artefact, planned)
+    volumes = true_volumes(truth, artefact, planned, predicted_regions(truth, artefact, planned))
     v = sim.verification
     plan = plan_positions(truth, volumes, float(np.linalg.norm(ballbar.centres[1] - ballbar.centres[0])),
                           v.per_pair, v.per_scanner, seed=v.seed)
     if plan.uncovered:
         raise ConfigError(f"{sim.rig}: no ball-bar position covers {', '.join(plan.uncovered)} "
                           "(the bar does not fit the measurement volumes there)")
+    if plan.beyond_region:
+        log.warning("ball-bar positions planned partly beyond the region of the images the calibration will observe "
+                    "(predicted from the planned poses): %s", "; ".join(plan.beyond_region))
     return plan.positions, {p.name: list(dict.fromkeys(p.scanner_of.values())) for p in plan.positions}
 
 

@@ -22,7 +22,7 @@ from fringecal.atomic import atomic_paths
 from fringecal.calibration.blackbox import ModelPrior, adjust_black_boxes, export_table, inconsistent_views
 from fringecal.calibration.bootstrap import bootstrap_calibrations
 from fringecal.calibration.models import choose_sensor_model
-from fringecal.calibration.file import REPLICA_KINDS, replicas_document, rig_to_dict, xml_text
+from fringecal.calibration.file import REPLICA_KINDS, replicas_document
 from fringecal.calibration.jackknife import MIN_REPLICAS, jackknife_calibrations
 from fringecal.calibration.model import POSE_COLUMNS, BundleProblem
 from fringecal.calibration.propagation import parameter_covariances
@@ -293,13 +293,11 @@ def write_outputs(rd: RunDir, result, doc: dict, arrays: dict, covariances, prov
     with atomic_paths([f.path for f in files]) as tmps:
         tmp = dict(zip([f.rel for f in files], tmps))
         replicas = {kind: arrays[f"{kind}_params"] for kind in REPLICA_KINDS if f"{kind}_params" in arrays}
-        calibration = rig_to_dict(result.rig, meta, covariances, provenance, model,
-                                  replicas_document(replicas, arrays.get("jackknife_left_out")), phase_ripple,
-                                  regions)
-        if black_boxes is not None:
-            calibration["black_boxes"] = black_boxes
-        tmp[rd.calibration.rel].write_text(json.dumps(calibration, indent=2) + "\n")
-        tmp[rd.calibration.xml.rel].write_text(xml_text(result.rig, meta, regions))
+        calibration = rd.calibration.document(
+            result.rig, meta, covariances=covariances, provenance=provenance, sensor_model=model,
+            replicas=replicas_document(replicas, arrays.get("jackknife_left_out")), phase_ripple=phase_ripple,
+            observed_regions=regions, black_boxes=black_boxes)
+        rd.calibration.write(calibration, tmp[rd.calibration.rel], tmp[rd.calibration.xml.rel])
         for f, df in tables.items():
             df.to_csv(tmp[f.rel], index=False, float_format="%.10g")
         for f, png in figures.items():

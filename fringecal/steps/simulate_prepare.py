@@ -13,9 +13,16 @@ The acceptance test (``simulate.acceptance``): the objects' certificates go to
 ``verification/acceptance/standards.yaml`` brings; removed when no acceptance
 position is simulated), the planned positions to ``truth/acceptance_positions.csv``
 (empty when none) and their stores to the acquisition table.
+
+Fixed ball-bar positions (``verification.scheme`` ``thesis9`` or ``vdi7``) are checked
+against the region of each image the planned poses will let the calibration observe
+(:func:`fringecal.simulate.source.predicted_regions`): a sphere whose image leaves it is
+a warning with its numbers (the ``planned`` scheme places them inside).
 """
 
 from __future__ import annotations
+
+import logging
 
 import pandas as pd
 
@@ -26,10 +33,13 @@ from fringecal.simulate.black_box import without_black_boxes
 from fringecal.simulate.config import AcquisitionConfig
 from fringecal.simulate.errors import ARTEFACT_SWITCHES, errors_subset, switch_settings
 from fringecal.simulate.settings import SimulatedAcceptanceConfig, SimulatedVerificationConfig, SimulationConfig
-from fringecal.simulate.source import acquisition_table, input_files, load_simulated_rig
+from fringecal.simulate.source import (acquisition_table, input_files, load_simulated_rig, positions_outside,
+                                       predicted_regions)
 from fringecal.steps.base import Settings, Step, save_or_remove
 
 __all__ = ["SimulatePrepare", "simulation_of"]
+
+log = logging.getLogger(__name__)
 
 
 def simulation_of(cfg: Settings) -> SimulationConfig:
@@ -74,6 +84,14 @@ class SimulatePrepare(Step):
 
     def run(self, rd: RunDir, cfg: Settings, item: str, **context) -> None:
         sr = load_simulated_rig(simulation_of(cfg), cfg.acceptance.specification.depth_range_mm)
+        if cfg.simulate.verification.scheme != "planned":  # fixed positions: say where they leave the region
+            outside = positions_outside(sr.truth, sr.positions, sr.ballbar,
+                                        predicted_regions(sr.truth, sr.artefact, sr.planned))
+            if outside:
+                log.warning("the ball-bar positions of verification.scheme %s put %d sphere image(s) outside the "
+                            "region of the images the artefact's poses will let the calibration observe (predicted "
+                            "from the planned poses; there its model extrapolates): %s. 'scheme: planned' places "
+                            "them inside", cfg.simulate.verification.scheme, len(outside), "; ".join(outside))
         rd.artefact.save(sr.artefact)
         save_or_remove(rd.rods, sr.rods)
         rd.ballbar.save(sr.ballbar)

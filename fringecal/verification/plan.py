@@ -18,9 +18,13 @@ Decisions
   calibration has data: sphere centres whose sphere image lies wholly inside the
   camera image (with ``margin`` times its image radius) and inside the projector's
   field, at a depth along the camera axis within the range the artefact's spheres
-  covered in that scanner during calibration. It comes from the calibrated run
+  covered in that scanner during calibration, and with its whole image inside the
+  region of each image the calibration observed (:mod:`fringecal.lens.observed_region`;
+  beyond it the model extrapolates). It comes from the calibrated run
   (:func:`volumes_from_run`: calibrated sensors and poses, spheres with control
-  points) or, in a simulation, from the true rig and the planned poses.
+  points, the calibration's observed regions) or, in a simulation, from the true rig
+  and the planned poses (the regions predicted from the artefact's sphere images,
+  :func:`fringecal.simulate.source.predicted_regions`).
 - **Neighbours** are the edges of the Gabriel graph of the scanners' positions (the
   midpoint of camera and projector): two scanners are neighbours when no third lies
   inside the sphere that has them as diameter. A row gives consecutive pairs, a ring
@@ -33,13 +37,16 @@ Decisions
   hide the cap. The positions kept are spread by farthest-point selection over (A, B), starting
   from the candidate nearest the middle of the feasible set: varied heights, depths
   and directions, as VDI/VDE 2634 part 2 asks of its length measurements.
-- A pair or scanner for which no candidate is found is reported in
-  :attr:`VerificationPlan.uncovered`, never silently dropped.
+- A pair or scanner for which no candidate is found inside the observed regions is
+  planned in the fields alone and named in :attr:`VerificationPlan.beyond_region` with
+  the numbers (how far apart sphere centres inside the regions can be, against the
+  bar's length); one for which none is found at all in :attr:`VerificationPlan.uncovered`,
+  never silently dropped.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
@@ -56,7 +63,9 @@ __all__ = ["MeasurementVolume", "VerificationPlan", "neighbours", "volumes_from_
 @dataclass(frozen=True)
 class MeasurementVolume:
     """Where one scanner measures a sphere of ``radius_mm``: inside both fields and in
-    ``depth_range_mm`` along the camera axis."""
+    ``depth_range_mm`` along the camera axis, and, where ``regions`` gives the camera's
+    and the projector's observed region (:class:`~fringecal.lens.observed_region.ObservedRegion`,
+    None: not known), with the sphere's whole image inside each."""
 
     scanner: str
     camera: object
@@ -64,15 +73,18 @@ class MeasurementVolume:
     depth_range_mm: tuple[float, float]
     radius_mm: float
     margin: float = 1.5
+    regions: tuple = (None, None)
 
     def contains(self, points) -> np.ndarray:
         """Whether each sphere centre (n, 3) lies in the volume, shape (n,)."""
         X = np.atleast_2d(np.asarray(points, float))
         depth = self.camera.to_sensor(X)[:, 2]
         ok = (depth >= self.depth_range_mm[0]) & (depth <= self.depth_range_mm[1])
-        for sensor in (self.camera, self.projector):
+        for sensor, region in zip((self.camera, self.projector), self.regions):
             z = np.maximum(sensor.to_sensor(X)[:, 2], self.radius_mm)
             ok &= sensor.in_view(X, self.margin * sensor.c * self.radius_mm / z)
+            if region is not None:  # the image disc (radius c r / z) inside what the calibration observed
+                ok &= region.contains_disc(sensor.project(X), sensor.c * self.radius_mm / z)
         return ok
 
     def sample(self, n: int, rng) -> np.ndarray:
@@ -102,7 +114,7 @@ def neighbours(rig: Rig) -> list[tuple[str, str]]:
 
 
 def volumes_from_observations(rig: Rig, observations: pd.DataFrame, poses: dict[str, Frame], artefact,
-                              margin: float = 1.5) -> dict[str, MeasurementVolume]:
+                              margin: float = 1.5, regions: dict | None = None) -> dict[str, MeasurementVolume]:
     """Each scanner's volume from the artefact spheres it measured.
 
     Parameters
@@ -115,6 +127,9 @@ def volumes_from_observations(rig: Rig, observations: pd.DataFrame, poses: dict[
         ``T_world_artefact``.
     artefact : Artefact
         The CMM table (centres; its smallest radius sizes the margins).
+    regions : dict sensor name -> ObservedRegion, optional
+        Where each sensor's image was observed (the calibration's, or predicted from
+        the poses): a sphere counts only with its whole image inside them.
     """
     radius = float(np.min(artefact.diameters)) / 2
     out = {}
@@ -126,18 +141,21 @@ def volumes_from_observations(rig: Rig, observations: pd.DataFrame, poses: dict[
                             for m, g in obs.groupby("measurement") if str(m) in poses])
         depth = s.camera.to_sensor(X)[:, 2]
         out[s.name] = MeasurementVolume(s.name, s.camera, s.projector, (float(depth.min()), float(depth.max())),
-                                        radius, margin)
+                                        radius, margin, tuple((regions or {}).get(x.name) for x in s.sensors))
     return out
 
 
 def volumes_from_run(rd, margin: float = 1.5) -> dict[str, MeasurementVolume]:
     """The measurement volumes of a calibrated run directory: calibrated sensors and
-    poses, and the spheres that gave control points."""
+    poses, the spheres that gave control points, and the observed regions of the
+    calibration (none known: the whole fields)."""
+    from fringecal.calibration.file import read_calibration  # lazy: numba loads when a calibration is read
 
     cps = rd.control_points.load()
     observations = cps[["measurement", "scanner", "sphere_id"]].drop_duplicates()
-    return volumes_from_observations(rd.calibration.load(), observations, frames_from_rows(rd.poses_calibrated.load()),
-                                     rd.artefact.load(), margin)
+    cal = read_calibration(rd.calibration.path)
+    return volumes_from_observations(cal.rig, observations, frames_from_rows(rd.poses_calibrated.load()),
+                                     rd.artefact.load(), margin, cal.observed_regions)
 
 
 @dataclass(frozen=True)
@@ -148,6 +166,9 @@ class VerificationPlan:
     positions: list
     pairs: list
     uncovered: list = field(default_factory=list)
+    # why a pair's or scanner's positions leave the observed regions, with the numbers
+    # (the bar fits its volumes only beyond them); empty when every sphere image is inside
+    beyond_region: list = field(default_factory=list)
 
 
 def _spread(candidates: np.ndarray, k: int) -> list[int]:
@@ -218,10 +239,16 @@ def plan_positions(rig: Rig, volumes: dict[str, MeasurementVolume], length_mm: f
     pairs = [(a, b) for a, b in neighbours(rig) if a in volumes and b in volumes]
     planned, uncovered = [], []
     jobs = [((a, b), per_pair) for a, b in pairs] + [((s, s), per_scanner) for s in volumes]
+    beyond = []
     for (a, b), k in jobs:
         if k <= 0:
             continue
         cand = _candidates(volumes[a], volumes[b], length_mm, samples, rng, min_view_angle_deg)
+        if not len(cand) and any(r is not None for v in (volumes[a], volumes[b]) for r in v.regions):
+            # the bar fits no place inside the observed regions: place it in the fields, and say why
+            beyond.append(_why_beyond(volumes[a], volumes[b], length_mm, rng))
+            fields = [replace(v, regions=(None, None)) for v in (volumes[a], volumes[b])]
+            cand = _candidates(*fields, length_mm, samples, rng, min_view_angle_deg)
         if not len(cand):
             uncovered.append(f"{a}-{b}" if a != b else a)
             continue
@@ -230,7 +257,21 @@ def plan_positions(rig: Rig, volumes: dict[str, MeasurementVolume], length_mm: f
     covered = {s for _, _, who in planned for s in who.values()}
     uncovered += [f"{s} (no position at all)" for s in volumes if s not in covered and s not in uncovered]
     positions = [BallBarPosition(f"v{i + 1:02d}", frame_along(A, B), who) for i, (A, B, who) in enumerate(planned)]
-    return VerificationPlan(positions, pairs, uncovered)
+    return VerificationPlan(positions, pairs, uncovered, beyond)
+
+
+def _why_beyond(va: MeasurementVolume, vb: MeasurementVolume, length_mm: float, rng, n: int = 20000) -> str:
+    """Why no ball-bar position fits inside the observed regions, in numbers: the
+    distances between sphere centres inside them (A in ``va``, B in ``vb``) against the
+    bar's length."""
+    A, B = (v.sample(n, rng) for v in (va, vb))
+    A, B = A[va.contains(A)][:1500], B[vb.contains(B)][:1500]
+    who = va.scanner if va is vb else f"{va.scanner}-{vb.scanner}"
+    if not len(A) or not len(B):
+        return f"{who}: no sphere image fits inside the observed regions at all"
+    d = np.linalg.norm(A[:, None] - B[None], axis=-1)
+    return (f"{who}: inside the observed regions sphere centres lie {d.min():.0f}-{d.max():.0f} mm apart and the "
+            f"bar is {length_mm:.0f} mm (or would hide a cap): placed in the fields, partly beyond the regions")
 
 
 def positions_table(positions: list, ballbar) -> pd.DataFrame:

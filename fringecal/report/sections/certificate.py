@@ -2,7 +2,8 @@
 identity block), the run's one verdict with its decision rule and every component
 (P_F, P_S, SD, F per scanner, E of the cell, the ball-bar lengths) against the stated
 specification, the traceability chain from the artefact's CMM certificate to the
-lengths, the certificate's number and the approval fields.
+lengths, how many acceptance objects were measured outside the region of the images the
+calibration observed, the certificate's number and the approval fields.
 
 Each figure comes from the run directory's files: the identity from the run
 configuration's ``certificate`` section (a data set's ``dataset.yaml`` supplies it,
@@ -20,12 +21,13 @@ import hashlib
 
 from fringecal.acceptance.evaluate import PARAMETERS
 from fringecal.acceptance.identity import certificate_number
+from fringecal.acceptance.observed import outside_counts
 from fringecal.acceptance.verdict import ACCEPTED, NOT_VERIFIED
 from fringecal.digests import digest_value
 from fringecal.report.formatting import finite, length, num, um
 from fringecal.report.rundata import RunData
 
-__all__ = ["build", "verdict_badge", "number_parts", "VERDICT_CLASSES"]
+__all__ = ["build", "verdict_badge", "number_parts", "observed_line", "VERDICT_CLASSES"]
 
 #: The badge of each verdict: its text and CSS class.
 BADGES = {ACCEPTED: ("ACCEPTED", "pass"), NOT_VERIFIED: ("NOT VERIFIED", "none")}
@@ -197,6 +199,48 @@ def _specification(run: RunData) -> dict | None:
             "limits": limits or "none"}
 
 
+#: How each test's positions are named in the observed-region line.
+TEST_WORDS = {"sphere": "spheres", "flat": "flats", "dumbbell": "dumbbells", "ballbar": "ball-bar (E)"}
+
+
+def _positions(n: int) -> str:
+    return f"{n} position" + ("" if n == 1 else "s")
+
+
+def observed_line(doc: dict | None) -> str | None:
+    """The certificate's line on the observed region: per test, the positions measured
+    partly outside it (wholly outside, largest share), from ``acceptance.json``
+    (:func:`fringecal.acceptance.observed.outside_counts`); "not known" where the
+    calibration carries no regions (or the document predates the count), never 0;
+    None without an acceptance test or objects on image planes.
+
+    >>> observed_line({"observed_region": {"known": False, "objects": [{"test": "flat", "outside": None}]}})
+    'not known: the calibration records no region of its images (flats: 1 position)'
+    """
+    if doc is None:
+        return None
+    if "observed_region" not in doc:
+        return "not known: acceptance.json does not count them (written before the count existed)"
+    counts = outside_counts(doc["observed_region"])["tests"]
+    if not counts:
+        return None
+    if all(c["partly_outside"] is None for c in counts.values()):
+        listed = ", ".join(f"{TEST_WORDS[t]}: {_positions(c['positions'])}" for t, c in counts.items())
+        return f"not known: the calibration records no region of its images ({listed})"
+    parts = []
+    for t, c in counts.items():
+        if c["partly_outside"] is None:
+            parts.append(f"{TEST_WORDS[t]} not known")
+        elif c["partly_outside"] == 0:
+            parts.append(f"{TEST_WORDS[t]} 0 of {_positions(c['positions'])}")
+        else:
+            parts.append(f"{TEST_WORDS[t]} {c['partly_outside']} of {_positions(c['positions'])} "
+                         f"({c['wholly_outside']} wholly, "
+                         f"up to {100 * c['max_fraction']:.0f} %)")
+    return ("positions measured partly outside the region of the images the calibration observed, where its "
+            "model extrapolates (share of their fits' pixels): " + "; ".join(parts))
+
+
 def _chain(run: RunData, ident: dict) -> list[dict]:
     """The traceability chain: CMM certificate -> artefact -> calibration -> lengths."""
     rd = run.rd
@@ -235,6 +279,7 @@ def build(run: RunData, generated: str, execution: dict) -> dict:
     return {"name": run.name(), "number": certificate_number(number_parts(run)), "verdict": verdict_badge(verdict),
             "rule": verdict["rule"], "identity": _identity(run, ident, execution), "spec": _specification(run),
             "table": _table(run, verdict), "chain": _chain(run, ident),
+            "observed": observed_line(run.maybe_json(run.rd.acceptance)),
             "operator": ident.get("operator") or BLANK, "approved_by": ident.get("approved_by") or BLANK,
             "remarks": ident.get("remarks"),
             "simulated": (f"A simulated run (simulation profile {profile or 'ideal'}): this certificate "
