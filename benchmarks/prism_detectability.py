@@ -22,6 +22,12 @@ with the jackknife's dispersion factor (``kappa``, ``W_dispersed``). ``--runs
 RUN_DIR=CONFIG ...``: the test, with the dispersion factor, on the control points of
 rendered runs too (``fringecal run -c CONFIG --out RUN_DIR --until bundle`` first).
 
+``--null RUN_DIR=CONFIG ...`` instead: the test in ``--null-worlds`` worlds without a term
+that hold each run's own noise (:func:`null_worlds`), W and W less the terms' noise bias.
+
+``--noise-free RUN_DIR=CONFIG=QUIET_RUN_DIR ...`` instead: the error the renderer holds
+beyond its noise, through the test (:func:`noise_free`).
+
 ``--sweep NAME:WIDTH:CORNER:SEED ...`` instead: rendered runs of ``configs/run_thesis.yaml``
 at WIDTH px and seed SEED with a thin-prism term of CORNER px (``R``: the realistic
 profile), made to the bundle step in ``--sweep-dir`` (or reused from there), with the
@@ -140,6 +146,113 @@ def wald_of_run(run_dir: str, config: str) -> dict:
             **_wald_record(w), "per_sensor": w["per_sensor"]}
 
 
+def null_worlds(problem, options, worlds: int, label: str) -> dict:
+    """The test in ``worlds`` worlds without any thin-prism term but with ``problem``'s
+    own noise: its 14-parameter solution plus each control point's residual times a
+    random sign (:func:`fringecal.calibration.jackknife.noise_worlds`, signs of seed 7),
+    each adjusted with the 14 parameters from that solution and tested, W and W less the
+    terms' second-order noise bias (``W_corrected``). Both should be chi-square(8) there."""
+    from scipy.stats import chi2
+
+    from fringecal.calibration.candidates import fit_model
+    from fringecal.calibration.jackknife import noise_worlds
+    from fringecal.calibration.wald import PRISM_ALPHA, prism_wald
+
+    given = options.model_copy(update={"start": "given"})
+    first = fit_model(problem, options, "brown14")
+    rows = []
+    for k, world in enumerate(noise_worlds(first, worlds, seed=7)):
+        w = prism_wald(fit_model(world, given, "brown14"), options, corrected=True, workers=2)
+        rows.append({"world": k, "W": w["W"], "dof": w["dof"], "W_corrected": w.get("W_corrected"),
+                     "bias_over_u": w.get("bias_over_u")})
+    W = np.array([r["W"] for r in rows]); Wc = np.array([r["W_corrected"] for r in rows], float)
+    crit = float(chi2.isf(PRISM_ALPHA, rows[0]["dof"]))
+    return {"problem": label, "n_control_points": int(problem.n_points), "worlds": rows, "mean_W": float(W.mean()),
+            "mean_W_corrected": float(np.nanmean(Wc)), "flagged": int((W > crit).sum()),
+            "flagged_corrected": int((Wc > crit).sum())}
+
+
+def _control_point_errors(run: str):
+    """A simulated run's control points with each one's phase error against the
+    renderer's truth at the pixel centre (``ex``, ``ey``, rad; the decoded phases less
+    the pixel-integration correction's bias, as the adjustment takes them)."""
+    import pandas as pd
+    import zarr
+
+    from fringecal.rundir import RunDir
+
+    rd = RunDir(run)
+    cp = rd.control_points.load().reset_index(drop=True)
+    ex = np.full(len(cp), np.nan)
+    ey = np.full(len(cp), np.nan)
+    for (m, sc), rows in cp.groupby(["measurement", "scanner"]).groups.items():
+        z = zarr.open_group(str(rd.truth.store(f"{m}-{sc}").path), mode="r")
+        u, v = cp.u_px.to_numpy(int)[rows], cp.v_px.to_numpy(int)[rows]
+        ex[rows] = cp.tau_x_rad.to_numpy()[rows] - z["truth_tau_x_centre"][:][v, u]
+        ey[rows] = cp.tau_y_rad.to_numpy()[rows] - z["truth_tau_y_centre"][:][v, u]
+    return cp, pd.DataFrame({"ex": ex, "ey": ey})
+
+
+def noise_free(run: str, config: str, quiet_run: str) -> dict:
+    """Does the renderer hold an error the 14 parameters leave? ``run``'s control points
+    with their phases replaced by the renderer's truth plus the error of the same
+    control points in ``quiet_run`` (the same configuration rendered without noise:
+    ``render: {shot_noise: false, read_noise_e: 0, excess_noise: 0}``), adjusted and
+    tested with ``run``'s covariance of the terms: W and the terms over their u of that
+    error alone. And the noise (``run``'s error less it): its correlation between
+    neighbouring pixels, between measurements at the same pixel and between the phases."""
+    import pandas as pd
+
+    from fringecal.calibration.candidates import fit_model
+    from fringecal.calibration.model import BundleProblem
+    from fringecal.calibration.wald import _thin_prism_fit
+    from fringecal.run.config import load_run_config
+    from fringecal.rundir import RunDir
+
+    cfg = load_run_config(config)
+    b = cfg.bundle
+    rd = RunDir(run)
+    cp, err = _control_point_errors(run)
+    qcp, qerr = _control_point_errors(quiet_run)
+    key = ["measurement", "scanner", "u_px", "v_px"]
+    quiet = cp[key].merge(pd.concat([qcp[key], qerr], axis=1), on=key, how="left")
+    matched = quiet.ex.notna().to_numpy()
+    systematic = quiet[["ex", "ey"]].fillna(0.0).to_numpy()
+    truth = cp[["tau_x_rad", "tau_y_rad"]].to_numpy() - err.to_numpy()
+    rig = rd.sensors_initial.load(cfg.reference_scanner)
+
+    def terms(tau):
+        t = cp.copy()
+        t["tau_x_rad"], t["tau_y_rad"] = tau[:, 0], tau[:, 1]
+        problem = BundleProblem.from_tables(rig, rd.artefact.load(), t, rd.poses_initial.load(), b.gamma1, b.gamma2)
+        fit, idx, _ = _thin_prism_fit(fit_model(problem, b, "brown14"), b)
+        return fit.x[idx], fit.uncertainty.covariance[np.ix_(idx, idx)]
+
+    a_run, C = terms(truth + err.to_numpy())
+    a_sys, _ = terms(truth + systematic)
+    noise = (err.to_numpy() - systematic)[matched]
+    on = cp[matched].assign(nx=noise[:, 0], ny=noise[:, 1])
+    lag = on.assign(u_px=on.u_px + 1).merge(on, on=key, suffixes=("", "_next"))
+    same = on.merge(on, on=["scanner", "u_px", "v_px"], suffixes=("", "_other"))
+    same = same[same.measurement.astype(str) < same.measurement_other.astype(str)]
+    corr = lambda a, b: float(np.corrcoef(a, b)[0, 1])  # noqa: E731
+    return {"run": run, "quiet_run": quiet_run, "n_control_points": int(len(cp)), "matched": int(matched.sum()),
+            "W_run": float(a_run @ np.linalg.solve(C, a_run)),
+            "W_systematic": float(a_sys @ np.linalg.solve(C, a_sys)),
+            "systematic_terms_over_u": (a_sys / np.sqrt(np.diag(C))).tolist(),
+            "systematic_rms_rad": np.sqrt(np.mean(systematic[matched] ** 2, axis=0)).tolist(),
+            "noise_rms_rad": np.sqrt(np.mean(noise ** 2, axis=0)).tolist(),
+            "noise_corr_next_pixel": [corr(lag.nx, lag.nx_next), corr(lag.ny, lag.ny_next)],
+            "noise_corr_same_pixel_other_measurement": [corr(same.nx, same.nx_other), corr(same.ny, same.ny_other)],
+            "noise_corr_x_y": corr(on.nx, on.ny)}
+
+
+def _smoke_null() -> dict:
+    from fringecal.calibration.bundle import BundleOptions
+
+    return null_worlds(prism_world(0.0, 60)[0], BundleOptions(bootstrap_draws=0), 1, "smoke")
+
+
 def sweep_config(base: dict, width: int, corner: str, seed: int) -> dict:
     """``base`` (configs/run_thesis.yaml) at ``width`` px, seed ``seed`` (acquisition and
     errors), with a thin-prism term of ``corner`` px at the corner (``R``: the realistic
@@ -207,6 +320,13 @@ def main(argv=None) -> dict:
                     help="rendered runs to make (or reuse) in --sweep-dir and test: thin-prism CORNER px (R: the "
                          "realistic profile) at WIDTH px, seed SEED; only these when given")
     ap.add_argument("--sweep-dir", type=Path, default=Path("prism-sweep"), help="where the sweep's runs live")
+    ap.add_argument("--null", nargs="*", default=[], metavar="RUN_DIR=CONFIG",
+                    help="finished runs (to the bundle step) whose noise fills --null-worlds worlds without a "
+                         "thin-prism term (null_worlds); only these when given")
+    ap.add_argument("--null-worlds", type=int, default=10, help="worlds per run of --null")
+    ap.add_argument("--noise-free", nargs="*", default=[], metavar="RUN_DIR=CONFIG=QUIET_RUN_DIR",
+                    help="simulated runs and the same runs rendered without noise: the error the renderer "
+                         "holds beyond the noise, through the test (noise_free); only these when given")
     args = add_options(ap).parse_args(argv)
     doc = conditions("prism_detectability", argv, args.smoke)
     t0 = time.perf_counter()
@@ -221,6 +341,29 @@ def main(argv=None) -> dict:
                             "profile, to the bundle step), and the test with the factor always",
                     "alpha": PRISM_ALPHA, "sweep": rows, "by_variant": _sweep_summary(rows),
                     "wall_seconds": time.perf_counter() - t0})
+        return finish(doc, args.out)
+    if args.noise_free:
+        doc.update({"what": "the phase error of rendered runs' control points against the renderer's truth: what "
+                            "of it the same runs rendered without noise hold, through the Wald test with the "
+                            "run's covariance, and how independent the rest (the noise) is",
+                    "noise_free": [noise_free(*spec.split("=", 2)) for spec in args.noise_free],
+                    "wall_seconds": time.perf_counter() - t0})
+        return finish(doc, args.out)
+    if args.null:
+        from fringecal.run.config import load_run_config
+        from fringecal.rundir import RunDir
+        from fringecal.steps.bundle import load_problem
+
+        rows = []
+        for spec in args.null:
+            run, config = spec.split("=", 1)
+            cfg = load_run_config(config)
+            problem = load_problem(RunDir(run), cfg.reference_scanner, cfg.bundle.gamma1, cfg.bundle.gamma2)
+            rows.append({"run": run, "config": config, **null_worlds(problem, cfg.bundle, args.null_worlds, run)})
+        doc.update({"what": "the Wald test of the thin-prism terms, W and W less the terms' second-order noise "
+                            "bias, in worlds without a term that hold each run's own noise (its 14-parameter "
+                            "solution plus its residuals with random signs): chi-square(8) expected",
+                    "null": rows, "wall_seconds": time.perf_counter() - t0})
         return finish(doc, args.out)
     corners, spacing = ((3.0,), 60) if args.smoke else (CORNERS_PX, 20)
     rows = [measure(c, spacing) for c in corners]
@@ -240,6 +383,8 @@ def main(argv=None) -> dict:
                 "dense": {"spacing_px": dense_spacing, "seeds": len(seeds), "wald": dense,
                           "flagged_at_alpha": flagged, "with_dispersion": dispersed},
                 "rendered_runs": [wald_of_run(*r.split("=", 1)) for r in args.runs],
+                # the smoke runs the null worlds' code on its clean world
+                "null": [_smoke_null()] if args.smoke else [],
                 "wall_seconds": time.perf_counter() - t0})
     return finish(doc, args.out)
 

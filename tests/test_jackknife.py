@@ -143,6 +143,33 @@ def test_a_measurement_that_cannot_be_left_out_is_skipped_in_the_data_and_in_eve
     assert jk.usable and jk.to_dict()["skipped"] == jk.skipped
 
 
+def test_mirrored_noise_worlds_hold_the_noise_with_both_signs(truth):
+    """noise_worlds(mirrored=True): each world is followed by its mirror, every point's
+    residual with the opposite sign, so a pair's mean observation is the calibrated
+    model's prediction exactly (what the Wald test's noise bias relies on), and the first
+    of each pair is the plain noise world."""
+    from fringecal.calibration.bootstrap import predicted_projector_mm
+    from fringecal.calibration.jackknife import noise_worlds
+
+    rig, art, poses = truth
+    cp = simulate_control_points(rig, art, poses, spacing_px=80, rng=0).control_points
+    fit = bundle_adjust(BundleProblem.from_tables(rig, art, cp, poses), BundleOptions(start="given", bootstrap_draws=0))
+    predicted = predicted_projector_mm(fit)
+    ok = np.isfinite(predicted).all(axis=1)
+    worlds = noise_worlds(fit, 2, seed=3, mirrored=True)
+    plain = noise_worlds(fit, 2, seed=3)
+    assert len(worlds) == 4 and ok.mean() > 0.99
+    residual = fit.problem.prj_mm - predicted
+    for k in range(2):
+        plus, minus = worlds[2 * k].prj_mm, worlds[2 * k + 1].prj_mm
+        np.testing.assert_array_equal(plus, plain[k].prj_mm)
+        np.testing.assert_allclose((plus + minus)[ok] / 2, predicted[ok], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.abs(plus - predicted)[ok], np.abs(residual)[ok], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(minus[~ok], fit.problem.prj_mm[~ok])  # a ray that misses keeps its observation
+    signs = np.sign((worlds[0].prj_mm - predicted)[ok] * residual[ok])
+    assert 0.4 < np.mean(signs > 0) < 0.6  # random signs, not the residuals themselves
+
+
 def test_jackknife_variance_and_too_few_replicas():
     """The textbook formula on known numbers; a variance of one value is refused."""
     assert jackknife_variance([1.0, 2.0, 3.0, 6.0]) == pytest.approx(3 / 4 * 14.0)

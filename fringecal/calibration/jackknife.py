@@ -69,8 +69,8 @@ from fringecal.calibration.model import BundleProblem, Evaluator, ParameterLayou
 from fringecal.calibration.keyed import keyed_signs, row_keys
 from fringecal.threads import numba_threads
 
-__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations", "leave_one_out", "noise_worlds",
-           "readjusted", "readjusted_solution"]
+__all__ = ["MIN_REPLICAS", "NOISE_DRAWS", "Jackknife", "jackknife_calibrations", "adjust_each", "leave_one_out",
+           "noise_worlds", "readjusted", "readjusted_solution"]
 
 log = logging.getLogger(__name__)
 
@@ -109,18 +109,22 @@ class Jackknife:
                 "noise_draws": int(len(self.noise_params)), "min_replicas": MIN_REPLICAS}
 
 
-def noise_worlds(result: BundleResult, draws: int, seed: int = 0) -> list[BundleProblem]:
+def noise_worlds(result: BundleResult, draws: int, seed: int = 0, mirrored: bool = False) -> list[BundleProblem]:
     """``result``'s problem, from its solution, with the projector observations of
     ``draws`` noise-only worlds: the calibrated model's prediction plus each control
     point's residual times a sign keyed by the point's coordinates (points whose ray
-    misses their sphere keep their observation)."""
+    misses their sphere keep their observation). ``mirrored``: each world followed by
+    its mirror, every sign reversed (2 ``draws`` worlds; the mean of a pair's estimates
+    holds no term linear in the noise)."""
     problem = result.problem.with_start(result.rig, result.poses)
     predicted = predicted_projector_mm(result)
     ok = np.isfinite(predicted).all(axis=1)[:, None]
     residual = problem.prj_mm - predicted
     keys = row_keys(problem.cam_mm, problem.prj_mm)
-    return [replace(problem, prj_mm=np.where(ok, predicted + keyed_signs(keys, seed, _NOISE_STREAM + d)[:, None]
-                                             * residual, problem.prj_mm)) for d in range(draws)]
+    signs = [keyed_signs(keys, seed, _NOISE_STREAM + d)[:, None] for d in range(draws)]
+    if mirrored:
+        signs = [s for v in signs for s in (v, -v)]
+    return [replace(problem, prj_mm=np.where(ok, predicted + s * residual, problem.prj_mm)) for s in signs]
 
 
 def readjusted(problem: BundleProblem, options: BundleOptions) -> np.ndarray:
@@ -151,31 +155,37 @@ def readjusted_solution(problem: BundleProblem, options: BundleOptions) -> tuple
     return ev.layout, report.x
 
 
-def leave_one_out(problems: list[BundleProblem], names: list[str], options: BundleOptions, adjust,
-                  workers: int = 1) -> list[tuple]:
-    """``adjust(subproblem, options)`` of every problem without each measurement of
-    ``names`` in turn, in the order (problem, measurement): ``(value, None)``, or
-    ``(None, why)`` where the problem left cannot be calibrated (degenerate, or no start
-    values); ``workers`` adjustments at once, each on one numba thread."""
+def adjust_each(makers: list, options: BundleOptions, adjust, workers: int = 1) -> list[tuple]:
+    """``adjust(make(), options)`` for each problem maker of ``makers``, in their order:
+    ``(value, None)``, or ``(None, why)`` where the problem cannot be calibrated
+    (degenerate, or no start values); ``workers`` adjustments at once, each on one numba
+    thread."""
 
-    def replica(task):
-        k, m = task
+    def one(make):
         try:
-            return adjust(subproblem(problems[k], [x for x in names if x != m]), options), None
+            return adjust(make(), options), None
         except DegenerateCalibrationError as err:
             return None, "degenerate: " + "; ".join(d.message for d in err.diagnoses if d.severity == "error")
         except StartValueError as err:
             return None, f"start values: {err}"
 
-    def on_one_thread(task):  # each replica's kernels on one thread: the replicas run in parallel
+    def on_one_thread(make):  # each adjustment's kernels on one thread: the adjustments run in parallel
         with numba_threads(1):
-            return replica(task)
+            return one(make)
 
-    tasks = [(k, m) for k in range(len(problems)) for m in names]
     if workers <= 1:
-        return [replica(t) for t in tasks]
+        return [one(m) for m in makers]
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(pool.map(on_one_thread, tasks))
+        return list(pool.map(on_one_thread, makers))
+
+
+def leave_one_out(problems: list[BundleProblem], names: list[str], options: BundleOptions, adjust,
+                  workers: int = 1) -> list[tuple]:
+    """``adjust(subproblem, options)`` of every problem without each measurement of
+    ``names`` in turn, in the order (problem, measurement) (:func:`adjust_each`)."""
+    makers = [lambda k=k, m=m: subproblem(problems[k], [x for x in names if x != m])
+              for k in range(len(problems)) for m in names]
+    return adjust_each(makers, options, adjust, workers)
 
 
 def jackknife_calibrations(result: BundleResult, noise_draws: int = NOISE_DRAWS, seed: int = 0,

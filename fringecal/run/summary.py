@@ -131,6 +131,8 @@ def _sensor_model(record: dict | None) -> dict | None:
             "held_out_rms_f_mm": {m: e["rms_f_mm"] for m, e in (record.get("held_out") or {}).items()},
             "residual_pattern_z": pattern.get("z_max"), "residual_pattern_threshold": pattern.get("threshold"),
             "prism_wald_p": prism.get("p_dispersed", prism.get("p")), "prism_wald_kappa": prism.get("kappa"),
+            # W less the terms' second-order noise bias, taken only where W alone is significant
+            "prism_wald_W": prism.get("W"), "prism_wald_W_corrected": prism.get("W_corrected"),
             "prism_wald_alpha": prism.get("alpha"), "prism_present": prism.get("present"),
             "prism_verdict": prism.get("verdict"),
             "lens_model_too_simple": None if not pattern else bool(pattern.get("too_simple")) or prism_unmodelled,
