@@ -104,7 +104,8 @@ def measure(corner_px: float, spacing_px: int) -> dict:
 
 
 def _wald_record(w: dict) -> dict:
-    keys = ("W", "dof", "p", "kappa", "W_dispersed", "p_dispersed", "n_replicas", "seconds")
+    keys = ("W", "dof", "p", "W_corrected", "bias_over_u", "kappa", "W_dispersed", "p_dispersed", "n_replicas",
+            "seconds")
     return {k: w[k] for k in keys if k in w}
 
 

@@ -46,13 +46,14 @@ camera's principal point). A mirrored pair of noise worlds (:func:`.jackknife.no
 the calibration's is that bias; ``BIAS_PAIRS`` pairs give it, and the test is made on the
 terms less it. The bias grows with the square of the noise and with the number of
 points, against a u that falls with their root: on the clean thesis rig at 1024 px
-(rendered, ideal profile, seed 4) it was 0.3-1.2 u per term, adding about 2.5 to W's
-mean of 8 (a false-flag rate of 0.9 % at ``PRISM_ALPHA``); at 2048 px it would be about
-four times that. Measured there, and not from an error of the renderer: the phases of
-the same run rendered without noise move the terms by 0.06 u at most, and the noise of
-its control points is independent between pixels, measurements and the two phases
-(|corr| < 0.02). Like the factor, the bias is taken only when ``W`` alone reaches the
-threshold (8 re-adjustments of the whole problem).
+(rendered, ideal profile, seed 4; 164,000 control points) it was 0.0-1.25 u per term,
+and in worlds of that run's own noise without a term W averaged 12.4, 9.1 less the bias
+(chi-square: 8; ``benchmarks/prism_detectability.py --null``). Measured there, and not
+an error of the renderer: the phases of the same run rendered without noise move the
+terms by 0.09 u at most, and the noise of its control points is independent between
+pixels, measurements and the two phases (|corr| <= 0.024; ``--noise-free``). Like the
+factor, the bias is taken only when ``W`` alone reaches the threshold (8 re-adjustments
+of the whole problem).
 """
 
 from __future__ import annotations
