@@ -35,8 +35,16 @@ def _flow(*args, flow=None, **kwargs) -> dict:
 
 
 @pytest.fixture(scope="module")
-def first_run(prefect_harness, small_config, tmp_path_factory):
+def first_run(prefect_harness, small_run, small_config, tmp_path_factory):
+    """The flow over a copy of the session's run of the small rig (tests/conftest.py: the
+    same config, every step up to the evaluation made by the steps this flow calls,
+    without Prefect): the flow finds those steps current and reuses them, makes the
+    report and writes the summary. Rendering and adjusting the rig again here would
+    give the same files (a copied run stays current, tests/test_steps.py); the whole
+    `fringecal run` from nothing, through Prefect, is tests/test_interrupt.py's run,
+    resumed to the same numbers."""
     run_dir = tmp_path_factory.mktemp("run") / "small"
+    shutil.copytree(small_run[0].root, run_dir, symlinks=True)
     summary = _flow(str(small_config), str(run_dir))
     return run_dir, summary
 
