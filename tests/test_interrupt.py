@@ -126,13 +126,15 @@ def _calibrated(out: Path):
 def reference(small_run):
     """The summary of one uninterrupted run of the small rig: the numbers every resumed
     run must give (the session's run, tests/conftest.py: its steps run without Prefect,
-    which the flow calls as they are, tests/test_run_flow.py)."""
+    which the flow calls as they are, tests/test_run_flow.py). Asked for only once the
+    resumed run has finished: the test's commands run meanwhile, while another test
+    worker may still be making the session's run (tests/test_run_flow.py starts from it)."""
     return small_run[1]
 
 
 @pytest.mark.flow
 @pytest.mark.slow
-def test_sigterm_then_kill_9_then_the_same_command_resumes_to_the_same_numbers(reference, small_config, tmp_path):
+def test_sigterm_then_kill_9_then_the_same_command_resumes_to_the_same_numbers(request, small_config, tmp_path):
     """SIGTERM while rendering (one line, status 143, within seconds), kill -9 once the
     bundle adjustment has written its outputs (no orphans), then the same command
     resumes to the uninterrupted run's numbers. (SIGINT: the test below.)"""
@@ -164,6 +166,7 @@ def test_sigterm_then_kill_9_then_the_same_command_resumes_to_the_same_numbers(r
     (out / "tables" / ".poses.csv.0123456789ab.tmp").write_text("measurement,sc")
     run.start()
     summary = run.finish()
+    reference = request.getfixturevalue("reference")
     for key in NUMBERS:
         assert summary[key] == reference[key], key
     assert summary["verification"]["max_abs_error_mm"] == reference["verification"]["max_abs_error_mm"]
