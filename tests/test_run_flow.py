@@ -1,7 +1,9 @@
-"""`fringecal run` end to end on a small simulated rig and on the same rig written as a
-recorded data set: results against truth, the two doors agreeing, no truth read by a
-data-set run, Prefect caching, reproduction, Dask, and bad configs and data sets
-stopping before any work."""
+"""`fringecal run` on a small simulated rig and on the same rig written as a recorded
+data set: results against truth, the two doors agreeing, no truth read by a data-set
+run, Prefect caching, reproduction, Dask, and bad configs and data sets stopping before
+any work. The simulated run is the flow over a copy of the session's run of the rig
+(``first_run``); the data set's runs decode and calibrate from nothing, and the
+simulated run from nothing through the command is tests/test_interrupt.py's."""
 
 import json
 import os
