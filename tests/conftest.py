@@ -137,13 +137,43 @@ def thesis_artefact():
     return load_artefact(THESIS / "artefact_cmm2.csv")
 
 
+#: node ids of this process's tests that ask for ``prefect_harness`` and have not run yet
+_HARNESS_USERS: set[str] = set()
+#: the open harness (an ExitStack), None before it starts and once it is stopped
+_HARNESS: dict = {"stack": None}
+
+
+def pytest_collection_finish(session):
+    _HARNESS_USERS.update(item.nodeid for item in session.items if "prefect_harness" in item.fixturenames)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    """The Prefect test server stops after the last test that asks for it, not at the
+    session's end: idle, it keeps polling its database (about 40 CPU-s over a session
+    whose flow tests ended at 40 % of it). Its tests all run in one worker (one scope,
+    ``pytest_xdist_make_scheduler``), so that worker sees the last of them; a worker that
+    collected some it does not run keeps the server to the end, as before."""
+    yield
+    _HARNESS_USERS.discard(item.nodeid)
+    if not _HARNESS_USERS and _HARNESS["stack"] is not None:
+        _HARNESS["stack"].close()
+        _HARNESS["stack"] = None
+
+
 @pytest.fixture(scope="session")
 def prefect_harness():
-    """One temporary Prefect server for every flow test of the session."""
+    """One temporary Prefect server for the flow tests of the session (stopped after the
+    last of them, ``pytest_runtest_teardown``)."""
+    from contextlib import ExitStack
+
     from prefect.testing.utilities import prefect_test_harness
 
-    with prefect_test_harness(server_startup_timeout=120):
+    with ExitStack() as stack:
+        stack.enter_context(prefect_test_harness(server_startup_timeout=120))
+        _HARNESS["stack"] = stack
         yield
+        _HARNESS["stack"] = None
 
 
 @pytest.fixture

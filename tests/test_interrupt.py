@@ -126,13 +126,15 @@ def _calibrated(out: Path):
 def reference(small_run):
     """The summary of one uninterrupted run of the small rig: the numbers every resumed
     run must give (the session's run, tests/conftest.py: its steps run without Prefect,
-    which the flow calls as they are, tests/test_run_flow.py)."""
+    which the flow calls as they are, tests/test_run_flow.py). Asked for only once the
+    resumed run has finished: the test's commands run meanwhile, while another test
+    worker may still be making the session's run (tests/test_run_flow.py starts from it)."""
     return small_run[1]
 
 
 @pytest.mark.flow
 @pytest.mark.slow
-def test_sigterm_then_kill_9_then_the_same_command_resumes_to_the_same_numbers(reference, small_config, tmp_path):
+def test_sigterm_then_kill_9_then_the_same_command_resumes_to_the_same_numbers(request, small_config, tmp_path):
     """SIGTERM while rendering (one line, status 143, within seconds), kill -9 once the
     bundle adjustment has written its outputs (no orphans), then the same command
     resumes to the uninterrupted run's numbers. (SIGINT: the test below.)"""
@@ -164,6 +166,7 @@ def test_sigterm_then_kill_9_then_the_same_command_resumes_to_the_same_numbers(r
     (out / "tables" / ".poses.csv.0123456789ab.tmp").write_text("measurement,sc")
     run.start()
     summary = run.finish()
+    reference = request.getfixturevalue("reference")
     for key in NUMBERS:
         assert summary[key] == reference[key], key
     assert summary["verification"]["max_abs_error_mm"] == reference["verification"]["max_abs_error_mm"]
@@ -183,18 +186,28 @@ RENDERED = r"render measurements 8/8 done \(\d+ s\)"
 
 @pytest.mark.flow
 @pytest.mark.slow
-def test_ctrl_c_stops_a_run_into_a_pipe_within_seconds_with_one_line(small_config, tmp_path):
+def test_ctrl_c_stops_a_run_into_a_pipe_within_seconds_with_one_line(small_run, small_config, tmp_path):
     """Ctrl-C in a terminal (SIGINT to the whole process group) while the ball-bar is
     rendered: status 130 within seconds, one line, no orphans; the run knows it was
     interrupted. (SIGTERM: the test above.)
 
+    The run directory is a copy of the session's run of the small rig (tests/conftest.py)
+    without its ball-bar stores and their records: the command reuses the measurements'
+    stores (the same keys; rendering them again here cost about 8 CPU-s) and renders the
+    ball-bar, the state this test interrupts.
+
     Its output goes to a pipe, as in CI or under nohup, with PYTHONUNBUFFERED and
     FRINGECAL_PROGRESS unset: up to the interruption its lines are those
     tests/test_progress.py asks of a run into a pipe (checked here, on this run, which
-    saves a command's start-up and its rendering)."""
+    saves a command's start-up)."""
+    import shutil
+
     from test_progress import assert_a_run_into_a_pipe_says_what_it_does
 
-    out, token = tmp_path / "run", uuid.uuid4().hex
+    out, token = shutil.copytree(small_run[0].root, tmp_path / "run", symlinks=True), uuid.uuid4().hex
+    for store in [*(out / "measurements").glob("bb*.zarr"), *(out / "truth" / "measurements").glob("bb*.zarr"),
+                  out / ".steps" / "simulate-ballbar"]:
+        shutil.rmtree(store)
     env = {k: v for k, v in os.environ.items() if k not in (progress.ENV, "PYTHONUNBUFFERED")}
     cmd = [sys.executable, "-m", "fringecal.flows.cli", "run", "-c", str(small_config), "--out", str(out)]
     t0 = time.monotonic()

@@ -1,7 +1,9 @@
-"""`fringecal run` end to end on a small simulated rig and on the same rig written as a
-recorded data set: results against truth, the two doors agreeing, no truth read by a
-data-set run, Prefect caching, reproduction, Dask, and bad configs and data sets
-stopping before any work."""
+"""`fringecal run` on a small simulated rig and on the same rig written as a recorded
+data set: results against truth, the two doors agreeing, no truth read by a data-set
+run, Prefect caching, reproduction, Dask, and bad configs and data sets stopping before
+any work. The simulated run is the flow over a copy of the session's run of the rig
+(``first_run``); the data set's runs decode and calibrate from nothing, and the
+simulated run from nothing through the command is tests/test_interrupt.py's."""
 
 import json
 import os
@@ -35,8 +37,16 @@ def _flow(*args, flow=None, **kwargs) -> dict:
 
 
 @pytest.fixture(scope="module")
-def first_run(prefect_harness, small_config, tmp_path_factory):
+def first_run(prefect_harness, small_run, small_config, tmp_path_factory):
+    """The flow over a copy of the session's run of the small rig (tests/conftest.py: the
+    same config, every step up to the evaluation made by the steps this flow calls,
+    without Prefect): the flow finds those steps current and reuses them, makes the
+    report and writes the summary. Rendering and adjusting the rig again here would
+    give the same files (a copied run stays current, tests/test_steps.py); the whole
+    `fringecal run` from nothing, through Prefect, is tests/test_interrupt.py's run,
+    resumed to the same numbers."""
     run_dir = tmp_path_factory.mktemp("run") / "small"
+    shutil.copytree(small_run[0].root, run_dir, symlinks=True)
     summary = _flow(str(small_config), str(run_dir))
     return run_dir, summary
 

@@ -17,6 +17,8 @@ covered, which would blur the contrast this test is about.
 
 from __future__ import annotations
 
+import shutil
+
 import pytest
 
 from fringecal.report import render_report
@@ -34,9 +36,9 @@ QUIET = {"simulate": {"acquisition": {"render": {"excess_noise": 0.0, "shot_nois
          "verification": {"uncertainty": {"artefact_u_factor": 0.0, "monte_carlo_draws": 0}}}
 
 
-def _run(config, root, errors: dict):
+def _run(config, root, errors: dict, start: RunDir | None = None):
     cfg = load_run_config(config, overrides={**QUIET, "simulate": {**QUIET["simulate"], "errors": errors}})
-    rd = RunDir(root).create()
+    rd = RunDir(shutil.copytree(start.root, root, symlinks=True)) if start else RunDir(root).create()
     rd.manifest.save(manifest(cfg))
     run_pipeline(rd, cfg, workers=2, until="verify")
     return rd
@@ -44,10 +46,14 @@ def _run(config, root, errors: dict):
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
+    """The scaled run starts from a copy of the plain one: the artefact's scale keys the
+    prepare step, whose as-built tables key what they change (the artefact's stores and
+    everything after them, tests/test_simulation_errors.py), so the ball-bar's stores,
+    which the scale does not touch, are reused instead of rendered again."""
     d = tmp_path_factory.mktemp("scale")
     config = write_small_thesis_config(d, positions=(1, 9))
     plain = _run(config, d / "plain", {})
-    scaled = _run(config, d / "scaled", {"artefact_temperature_c": 21.0, "artefact_cte_per_c": SCALE})
+    scaled = _run(config, d / "scaled", {"artefact_temperature_c": 21.0, "artefact_cte_per_c": SCALE}, start=plain)
     return plain, scaled
 
 
