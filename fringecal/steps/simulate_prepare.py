@@ -17,7 +17,10 @@ position is simulated), the planned positions to ``truth/acceptance_positions.cs
 Fixed ball-bar positions (``verification.scheme`` ``thesis9`` or ``vdi7``) are checked
 against the region of each image the planned poses will let the calibration observe
 (:func:`fringecal.simulate.source.predicted_regions`): a sphere whose image leaves it is
-a warning with its numbers (the ``planned`` scheme places them inside).
+named with its numbers in the run's log (``fringecal.log``; the ``planned`` scheme places
+them inside). Not a warning on the terminal: the verification step warns of the
+positions it measured outside the calibration's own regions, and the demo's thesis
+positions would otherwise print the same news twice on every run.
 """
 
 from __future__ import annotations
@@ -88,7 +91,7 @@ class SimulatePrepare(Step):
             outside = positions_outside(sr.truth, sr.positions, sr.ballbar,
                                         predicted_regions(sr.truth, sr.artefact, sr.planned))
             if outside:
-                log.warning("the ball-bar positions of verification.scheme %s put %d sphere image(s) outside the "
+                log.info("the ball-bar positions of verification.scheme %s put %d sphere image(s) outside the "
                             "region of the images the artefact's poses will let the calibration observe (predicted "
                             "from the planned poses; there its model extrapolates): %s. 'scheme: planned' places "
                             "them inside", cfg.simulate.verification.scheme, len(outside), "; ".join(outside))
