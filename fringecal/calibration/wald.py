@@ -44,9 +44,9 @@ near-singular directions of the rig (a rotation of the world against the referen
 camera's principal point). A mirrored pair of noise worlds (:func:`.jackknife.noise_worlds`,
 ``mirrored``) cancels what is linear in the noise, so the mean of its two estimates less
 the calibration's is that bias; ``BIAS_PAIRS`` pairs give it, and the test is made on the
-terms less it. The bias grows with the square of the noise and with the number of
-points, against a u that falls with their root: on the clean thesis rig at 1024 px
-(rendered, ideal profile, seed 4; 164,000 control points) it was 0.0-1.25 u per term,
+terms less it. Its share of W grows with the points (the squares of the bias over u
+summed to 0.85 at 512 px and 3.1 at 1024 px on the thesis rig): on the clean rig at 1024 px
+(rendered, ideal profile, seed 4; 162,000 control points) it was 0.0-1.25 u per term,
 and in worlds of that run's own noise without a term W averaged 12.4, 9.1 less the bias
 (chi-square: 8; ``benchmarks/prism_detectability.py --null``). Measured there, and not
 an error of the renderer: the phases of the same run rendered without noise move the
