@@ -124,16 +124,21 @@ def _thin_prism_fit(first: BundleResult, options: BundleOptions):
     return fit, idx, given
 
 
+def _statistic(fit: BundleResult, idx: np.ndarray, a: np.ndarray | None = None) -> float:
+    """``a^T C^-1 a`` of the terms ``a`` at ``idx`` in x (default: the fitted ones) with
+    their stated covariance ``C``."""
+    a = fit.x[idx] if a is None else a
+    return float(a @ np.linalg.solve(fit.uncertainty.covariance[np.ix_(idx, idx)], a))
+
+
 def _wald(fit: BundleResult, idx: np.ndarray, options: BundleOptions) -> dict:
-    C = fit.uncertainty.covariance[np.ix_(idx, idx)]
-    a = fit.x[idx]
-    W = float(a @ np.linalg.solve(C, a))
+    W = _statistic(fit, idx)
     lay = fit.layout
     per = {}
     for i, sensor in enumerate(fit.rig.sensors):
         mine = lay.prism_index[i][lay.prism_index[i] >= 0]
         if len(mine):
-            w = float(fit.x[mine] @ np.linalg.solve(fit.uncertainty.covariance[np.ix_(mine, mine)], fit.x[mine]))
+            w = _statistic(fit, mine)
             per[sensor.name] = {"W": w, "p": float(chi2.sf(w, len(mine)))}
     return {"model": "thin_prism", "W": W, "dof": int(len(idx)), "p": float(chi2.sf(W, len(idx))),
             "covariance": options.covariance, "per_sensor": per}
@@ -181,7 +186,7 @@ def _corrected(fit: BundleResult, idx: np.ndarray, given: BundleOptions, noise_d
     (:func:`_dispersion`)."""
     out = _noise_bias(fit, idx, given, BIAS_PAIRS, workers)
     a = fit.x[idx] - out.pop("bias", 0.0)
-    out["W_corrected"] = float(a @ np.linalg.solve(fit.uncertainty.covariance[np.ix_(idx, idx)], a))
+    out["W_corrected"] = _statistic(fit, idx, a)
     out.update(_dispersion(fit, idx, given, out["W_corrected"], noise_draws, seed, workers))
     return out
 
