@@ -72,11 +72,43 @@ def test_free_but_unobservable_parameters_are_named(coarse):
     assert {"C1.x0", "C1.z0"} <= set(d.parameters)
 
 
-def test_a_pose_seen_on_two_spheres_and_too_few_points(coarse):
-    rig, art, poses, cp, _ = coarse
+def test_a_pose_seen_on_two_spheres_is_left_out(coarse):
+    rig, art, poses, cp, full = coarse
     two = cp[~((cp["measurement"] == "5") & ~cp["sphere_id"].isin(["4", "5"]))]
+    problem = BundleProblem.from_tables(rig, art, two, poses)
+    ((m, reason),) = problem.dropped
+    assert m == "5" and reason.startswith("control points on 2 sphere(s) only (4, 5): its rotation about the line")
+    assert "5" not in problem.measurements and problem.n_points == int((two["measurement"] != "5").sum())
+    # every point kept maps back to its own row of the table it came from
+    kept = two.iloc[problem.row]
+    assert (kept["measurement"] != "5").all()
+    np.testing.assert_array_equal(problem.sphere_idx, art.index(kept["sphere_id"]))
+    res = bundle_adjust(problem, GIVEN)
+    (d,) = [d for d in res.diagnostics if d.kind == "pose_unobservable"]
+    assert d.severity == "warning" and d.subject == "5" and d.message.endswith("it is left out")
+    assert not res.errors() and list(res.poses_frame()["measurement"]) == [str(i) for i in range(1, 13) if i != 5]
+    # eleven placements determine the sensors as twelve do, to within their uncertainty
+    sensor = [i for i, n in enumerate(full.layout.names) if not n.startswith("pose")]
+    names = [full.layout.names[i] for i in sensor]
+    mine = np.array([res.x[list(res.layout.names).index(n)] for n in names])
+    assert np.all(np.abs(mine - full.x[sensor]) < 4 * full.uncertainty.std[sensor])
+
+
+def test_a_pose_seen_on_two_spheres_refuses_a_problem_that_keeps_it(coarse):
+    rig, art, poses, cp, full = coarse
+    problem = full.problem
+    in_five = problem.meas_idx == problem.measurements.index("5")
+    two = np.unique(problem.sphere_idx[in_five])[:2]
+    keep = ~in_five | np.isin(problem.sphere_idx, two)
+    kept = replace(problem, scanner_idx=problem.scanner_idx[keep], meas_idx=problem.meas_idx[keep],
+                   sphere_idx=problem.sphere_idx[keep], cam_mm=problem.cam_mm[keep], prj_mm=problem.prj_mm[keep],
+                   row=problem.row[keep])
     with pytest.raises(DegenerateCalibrationError, match="measurement 5 has control points on 2 sphere"):
-        bundle_adjust(BundleProblem.from_tables(rig, art, two, poses), GIVEN)
+        bundle_adjust(kept, GIVEN)
+
+
+def test_too_few_points(coarse):
+    rig, art, poses, cp, _ = coarse
     with pytest.raises(DegenerateCalibrationError) as err:
         bundle_adjust(BundleProblem.from_tables(rig, art, cp.iloc[::100], poses), GIVEN)
     assert "too_few_control_points" in _kinds(err.value)

@@ -8,10 +8,12 @@ Structural checks (before solving, from the control points alone):
   control points; nothing determines them.
 * ``measurement_without_control_points`` (warning): a pose of the pose table that no
   control point refers to; it is left out of the adjustment.
-* ``pose_unobservable`` (error): a measurement whose control points lie on fewer than
-  three spheres: a sphere is invariant under rotation about its centre, so with one
-  sphere the pose's rotation, with two spheres the rotation about the line through their
-  centres, is not determined.
+* ``pose_unobservable``: a measurement whose control points lie on fewer than three
+  spheres: a sphere is invariant under rotation about its centre, so with one sphere the
+  pose's rotation, with two spheres the rotation about the line through their centres,
+  is not determined. A warning where the problem came from tables
+  (:meth:`BundleProblem.from_tables` leaves such a measurement out, its points with it);
+  an error for a problem built with that measurement in it.
 * ``single_pose`` (warning): a scanner saw the artefact in one measurement only. Its
   principal distances, principal points and distortion are then fitted to a single
   placement of a few spheres: c trades off against the pinhole's distance along the
@@ -38,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fringecal.calibration.model import BundleProblem, ParameterLayout
+from fringecal.calibration.model import BundleProblem, ParameterLayout, too_few_spheres
 from fringecal.calibration.uncertainty import NEAR_SINGULAR, UNOBSERVABLE, weak_directions
 from fringecal.frames import Frame
 from fringecal.sensor import PARAM_NAMES
@@ -89,7 +91,8 @@ def check_structure(problem: BundleProblem) -> list[Diagnosis]:
     n = problem.n_points
     p = int(rig.free.sum() + problem.pose_free.sum())
     for m, reason in problem.dropped:
-        out.append(Diagnosis("measurement_without_control_points", "warning", m,
+        kind = "measurement_without_control_points" if reason == "no control points" else "pose_unobservable"
+        out.append(Diagnosis(kind, "warning", m,
                              f"measurement {m} has {reason}: its pose cannot be adjusted and it is left out"))
     if 2 * n < p:
         out.append(Diagnosis("too_few_control_points", "error", "all",
@@ -141,14 +144,10 @@ def check_structure(problem: BundleProblem) -> list[Diagnosis]:
         sel = problem.meas_idx == mi
         spheres = np.unique(problem.sphere_idx[sel])
         if 0 < len(spheres) < 3 and problem.pose_free[mi, 3:].any():
-            ids = ", ".join(problem.artefact.ids[s] for s in spheres)
-            what = ("its three rotation angles" if len(spheres) == 1 else
-                    "its rotation about the line through the two sphere centres")
+            ids = [problem.artefact.ids[s] for s in spheres]
             out.append(Diagnosis("pose_unobservable", "error", m,
-                                 f"measurement {m} has control points on {len(spheres)} sphere(s) only ({ids}): "
-                                 f"{what} cannot be determined (a sphere looks the same after any rotation "
-                                 "about its centre); drop the measurement or fix its angles",
-                                 tuple(f"pose[{m}].{a}" for a in ("omega", "phi", "kappa"))))
+                                 f"measurement {m} has {too_few_spheres(ids)}; drop the measurement or fix its "
+                                 "angles", tuple(f"pose[{m}].{a}" for a in ("omega", "phi", "kappa"))))
     return out
 
 

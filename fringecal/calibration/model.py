@@ -27,7 +27,8 @@ from fringecal.schemas import ControlPointsTable, PosePlanTable, TableError, val
 from fringecal.sensor import PARAM_NAMES, PRISM_NAMES
 from fringecal.triangulation import closest_approach
 
-__all__ = ["BundleProblem", "ParameterLayout", "Evaluator", "Evaluation", "POSE_NAMES", "POSE_COLUMNS", "triangulated_points"]
+__all__ = ["BundleProblem", "ParameterLayout", "Evaluator", "Evaluation", "POSE_NAMES", "POSE_COLUMNS", "triangulated_points",
+           "too_few_spheres"]
 
 POSE_NAMES = ("tx", "ty", "tz", "omega", "phi", "kappa")
 POSE_COLUMNS = ("tx_mm", "ty_mm", "tz_mm", "omega_rad", "phi_rad", "kappa_rad")
@@ -128,7 +129,11 @@ class BundleProblem:
         Every control point must name a scanner of the rig, a sphere of the artefact and a
         measurement of the pose table, and lie on the camera's pixel grid; violations raise
         one :class:`TableError` naming the lines. Measurements of the pose table without
-        control points are dropped and recorded in ``dropped``.
+        control points, and those whose control points lie on fewer than three spheres
+        (their pose's rotation is not determined, :func:`too_few_spheres`), are left out
+        with their points and recorded in ``dropped``: one occluded or badly labelled
+        placement should not refuse a calibration the others determine. ``row`` keeps
+        each remaining point's row in ``control_points``.
         """
         cp = validate_table(control_points, ControlPointsTable, source)
         poses = validate_table(poses, PosePlanTable, poses_source)
@@ -168,15 +173,20 @@ class BundleProblem:
             prj_mm[sel] = sc.projector.image_mm(tau[sel])
         if problems:
             raise TableError(source, problems)
-        seen = set(cp["measurement"])
-        dropped = tuple((m, "no control points") for m in pose_ids if m not in seen)
-        keep = [m for m in pose_ids if m in seen]
+        dropped = dict.fromkeys(pose_ids, "no control points")
+        for m, ids in cp.groupby("measurement", sort=False)["sphere_id"].unique().items():
+            dropped.pop(m)
+            if len(ids) < 3:
+                dropped[m] = too_few_spheres(sorted(map(str, ids), key=artefact.ids.index))
+        keep = [m for m in pose_ids if m not in dropped]
+        used = cp["measurement"].isin(keep).to_numpy()
         meas = {m: i for i, m in enumerate(keep)}
         pose_rows = poses.set_index("measurement").loc[keep, list(POSE_COLUMNS)].to_numpy(float)
-        return cls(rig, artefact, tuple(keep), pose_rows, s_idx,
-                   cp["measurement"].map(meas).to_numpy(np.int64),
-                   np.array(cp["sphere_id"].map(spheres).to_numpy(np.int64)), cam_mm, prj_mm,
-                   np.arange(len(cp)), None, float(gamma1), float(gamma2), dropped)
+        return cls(rig, artefact, tuple(keep), pose_rows, s_idx[used],
+                   cp["measurement"][used].map(meas).to_numpy(np.int64),
+                   np.array(cp["sphere_id"][used].map(spheres).to_numpy(np.int64)), cam_mm[used], prj_mm[used],
+                   np.flatnonzero(used), None, float(gamma1), float(gamma2),
+                   tuple((m, dropped[m]) for m in pose_ids if m in dropped))
 
     # -- views -----------------------------------------------------------
     @property
@@ -622,6 +632,14 @@ class Evaluator:
         start, stop, _, _ = self.problem.groups()
         counts = stop - start
         return np.repeat(a["gmap"], counts, axis=0)
+
+
+def too_few_spheres(ids: list) -> str:
+    """The reason a measurement seen on ``ids`` (fewer than three spheres) is left out."""
+    what = ("its three rotation angles" if len(ids) == 1 else
+            "its rotation about the line through the two sphere centres")
+    return (f"control points on {len(ids)} sphere(s) only ({', '.join(ids)}): {what} cannot be determined "
+            "(a sphere looks the same after any rotation about its centre)")
 
 
 def triangulated_points(problem: BundleProblem, rig=None) -> np.ndarray:
