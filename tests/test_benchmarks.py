@@ -23,7 +23,7 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 SCRIPTS = sorted(p.stem for p in BENCH.glob("*.py") if not p.stem.startswith("_"))
 
 #: scripts smoke-tested on tests/test_run_flow.py's finished run (they read a run directory)
-ON_A_RUN = ("coverage_split", "extraction_accuracy", "measure_spheres", "parameter_coverage", "thesis_scale")
+ON_A_RUN = ("artefact_refinement", "coverage_split", "extraction_accuracy", "measure_spheres", "parameter_coverage", "thesis_scale")
 #: scripts that make whole runs themselves: the slow tier
 WHOLE_RUNS = ("first_run", "length_coverage", "black_box_coverage")
 

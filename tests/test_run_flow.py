@@ -476,3 +476,13 @@ def test_benchmarks_that_read_a_run_directory_run_on_this_run(first_run, tmp_pat
     # the ball-bar measured as objects: both spheres of every position, each distance
     spheres = run_benchmark("measure_spheres", [str(run_dir), "--smoke"], tmp_path / "m.json")["budgets"]["total"]
     assert spheres["summary"]["distance"]["n"] == 3 and spheres["summary"]["position"]["n"] >= 6
+    # what the data say of the artefact's centres: in the ideal profile the artefact is its
+    # table; the data's information on the seen spheres' centres lacks the rigid motions of
+    # the whole artefact (the poses take them) and, from these four measurements, their
+    # common scale (the sensors take it); at 320 px its best-determined combination is
+    # some 30 um, coarser than the table's 10 um
+    (art,) = run_benchmark("artefact_refinement", [str(run_dir), "--smoke"], tmp_path / "a.json")["runs"]
+    assert art["table_error_rms_um"] < 1e-6 and art["null_directions"] in (6, 7)
+    u = [d["u_um"] for d in art["directions"]]
+    assert len(u) == 3 * art["n_spheres_seen"] - art["null_directions"] and u == sorted(u) and 10 < u[0] < 100 < u[-1]
+    assert art["finer_than_table"] == {"n": 0, "rms_z": None, "corr_data_with_table_error": None}
