@@ -77,48 +77,22 @@ def _linearised(result):
     """Information I (3 n_s, 3 n_s) and gradient g (3 n_s) of the data on the centres at
     the solution, the sensors and poses adjusted with them (Schur complement), in
     inverse-variance units; and the residual variance used."""
-    from fringecal.calibration.model import Evaluator
-    from fringecal.calibration.solver import irls_weights
+    from fringecal.calibration.artefact_sensitivity import artefact_blocks
 
     pr = result.problem
-    art = pr.artefact
-    n_s = len(art.ids)
-    ev = Evaluator(pr, result.layout)
-    x = result.x
-    e = ev.evaluate(x, want_jac=True)
-    gamma = np.array([pr.gamma1, pr.gamma2])
-    Ja = np.zeros((pr.n_points, 2, 3))
-    for c in range(3):
-        res = []
-        for sign in (1.0, -1.0):
-            moved = art.centres.copy()
-            moved[:, c] += sign * STEP_MM
-            res.append(ev.with_artefact(moved, art.radii).evaluate(x, want_jac=False).res)
-        Ja[:, :, c] = (res[0] - res[1]) / (2 * STEP_MM)
-    _, J, ok = ev.jacobian_rows(x)
-    w = irls_weights(e.res, result.options.robust_loss, result.robust_scales) * gamma[None, :] * ok[:, None]
-    r = np.where(ok[:, None], e.res, 0.0)
-    variance = float(np.sum(w * r**2) / (2 * ok.sum() - result.layout.n))
+    n_s = len(pr.artefact.ids)
+    blocks = artefact_blocks(result)
+    e, w = blocks.evaluation, blocks.w
+    Ja = blocks.Ja[:, :, :3]  # the centres; the radii stay at the table
+    r = np.where(w > 0, e.res, 0.0)
+    variance = float(np.sum(w * r**2) / (2 * np.count_nonzero(w[:, 0]) - result.layout.n))
     w = w / variance
-    cols = ev.global_columns()
-    p = result.layout.n
-    B = np.zeros((p, n_s, 3))
     Iaa = np.zeros((n_s, 3, 3))
     g = np.zeros((n_s, 3))
-    start, stop, _, _ = pr.groups()
-    for a0, b0 in zip(start, stop):
-        sl = slice(a0, b0)
-        spheres = pr.sphere_idx[sl]
-        cg = cols[a0]
-        keep = cg >= 0
-        for k in np.unique(spheres):
-            m = spheres == k
-            wk, Jk, Jak = w[sl][m], J[sl][m], Ja[sl][m]
-            B[cg[keep], k, :] += np.einsum("nt,ntk,ntj->kj", wk, Jk, Jak)[keep]
-            Iaa[k] += np.einsum("nt,nti,ntj->ij", wk, Jak, Jak)
-            g[k] += np.einsum("nt,nt,ntj->j", wk, r[sl][m], Jak)
-    N = (gamma[0] * e.N1 + gamma[1] * e.N2) / variance
-    B = B.reshape(p, 3 * n_s)
+    np.add.at(Iaa, pr.sphere_idx, np.einsum("nt,nti,ntj->nij", w, Ja, Ja))
+    np.add.at(g, pr.sphere_idx, np.einsum("nt,nt,ntj->nj", w, r, Ja))
+    N = (pr.gamma1 * e.N1 + pr.gamma2 * e.N2) / variance
+    B = blocks.B[:, :, :3].reshape(result.layout.n, 3 * n_s) / variance
     d = np.sqrt(np.diag(N))
     d[d == 0] = 1.0
     lam, V = np.linalg.eigh(N / np.outer(d, d))

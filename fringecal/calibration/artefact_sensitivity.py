@@ -38,7 +38,7 @@ from fringecal.calibration.model import Evaluator
 from fringecal.calibration.solver import irls_weights
 from fringecal.calibration.uncertainty import UNOBSERVABLE
 
-__all__ = ["ArtefactSensitivity", "artefact_sensitivity", "STEP_MM"]
+__all__ = ["ArtefactBlocks", "ArtefactSensitivity", "artefact_blocks", "artefact_sensitivity", "STEP_MM"]
 
 #: central-difference step on the artefact's centres and radii (mm)
 STEP_MM = 1e-3
@@ -73,8 +73,32 @@ def _weights(result) -> np.ndarray:
     return irls_weights(result.residuals, result.options.robust_loss, result.robust_scales)
 
 
-def artefact_sensitivity(result) -> ArtefactSensitivity:
-    """:class:`ArtefactSensitivity` of a :class:`~fringecal.calibration.bundle.BundleResult`."""
+@dataclass(frozen=True)
+class ArtefactBlocks:
+    """The adjustment's derivatives by the artefact at a solution (inputs of
+    :func:`artefact_sensitivity`, and of any analysis that adjusts the artefact too).
+
+    Attributes
+    ----------
+    Ja : (n, 2, 4)
+        Each control point's alpha1, alpha2 by its sphere's centre x, y, z and radius.
+    w : (n, 2)
+        Weights of the residuals in F (gamma times the robust loss's final IRLS weight;
+        0 where a ray cannot be formed).
+    B : (p, n_spheres, 4)
+        ``J_x^T W J_a``: the cross block of the normal equations.
+    evaluation : Evaluation
+        Residuals and normal equations (N1, N2) at the solution.
+    """
+
+    Ja: np.ndarray
+    w: np.ndarray
+    B: np.ndarray
+    evaluation: object
+
+
+def artefact_blocks(result) -> ArtefactBlocks:
+    """:class:`ArtefactBlocks` of a :class:`~fringecal.calibration.bundle.BundleResult`."""
     pr = result.problem
     art = pr.artefact
     gamma = np.array([pr.gamma1, pr.gamma2])
@@ -96,8 +120,7 @@ def artefact_sensitivity(result) -> ArtefactSensitivity:
     _, J, ok = ev.jacobian_rows(x)
     w = w * ok[:, None]
     cols = ev.global_columns()
-    p = result.layout.n
-    B = np.zeros((p, n_s, 4))
+    B = np.zeros((result.layout.n, n_s, 4))
     start, stop, _, _ = pr.groups()
     for a0, b0 in zip(start, stop):
         sl = slice(a0, b0)
@@ -108,10 +131,18 @@ def artefact_sensitivity(result) -> ArtefactSensitivity:
             m = spheres == sph
             local = np.einsum("nt,ntk,ntj->kj", w[sl][m], J[sl][m], Ja[sl][m])  # (34, 4)
             B[g[keep], sph, :] += local[keep]
-    B = B.reshape(p, 4 * n_s)
-    e = ev.evaluate(x, want_jac=True)
-    N = gamma[0] * e.N1 + gamma[1] * e.N2
-    S = -_solve(N, B)
+    return ArtefactBlocks(Ja, w, B, ev.evaluate(x, want_jac=True))
+
+
+def artefact_sensitivity(result) -> ArtefactSensitivity:
+    """:class:`ArtefactSensitivity` of a :class:`~fringecal.calibration.bundle.BundleResult`."""
+    pr = result.problem
+    art = pr.artefact
+    n_s = len(art.ids)
+    blocks = artefact_blocks(result)
+    e = blocks.evaluation
+    N = pr.gamma1 * e.N1 + pr.gamma2 * e.N2
+    S = -_solve(N, blocks.B.reshape(result.layout.n, 4 * n_s))
     u = np.repeat(art.u, 4).reshape(n_s, 4) * np.array([1.0, 1.0, 1.0, 0.5])
     da_scale = np.concatenate([art.centres - art.centres.mean(0), art.radii[:, None]], axis=1).reshape(-1)
     return ArtefactSensitivity(S, u.reshape(-1), S @ da_scale)
