@@ -770,3 +770,20 @@ def test_scanner_section_shows_the_observed_region_of_each_sensor(rd):
     assert section.count("records no observed region of") == 2 and "the calibration observed\"" not in section
     assert 'alt="residuals and control points over the images of scanner1"' in section
     _well_formed(page)
+
+
+def test_a_left_out_measurement_is_listed_once_with_its_reason(rd):
+    """A measurement the adjustment left out is one of its diagnoses (the kind says why);
+    ``dropped_measurements`` repeats it, so only a summary without that diagnosis gets a
+    row of its own."""
+    bs = rd.bundle_summary.load()
+    reason = "control points on 2 sphere(s) only (4, 5): its rotation about the line through the two sphere centres"
+    diagnosis = {"kind": "pose_unobservable", "severity": "warning", "subject": "13",
+                 "message": f"measurement 13 has {reason}: its pose cannot be adjusted and it is left out",
+                 "parameters": []}
+    rd.bundle_summary.save({**bs, "diagnostics": [*bs.get("diagnostics", []), diagnosis],
+                            "dropped_measurements": [{"measurement": "13", "reason": reason},
+                                                     {"measurement": "14", "reason": "no control points"}]})
+    results = _section(write_report(rd).read_text(encoding="utf-8"), "results")
+    assert results.count("control points on 2 sphere(s) only (4, 5)") == 1 and "pose_unobservable" in results
+    assert results.count("14: no control points") == 1

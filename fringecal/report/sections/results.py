@@ -36,8 +36,11 @@ def _rms_table(run: RunData, bs: dict):
 def _diagnoses(bs: dict):
     notes = [(d.get("severity", ""), d.get("kind", ""), d.get("message", "")) for d in bs.get("diagnostics", [])]
     notes += [("warning", "weak direction", w) for w in bs.get("weak_directions", [])]
+    # a left-out measurement is one of the diagnoses (its kind says why); a summary that
+    # lists it only among dropped_measurements still gets its row
+    named = {str(d.get("subject")) for d in bs.get("diagnostics", [])}
     notes += [("warning", "dropped measurement", f"{d.get('measurement')}: {d.get('reason')}")
-              for d in bs.get("dropped_measurements", [])]
+              for d in bs.get("dropped_measurements", []) if str(d.get("measurement")) not in named]
     return table(["Severity", "Kind", "Message"], notes, left=3) if notes else None
 
 
