@@ -109,6 +109,11 @@ def _quiet_prefect(verbose: bool) -> None:
         os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "CRITICAL")
 
 
+def _left_out(names) -> str:
+    """`` (left out: 12)`` for the measurements the adjustment left out; empty without."""
+    return f" (left out: {', '.join(names)})" if names else ""
+
+
 def _print_summary(summary: dict, run_dir: Path) -> None:
     from rich.table import Table
 
@@ -126,7 +131,8 @@ def _print_summary(summary: dict, run_dir: Path) -> None:
     else:
         rows = [
             ("source", str(source)),
-            ("measurements / control points", f"{summary['n_measurements']} / {summary['n_control_points']:,}"),
+            ("measurements / control points", f"{summary['n_measurements']} / {summary['n_control_points']:,}"
+             + _left_out(summary.get("measurements_left_out"))),
             ("RMS F before -> after", f"{summary['rms_F_mm_before']:.3f} mm -> {1000 * summary['rms_F_mm_after']:.1f} um"),
             ("RMS eps1 / eps2 after", f"{1000 * summary['rms_eps1_mm_after']:.1f} / {1000 * summary['rms_eps2_mm_after']:.1f} um"),
             ("one part in (1.96 sigma eps2)", f"{summary['one_part_in']:,.0f}"),

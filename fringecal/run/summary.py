@@ -152,6 +152,8 @@ def run_summary(rd: RunDir, cfg) -> dict:
     out = {
         "name": cfg.name, "source": cfg.source, "dataset": None if cfg.dataset is None else str(cfg.dataset),
         "n_measurements": n_measurements,
+        # measurements the adjustment left out, each with why (bundle_summary.json)
+        "measurements_left_out": [str(d.get("measurement")) for d in b.get("dropped_measurements", [])],
         "n_control_points": b["n_control_points"],
         # a rig of black boxes only has no sensor model: no F, eps1, eps2 (its centres' RMS instead)
         "rms_F_mm_before": before.get("rms_f_mm"), "rms_F_mm_after": after.get("rms_f_mm"),
