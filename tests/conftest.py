@@ -256,6 +256,55 @@ def small_dataset(small_config, tmp_path_factory) -> tuple[Path, Path]:
     return d / "small", d / "small-truth"
 
 
+def write_dataset_reusing(cfg, out: Path, truth_out: Path, base: Path, check: tuple[str, ...]) -> Path:
+    """``write_dataset(cfg, out, truth_out, "png")`` for a data set that shares image
+    stacks with the data set ``base`` (the session's small data set): the same rig,
+    seeds and settings give the same frames, so each stack ``base`` holds under the
+    same measurement id (``measurements/<m>/<scanner>``, ``verification/<position>/<scanner>``)
+    is hard-linked from there instead of rendered and PNG-encoded again. Everything
+    else -- the tables, the truth, the stacks ``base`` lacks (acceptance objects,
+    objects to measure) -- is written as ``write_dataset`` writes it.
+
+    The stacks named in ``check`` (measurement ids) are rendered anyway and must equal
+    ``base``'s byte for byte: the premise that both data sets are written alike is
+    tested, not assumed. Readers must not change the linked frames (``base`` is shared)."""
+    import filecmp
+
+    import fringecal.simulate.export as export
+
+    stacks = {f"{m.name}-{s.name}": s for kind in ("measurements", "verification") if (base / kind).is_dir()
+              for m in (base / kind).iterdir() if m.is_dir() and m.name != "acceptance"
+              for s in m.iterdir() if s.is_dir()}
+    linked = type("Linked", (), {})
+    render, write = export.render_frames, export.write_frames
+    written: dict[str, Path] = {}
+
+    def render_or_link(measurement, *args, **kwargs):
+        if measurement in stacks and measurement not in check:
+            return type("Measurement", (), {"frames": (linked, stacks[measurement]), "sequence": None})()
+        return render(measurement, *args, **kwargs)
+
+    def write_or_link(folder, frames, *args, **kwargs):
+        if isinstance(frames, tuple) and frames[0] is linked:
+            shutil.copytree(frames[1], folder, copy_function=os.link)
+            return Path(folder)
+        written[Path(folder).parts[-2] + "-" + Path(folder).name] = Path(folder).relative_to(
+            next(p for p in Path(folder).parents if p.name.endswith(".tmp")))
+        return write(folder, frames, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(export, "render_frames", render_or_link)
+        mp.setattr(export, "write_frames", write_or_link)
+        data = export.write_dataset(cfg, out, truth_out, "png")
+    for measurement in check:
+        ours, theirs = data / written[measurement], stacks[measurement]
+        names = sorted(p.name for p in theirs.iterdir())
+        assert sorted(p.name for p in ours.iterdir()) == names, measurement
+        match, mismatch, errors = filecmp.cmpfiles(ours, theirs, names, shallow=False)
+        assert not mismatch and not errors, (measurement, mismatch, errors)
+    return data
+
+
 @pytest.fixture(scope="session")
 def small_dataset_run(small_dataset, tmp_path_factory):
     """The small data set run through every step (in this process, without Prefect),

@@ -303,7 +303,7 @@ def test_view_threshold_skips_scanners_and_an_unseen_object_is_refused(rig256, a
 # -- the data-set door -------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_dataset_door_writes_objects_that_calibration_ignores(small_dataset_run, tmp_path):
+def test_dataset_door_writes_objects_that_calibration_ignores(small_dataset, small_dataset_run, tmp_path):
     """``fringecal simulate`` with a panel and the artefact at a new pose on the small
     rig (320 px): ``objects/<name>/<scanner>/`` for the scanners that see each, the
     truth in ``<truth>/objects/<name>.json``; the frames decode to exactly the stores
@@ -313,13 +313,16 @@ def test_dataset_door_writes_objects_that_calibration_ignores(small_dataset_run,
     The run starts from a copy of the session's run of the small data set
     (tests/conftest.py), the same rig without objects: its calibration stacks are
     current for this data set (the same frames), so only what this data set adds or
-    changes runs -- an object read as a measurement would be a new item of every step."""
+    changes runs -- an object read as a measurement would be a new item of every step.
+    For the same reason its calibration and ball-bar stacks are linked from the session's
+    data set instead of rendered again (conftest.write_dataset_reusing, which renders
+    one of each anyway and compares the bytes); the objects' stacks are rendered."""
     from fringecal.artefact import load_rods
     from fringecal.dataset import DataSet
     from fringecal.fringe.measurement import decode_folder
     from fringecal.run.summary import manifest
     from fringecal.rundir import RunDir, TruthDir
-    from fringecal.simulate.export import write_dataset
+    from conftest import write_dataset_reusing
     from fringecal.simulate.small_thesis import write_small_thesis_config
     from fringecal.steps import run_pipeline
 
@@ -332,7 +335,8 @@ def test_dataset_door_writes_objects_that_calibration_ignores(small_dataset_run,
     doc["simulate"]["objects"] = [panel, art]
     config.write_text(yaml.safe_dump(doc))
     sim = load_run_config(config)
-    data = write_dataset(sim, tmp_path / "data", tmp_path / "data-truth", "png")
+    data = write_dataset_reusing(sim, tmp_path / "data", tmp_path / "data-truth", small_dataset[0],
+                                 check=("5-scanner1", "bb01-scanner2"))
 
     assert sorted(p.name for p in (data / "objects").iterdir()) == ["artefact-pose-13", "panel"]
     assert sorted(p.name for p in (data / "objects" / "panel").iterdir()) == ["scanner1"]
