@@ -12,10 +12,13 @@ is line 1) and the column, and the rule that broke.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import re
 import sys
+import threading
 import types
+from collections import OrderedDict
 from pathlib import Path
 from typing import Optional
 
@@ -786,12 +789,55 @@ def _infinite(s: pd.Series) -> np.ndarray:
     return np.flatnonzero(np.isinf(values))
 
 
+#: tables validated lately, by model and content (:func:`validate_table`)
+_VALIDATED: "OrderedDict[tuple, pd.DataFrame]" = OrderedDict()
+_VALIDATED_LOCK = threading.Lock()
+#: how many validated tables are kept (a run reads the same few tables many times)
+VALIDATED_KEPT = 64
+
+
+def _content_key(df: pd.DataFrame, model) -> tuple | None:
+    """What a validation's result depends on: the model, the columns with their dtypes
+    and every cell (a 64-bit hash per row, hashed again); None for cells that cannot be
+    hashed."""
+    try:
+        rows = pd.util.hash_pandas_object(df, index=False).to_numpy()
+    except TypeError:
+        return None
+    return (model, tuple(map(str, df.columns)), tuple(map(str, df.dtypes)), len(df),
+            hashlib.blake2b(rows.tobytes(), digest_size=16).digest())
+
+
 def validate_table(df: pd.DataFrame, model, source: str = "<table>") -> pd.DataFrame:
     """Validate a DataFrame against ``model``; return the coerced copy.
 
     Row numbers in messages are CSV lines (header = line 1) assuming ``df`` has a
     default RangeIndex in file order.
+
+    A run reads the same few tables many times (its artefact, sensors, control points:
+    a small run validates some 250 tables, about 100 of them distinct), so the last ``VALIDATED_KEPT`` results are kept by content (the model, the
+    columns, their dtypes and every cell, not the file's name or time) and a table seen
+    before is returned as a copy of its earlier result. Only tables that pass are kept:
+    a table that fails is validated, and named, every time.
     """
+    key = _content_key(df, model)
+    if key is not None:
+        with _VALIDATED_LOCK:
+            hit = _VALIDATED.get(key)
+            if hit is not None:
+                _VALIDATED.move_to_end(key)
+        if hit is not None:
+            return hit.copy()
+    out = _validate(df, model, source)
+    if key is not None:
+        with _VALIDATED_LOCK:
+            _VALIDATED[key] = out.copy()
+            while len(_VALIDATED) > VALIDATED_KEPT:
+                _VALIDATED.popitem(last=False)
+    return out
+
+
+def _validate(df: pd.DataFrame, model, source: str) -> pd.DataFrame:
     req, opt = _required_and_optional(model)
     columns = model.to_schema().columns
     nullable = {n for n, c in columns.items() if c.nullable}

@@ -113,3 +113,30 @@ def test_good_tables_read_with_text_ids(thesis_dir):
     assert art.ids[:3] == ("1", "2", "3")
     bb = load_artefact(thesis_dir / "ballbar.csv")
     assert bb.ids == ("A", "B")
+
+
+def test_a_table_validated_before_is_a_copy_of_its_result_and_a_bad_one_is_named_every_time(tmp_path, monkeypatch):
+    """Validations are kept by content: the same cells under another file name give the
+    earlier result without validating again, as a copy the caller may change; a table
+    that fails is validated, and named, each time."""
+    import fringecal.schemas.tables as tables
+
+    from collections import OrderedDict
+
+    monkeypatch.setattr(tables, "_VALIDATED", OrderedDict())  # what earlier tests validated
+    runs = []
+    real = tables._validate
+    monkeypatch.setattr(tables, "_validate", lambda df, model, source: runs.append(source) or real(df, model, source))
+    good = "sphere_id,x_mm,y_mm,z_mm,diameter_mm\n1,0,0,0,50\n2,1.5,2,0,50\n"
+    first = read_table(write(tmp_path, good, "a.csv"), ArtefactTable)
+    first.loc[0, "x_mm"] = 99.0  # the caller's copy: the kept result does not change
+    again = read_table(write(tmp_path, good, "b.csv"), ArtefactTable)
+    assert runs == [str(tmp_path / "a.csv")] and again.loc[0, "x_mm"] == 0.0
+    assert again.equals(read_table(tmp_path / "a.csv", ArtefactTable)) and len(runs) == 1
+    read_table(write(tmp_path, good.replace("1.5", "1.25"), "c.csv"), ArtefactTable)  # one cell differs
+    assert len(runs) == 2
+    bad = good.replace("1.5", "abc")
+    for name in ("d.csv", "e.csv"):
+        with pytest.raises(TableError, match=f"{name}.*line 3, column 'y_mm'|line 3, column 'x_mm'"):
+            read_table(write(tmp_path, bad, name), ArtefactTable)
+    assert runs[-2:] == [str(tmp_path / "d.csv"), str(tmp_path / "e.csv")]
