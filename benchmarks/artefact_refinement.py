@@ -12,16 +12,20 @@ the 14-parameter model, then linearises the adjustment at its solution in the ar
 centres (``da``, 3 per sphere, radii held; spheres without control points are left at
 their table values and out of every figure) and reports:
 
-* ``data_only``: the centres the data alone give (``da = -I^+ g``, ``I = J_a^T W J_a -
-  B^T N^-1 B`` the information the data hold on ``da`` once the sensors and poses are
-  adjusted with it, ``g`` the gradient; W the inverse variance of a residual), their
-  standard uncertainty per coordinate from ``I^+``, and their error against the truth.
-  ``I`` has seven null directions (a rigid motion of all spheres, which the poses take;
-  their common scale, which the sensors take): both the estimate and the truth are
-  compared after a best-fit similarity transform. ``data_u_by_direction_um``: the u of
-  the determined combinations of centres (the eigen-directions of ``I``);
-* ``with_prior``: the posterior centres with the table as a prior (``I + Sigma^-1``),
-  their error against the truth next to the table's own error.
+* ``directions``: along each combination of centres the data determine (the
+  eigen-directions of ``I = J_a^T W J_a - B^T N^-1 B``, the information the data hold on
+  ``da`` once the sensors and poses are adjusted with it; W the inverse variance of a
+  residual), its standard uncertainty ``u_um``, what the data alone say the table's error
+  is there (``data_um``, ``-g / lambda``, g the gradient) and what it truly is
+  (``table_error_um``), and their difference over u (``z``). ``I`` has six null
+  directions, a rigid motion of all the centres (the poses take it), and a seventh,
+  their common scale (the sensors take it), where the poses do not tell it;
+* ``finer_than_table``: those combinations the data determine better than the table's
+  u: how many, the RMS of their ``z`` (about 1 if the data were limited by their noise)
+  and the correlation of what the data say with the table's true error;
+* ``with_prior``: the centres adjusted with the table as a prior (``I + Sigma^-1``):
+  their error against the truth (RMS after a best-fit similarity transform) next to the
+  table's own (``table_error_rms_um``).
 
 Prints one JSON object::
 
@@ -47,8 +51,6 @@ sys.path.insert(0, str(ROOT))
 
 from _common import add_options, conditions, finish  # noqa: E402
 
-#: central-difference step on the centres (mm), as fringecal.calibration.artefact_sensitivity
-STEP_MM = 1e-3
 #: eigenvalues of the data's information below this fraction of the largest are its null space
 NULL = 1e-9
 
