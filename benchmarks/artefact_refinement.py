@@ -84,22 +84,19 @@ def _linearised(result):
     pr = result.problem
     n_s = len(pr.artefact.ids)
     blocks = artefact_blocks(result)
-    e, w = blocks.evaluation, blocks.w
+    w = blocks.w
     Ja = blocks.Ja[:, :, :3]  # the centres; the radii stay at the table
-    r = np.where(w > 0, e.res, 0.0)
+    r = np.where(w > 0, blocks.residuals, 0.0)
     variance = float(np.sum(w * r**2) / (2 * np.count_nonzero(w[:, 0]) - result.layout.n))
     w = w / variance
     Iaa = np.zeros((n_s, 3, 3))
     g = np.zeros((n_s, 3))
     np.add.at(Iaa, pr.sphere_idx, np.einsum("nt,nti,ntj->nij", w, Ja, Ja))
     np.add.at(g, pr.sphere_idx, np.einsum("nt,nt,ntj->nj", w, r, Ja))
-    N = (pr.gamma1 * e.N1 + pr.gamma2 * e.N2) / variance
+    # the sensors and poses adjusted with the centres: I = Iaa - B^T N^-1 B (N^-1 B does not
+    # depend on the residual variance, B^T does)
     B = blocks.B[:, :, :3].reshape(result.layout.n, 3 * n_s) / variance
-    d = np.sqrt(np.diag(N))
-    d[d == 0] = 1.0
-    lam, V = np.linalg.eigh(N / np.outer(d, d))
-    keep = lam > NULL * lam[-1]
-    NinvB = ((V[:, keep] / lam[keep]) @ (V[:, keep].T @ (B / d[:, None]))) / d[:, None]
+    NinvB = blocks.solved()[:, :, :3].reshape(result.layout.n, 3 * n_s)
     I = np.zeros((3 * n_s, 3 * n_s))
     for k in range(n_s):
         I[3 * k:3 * k + 3, 3 * k:3 * k + 3] = Iaa[k]

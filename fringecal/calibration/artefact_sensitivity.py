@@ -87,14 +87,23 @@ class ArtefactBlocks:
         0 where a ray cannot be formed).
     B : (p, n_spheres, 4)
         ``J_x^T W J_a``: the cross block of the normal equations.
-    evaluation : Evaluation
-        Residuals and normal equations (N1, N2) at the solution.
+    N : (p, p)
+        ``J_x^T W J_x``: the normal matrix of the adjustment at the solution.
+    residuals : (n, 2)
+        alpha1, alpha2 at the solution.
     """
 
     Ja: np.ndarray
     w: np.ndarray
     B: np.ndarray
-    evaluation: object
+    N: np.ndarray
+    residuals: np.ndarray
+
+    def solved(self) -> np.ndarray:
+        """``N^-1 B`` (p, n_spheres, 4), unobservable directions dropped as in the
+        covariance: minus the response of the adjusted vector to the artefact."""
+        p, n_s, _ = self.B.shape
+        return _solve(self.N, self.B.reshape(p, 4 * n_s)).reshape(p, n_s, 4)
 
 
 def artefact_blocks(result) -> ArtefactBlocks:
@@ -131,7 +140,8 @@ def artefact_blocks(result) -> ArtefactBlocks:
             m = spheres == sph
             local = np.einsum("nt,ntk,ntj->kj", w[sl][m], J[sl][m], Ja[sl][m])  # (34, 4)
             B[g[keep], sph, :] += local[keep]
-    return ArtefactBlocks(Ja, w, B, ev.evaluate(x, want_jac=True))
+    e = ev.evaluate(x, want_jac=True)
+    return ArtefactBlocks(Ja, w, B, pr.gamma1 * e.N1 + pr.gamma2 * e.N2, e.res)
 
 
 def artefact_sensitivity(result) -> ArtefactSensitivity:
@@ -139,10 +149,7 @@ def artefact_sensitivity(result) -> ArtefactSensitivity:
     pr = result.problem
     art = pr.artefact
     n_s = len(art.ids)
-    blocks = artefact_blocks(result)
-    e = blocks.evaluation
-    N = pr.gamma1 * e.N1 + pr.gamma2 * e.N2
-    S = -_solve(N, blocks.B.reshape(result.layout.n, 4 * n_s))
+    S = -artefact_blocks(result).solved().reshape(result.layout.n, 4 * n_s)
     u = np.repeat(art.u, 4).reshape(n_s, 4) * np.array([1.0, 1.0, 1.0, 0.5])
     da_scale = np.concatenate([art.centres - art.centres.mean(0), art.radii[:, None]], axis=1).reshape(-1)
     return ArtefactSensitivity(S, u.reshape(-1), S @ da_scale)

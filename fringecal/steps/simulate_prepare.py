@@ -92,9 +92,9 @@ class SimulatePrepare(Step):
                                         predicted_regions(sr.truth, sr.artefact, sr.planned))
             if outside:
                 log.info("the ball-bar positions of verification.scheme %s put %d sphere image(s) outside the "
-                            "region of the images the artefact's poses will let the calibration observe (predicted "
-                            "from the planned poses; there its model extrapolates): %s. 'scheme: planned' places "
-                            "them inside", cfg.simulate.verification.scheme, len(outside), "; ".join(outside))
+                         "region of the images the artefact's poses will let the calibration observe (predicted "
+                         "from the planned poses; there its model extrapolates): %s. 'scheme: planned' places "
+                         "them inside", cfg.simulate.verification.scheme, len(outside), "; ".join(outside))
         rd.artefact.save(sr.artefact)
         save_or_remove(rd.rods, sr.rods)
         rd.ballbar.save(sr.ballbar)
